@@ -1,0 +1,41 @@
+# darp: two commands on a fresh machine.
+#   make demo   set everything up, then run the main job on the embedded digital twin
+#   make test   set everything up, then run the whole test suite
+#   make bench  set everything up, then run the benchmarks (darp next to its peers)
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+DARP   := $(VENV)/bin/darp
+STAMP  := $(VENV)/.darp-installed
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: all setup demo test test-fast bench clean
+
+all: test
+
+$(STAMP): pyproject.toml scripts/ensure_system_libs.sh
+	@bash scripts/ensure_system_libs.sh
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "darp needs Python >= 3.11")'
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@$(PY) -m pip install -q --upgrade pip
+	@$(PY) -m pip install -q -e '.[test,bench]'
+	@touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(DARP) demo
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 --dist loadfile -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -n 2 --dist loadfile -q -m "not slow"
+
+bench: $(STAMP)
+	@set -e; for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b; done
+
+clean:
+	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache

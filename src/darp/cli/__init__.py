@@ -1,0 +1,26 @@
+"""The ``darp`` command. Each command group lives in its own module and registers itself here.
+
+Library errors (:class:`darp.errors.DarpError`) become one line on stderr and exit code 2; no
+traceback is shown for user errors.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from darp.cli._app import app
+
+# Command modules register themselves on ``app`` when imported.
+from darp.cli import recording as _recording  # noqa: F401,E402
+
+
+def main() -> None:
+    """Console entry point."""
+    from darp.cli._app import run
+
+    sys.exit(run())
+
+
+__all__ = ["app", "main", "typer"]

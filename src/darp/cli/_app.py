@@ -1,0 +1,53 @@
+"""The root typer application and the error boundary shared by every command."""
+
+from __future__ import annotations
+
+import sys
+
+import typer
+
+from darp.errors import DarpError
+
+app = typer.Typer(
+    name="darp",
+    help="darp: calibrated dual-arm eye-in-hand RGB-D-IR perception (calibrate, acquire, process, simulate).",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+
+def fail(message: str) -> typer.Exit:
+    """Print one error line and return the exit exception (code 2) for the caller to raise."""
+    typer.echo(f"darp: error: {message}", err=True)
+    return typer.Exit(code=2)
+
+
+def run(argv: list[str] | None = None) -> int:
+    """Run the app, mapping DarpError (and bad files) to one line and exit code 2."""
+    import darp.cli  # noqa: F401  (registers the command modules)
+
+    try:
+        app(args=argv, standalone_mode=False)
+    except DarpError as err:
+        typer.echo(f"darp: error: {err}", err=True)
+        return 2
+    except typer.Exit as err:
+        return int(err.exit_code or 0)
+    except typer.Abort:
+        typer.echo("darp: aborted", err=True)
+        return 130
+    except KeyboardInterrupt:
+        typer.echo("darp: interrupted", err=True)
+        return 130
+    except (FileNotFoundError, IsADirectoryError, PermissionError) as err:
+        typer.echo(f"darp: error: {err.filename}: {err.strerror}", err=True)
+        return 2
+    except Exception as err:  # click usage errors
+        import click
+
+        if isinstance(err, click.ClickException):
+            err.show(file=sys.stderr)
+            return 2
+        raise
+    return 0

@@ -1,0 +1,62 @@
+"""The exception hierarchy: one root, one subclass per layer.
+
+Library code raises these; only the command-line layer turns them into a one-line message and exit
+code 2. Messages name the file (when there is one) and the problem, so that they can be shown as is.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DarpError(Exception):
+    """Root of every error darp raises on purpose (bad input, impossible request)."""
+
+    def __init__(self, message: str, path: str | Path | None = None) -> None:
+        self.path = Path(path) if path is not None else None
+        self.message = message
+        super().__init__(f"{path}: {message}" if path is not None else message)
+
+
+class FormatError(DarpError):
+    """A file does not follow its format: corrupt, truncated, wrong columns, bad values."""
+
+
+class RecordingError(FormatError):
+    """A RealSense recording (.bag / .db3) cannot be read or written as asked."""
+
+
+class SurveyError(FormatError):
+    """A survey folder is missing a file or holds inconsistent files."""
+
+
+class KinematicsError(DarpError):
+    """A kinematic request is impossible (bad joint vector, unknown frame, unknown arm)."""
+
+
+class ConfigError(DarpError):
+    """A configuration file (rig, twin settings) is invalid."""
+
+
+class CalibrationError(DarpError):
+    """Calibration cannot be computed from the given captures."""
+
+
+class AcquisitionError(DarpError):
+    """A survey cannot be planned or executed."""
+
+
+class TwinError(DarpError):
+    """The digital twin cannot build or run the requested scene."""
+
+
+class HardwareError(DarpError):
+    """Real hardware (Z1 SDK, RealSense) is unavailable or misbehaves."""
+
+
+class ReconstructionError(DarpError):
+    """Keyframes, fusion or meshing cannot proceed."""
+
+
+class EvaluationError(DarpError):
+    """Evaluation inputs are missing or inconsistent."""
