@@ -1,0 +1,187 @@
+"""The recording interface shared by the ROS1 ``.bag`` and ROS2 ``.db3`` readers, and ``open_recording``.
+
+A concrete reader parses the file's index on open (cheap: no pixels are decoded) and decodes frames
+on demand. Everything generic (nearest-frame lookup, frame sets, time windows) lives here once.
+"""
+
+from __future__ import annotations
+
+import bisect
+from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from types import TracebackType
+
+import numpy as np
+
+from darp.errors import RecordingError
+from darp.formats.recording_types import (
+    IMAGE_STREAMS,
+    DeviceInfo,
+    Frame,
+    FrameInfo,
+    FrameSet,
+    StreamProfile,
+)
+
+
+class Recording(ABC):
+    """A RealSense recording opened for reading. Use as a context manager or call :meth:`close`."""
+
+    path: Path
+    device: DeviceInfo
+    streams: dict[str, StreamProfile]  # by darp stream key
+    depth_scale: float  # metres per depth unit
+    file_version: int | None  # /file_version of ROS1 bags; None for .db3
+
+    # -- what a concrete reader provides -------------------------------------------------------
+    @abstractmethod
+    def frame_infos(self, stream: str) -> list[FrameInfo]:
+        """Every frame of ``stream`` in recording order, without pixels."""
+
+    @abstractmethod
+    def read_frame(self, stream: str, index: int) -> Frame:
+        """Decode frame ``index`` (0-based, recording order) of ``stream``."""
+
+    @abstractmethod
+    def iter_frames(
+        self,
+        streams: Iterable[str] | None = None,
+        start_ms: float | None = None,
+        stop_ms: float | None = None,
+    ) -> Iterator[Frame]:
+        """Stream frames of ``streams`` (all by default) in recording order, with bounded memory.
+
+        ``start_ms``/``stop_ms`` bound the frame timestamp (inclusive start, exclusive stop).
+        """
+
+    @abstractmethod
+    def extrinsics(self, source: str, target: str) -> np.ndarray:
+        """4x4 ``T_target_source``: maps points in stream ``source``'s frame to stream ``target``'s."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the file."""
+
+    @property
+    @abstractmethod
+    def size_bytes(self) -> int:
+        """Size of the file on disk."""
+
+    # -- generic conveniences -------------------------------------------------------------------
+    def stream(self, key: str) -> StreamProfile:
+        """The profile of stream ``key``, or a clear error listing the streams that exist."""
+        try:
+            return self.streams[key]
+        except KeyError:
+            raise RecordingError(
+                f"no stream {key!r} in this recording (streams: {', '.join(self.streams) or 'none'})",
+                self.path,
+            ) from None
+
+    def frame_count(self, stream: str) -> int:
+        return len(self.frame_infos(stream))
+
+    def timestamps_ms(self, stream: str) -> np.ndarray:
+        """Frame timestamps of ``stream`` in milliseconds, recording order."""
+        return np.array([info.timestamp_ms for info in self.frame_infos(stream)], dtype=np.float64)
+
+    @property
+    def duration_s(self) -> float:
+        """Span of frame timestamps over all streams, in seconds."""
+        first, last = [], []
+        for key in self.streams:
+            stamps = self.timestamps_ms(key)
+            if stamps.size:
+                first.append(stamps.min())
+                last.append(stamps.max())
+        return (max(last) - min(first)) / 1000.0 if first else 0.0
+
+    def nearest_index(self, stream: str, timestamp_ms: float) -> int:
+        """Index of the frame of ``stream`` whose timestamp is nearest ``timestamp_ms``."""
+        stamps = self.timestamps_ms(stream)
+        if stamps.size == 0:
+            raise RecordingError(f"stream {stream!r} has no frames", self.path)
+        order = np.argsort(stamps, kind="stable")
+        sorted_stamps = stamps[order]
+        pos = bisect.bisect_left(sorted_stamps.tolist(), timestamp_ms)
+        candidates = [c for c in (pos - 1, pos) if 0 <= c < sorted_stamps.size]
+        best = min(candidates, key=lambda c: abs(sorted_stamps[c] - timestamp_ms))
+        return int(order[best])
+
+    def frame_at(self, stream: str, timestamp_ms: float) -> Frame:
+        """The frame of ``stream`` nearest in time to ``timestamp_ms``."""
+        return self.read_frame(stream, self.nearest_index(stream, timestamp_ms))
+
+    def framesets(self, start_ms: float | None = None, stop_ms: float | None = None) -> Iterator[FrameSet]:
+        """Group frames into sets keyed on depth: depth, IR1 and IR2 with the same frame number
+        (or timestamp), and the colour frame nearest in time. Memory stays bounded."""
+        present = [key for key in IMAGE_STREAMS if key in self.streams]
+        if "depth" not in present:
+            raise RecordingError("no depth stream to group frame sets on", self.path)
+        color_stamps = self.timestamps_ms("color") if "color" in present else np.empty(0)
+        color_order = np.argsort(color_stamps, kind="stable")
+        color_sorted = color_stamps[color_order]
+        pending: dict[str, list[Frame]] = {"ir1": [], "ir2": []}
+        for frame in self.iter_frames(
+            [k for k in ("depth", "ir1", "ir2") if k in present], start_ms=start_ms, stop_ms=stop_ms
+        ):
+            key = frame.info.stream
+            if key != "depth":
+                pending[key].append(frame)
+                pending[key] = pending[key][-8:]
+                continue
+            ir = {k: _match(pending[k], frame.info) for k in ("ir1", "ir2")}
+            color = None
+            if color_sorted.size:
+                pos = int(np.searchsorted(color_sorted, frame.info.timestamp_ms))
+                cands = [c for c in (pos - 1, pos) if 0 <= c < color_sorted.size]
+                best = min(cands, key=lambda c: abs(color_sorted[c] - frame.info.timestamp_ms))
+                color = self.read_frame("color", int(color_order[best]))
+            yield FrameSet(depth=frame, ir1=ir["ir1"], ir2=ir["ir2"], color=color)
+
+    # -- context manager ------------------------------------------------------------------------
+    def __enter__(self) -> Recording:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def _match(candidates: list[Frame], depth: FrameInfo) -> Frame | None:
+    """The buffered IR frame with the depth frame's frame number, else the nearest in time (<= 1 ms)."""
+    for frame in reversed(candidates):
+        if frame.info.frame_number == depth.frame_number:
+            return frame
+    close = [f for f in candidates if abs(f.info.timestamp_ms - depth.timestamp_ms) <= 1.0]
+    return close[-1] if close else None
+
+
+def open_recording(path: str | Path) -> Recording:
+    """Open a RealSense recording, choosing the reader from the file's magic bytes.
+
+    ROS1 bags start with ``#ROSBAG V2.0``; ROS2 recordings are SQLite files (``.db3``).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise RecordingError("no such file", path)
+    if path.is_dir():
+        raise RecordingError("is a folder, not a recording", path)
+    with open(path, "rb") as handle:
+        magic = handle.read(16)
+    if not magic:
+        raise RecordingError("empty file (0 bytes): not a RealSense recording", path)
+    if magic.startswith(b"#ROSBAG V2.0"):
+        from darp.formats.bag_reader import BagRecording
+
+        return BagRecording(path)
+    if magic.startswith(b"SQLite format 3"):
+        from darp.formats.db3_reader import Db3Recording
+
+        return Db3Recording(path)
+    raise RecordingError("not a RealSense recording (neither a ROS1 bag nor a ROS2 .db3 file)", path)
