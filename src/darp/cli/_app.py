@@ -28,7 +28,8 @@ def run(argv: list[str] | None = None) -> int:
     import darp.cli  # noqa: F401  (registers the command modules)
 
     try:
-        app(args=argv, standalone_mode=False)
+        # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
+        rc = app(args=argv, standalone_mode=False)
     except DarpError as err:
         typer.echo(f"darp: error: {err}", err=True)
         return 2
@@ -50,4 +51,4 @@ def run(argv: list[str] | None = None) -> int:
             err.show(file=sys.stderr)
             return 2
         raise
-    return 0
+    return int(rc or 0) if isinstance(rc, int) else 0

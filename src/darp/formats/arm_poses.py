@@ -1,0 +1,349 @@
+"""``arm_poses.csv``: the timestamped joint log of both arms (reader, validator, streaming writer).
+
+Columns (header row required, any order, no others)::
+
+    time_s  host-clock seconds (float; Unix epoch seconds with microsecond precision in practice)
+    arm     arm id, e.g. ``arm110`` / ``arm111``
+    q1..q6  the six joint angles in radians, as reported by the arm (no joint-zero correction)
+
+Rows of both arms are interleaved in logging order; times must not decrease within an arm.
+A last line cut short by a crash (no final newline and unparseable) is dropped and reported in
+:attr:`ArmPoseLog.truncated_tail_line`; anywhere else a bad line is an error naming the line.
+See docs/survey-format.md.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import NoReturn
+
+import numpy as np
+
+from darp.errors import FormatError
+
+JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")
+COLUMNS = ("time_s", "arm", *JOINT_COLUMNS)
+DEFAULT_ARMS = ("arm110", "arm111")
+N_JOINTS = len(JOINT_COLUMNS)
+
+
+@dataclass(frozen=True)
+class ArmPoseLog:
+    """The joint log, split per arm. Arrays are read-only; times in seconds, joints in radians."""
+
+    path: Path
+    _times: dict[str, np.ndarray]
+    _joints: dict[str, np.ndarray]
+    _lines: dict[str, np.ndarray]  # 1-based file line of every row, for diagnostics
+    truncated_tail_line: int | None = None  # line number of a dropped, cut-short last line
+    ignored_columns: tuple[str, ...] = field(default=())
+
+    @property
+    def arms(self) -> tuple[str, ...]:
+        """Arms that have at least one row, in order of first appearance."""
+        return tuple(self._times)
+
+    @property
+    def n_rows(self) -> int:
+        """Rows of all arms together."""
+        return sum(t.size for t in self._times.values())
+
+    def _check(self, arm: str) -> None:
+        if arm not in self._times:
+            have = ", ".join(self._times) or "none"
+            raise FormatError(f"no rows for arm {arm!r} (arms in the log: {have})", self.path)
+
+    def times(self, arm: str) -> np.ndarray:
+        """(N,) row times of ``arm`` in seconds, non-decreasing."""
+        self._check(arm)
+        return self._times[arm]
+
+    def joints(self, arm: str) -> np.ndarray:
+        """(N, 6) joint angles of ``arm`` in radians."""
+        self._check(arm)
+        return self._joints[arm]
+
+    def lines(self, arm: str) -> np.ndarray:
+        """(N,) 1-based line numbers of ``arm``'s rows in the file."""
+        self._check(arm)
+        return self._lines[arm]
+
+    def rows(self, arm: str) -> int:
+        """Number of rows of ``arm``."""
+        return int(self.times(arm).size)
+
+    def span(self, arm: str | None = None) -> tuple[float, float]:
+        """(first, last) time in seconds of ``arm``, or of the whole log when ``arm`` is None."""
+        if arm is not None:
+            t = self.times(arm)
+            return float(t[0]), float(t[-1])
+        if not self._times:
+            raise FormatError("the log has no rows", self.path)
+        return (
+            float(min(t[0] for t in self._times.values())),
+            float(max(t[-1] for t in self._times.values())),
+        )
+
+
+def read_arm_poses(
+    path: str | Path,
+    known_arms: Iterable[str] | None = DEFAULT_ARMS,
+    *,
+    allow_extra_columns: bool = False,
+    strict_tail: bool = False,
+) -> ArmPoseLog:
+    """Read and validate ``arm_poses.csv``.
+
+    ``known_arms=None`` accepts any arm id. ``allow_extra_columns`` ignores (and lists) unknown columns
+    instead of refusing them. ``strict_tail`` makes a cut-short last line an error instead of dropping it.
+    """
+    path = Path(path)
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except FileNotFoundError:
+        raise FormatError("no such file", path) from None
+    except IsADirectoryError:
+        raise FormatError("is a folder, not a CSV file", path) from None
+    except UnicodeDecodeError as err:
+        raise FormatError(f"not UTF-8 text (byte {err.start})", path) from err
+    if not text.strip():
+        raise FormatError("empty file: expected a header row " + ",".join(COLUMNS), path)
+
+    lines = text.split("\n")
+    ends_with_newline = lines[-1] == ""
+    if ends_with_newline:
+        lines.pop()
+    header = [name.strip() for name in lines[0].rstrip("\r").split(",")]
+    index, ignored = _column_index(header, path, allow_extra_columns)
+    n_columns = len(header)
+
+    body = lines[1:]
+    line_numbers = list(range(2, len(body) + 2))
+    if "\r" in text:
+        body = [line.rstrip("\r") for line in body]
+    if any(not line.strip() for line in body):  # skip blank lines, keep true line numbers
+        kept = [(n, line) for n, line in zip(line_numbers, body) if line.strip()]
+        line_numbers = [n for n, _ in kept]
+        body = [line for _, line in kept]
+
+    truncated: int | None = None
+    if body and not ends_with_newline and not _row_ok(body[-1].split(","), n_columns, index):
+        if strict_tail:
+            _row_error(body[-1].split(","), line_numbers[-1], header, index, path, tail=True)
+        truncated = line_numbers.pop()
+        body.pop()
+    if not body:
+        dropped = f" (the only row, line {truncated}, is cut short)" if truncated else ""
+        raise FormatError(f"no data rows after the header{dropped}", path)
+
+    n_commas = n_columns - 1
+    if any(line.count(",") != n_commas for line in body):
+        bad = next(i for i, line in enumerate(body) if line.count(",") != n_commas)
+        _row_error(body[bad].split(","), line_numbers[bad], header, index, path)
+
+    cells = ",".join(body).split(",")  # one split for the whole file: much faster than per row
+    numeric_names = ("time_s", *JOINT_COLUMNS)
+    numbers = np.empty((len(body), len(numeric_names)), dtype=np.float64)
+    try:
+        for k, name in enumerate(numeric_names):
+            numbers[:, k] = list(map(float, cells[index[name] :: n_columns]))
+    except ValueError:
+        bad = next(i for i, line in enumerate(body) if not _row_ok(line.split(","), n_columns, index))
+        _row_error(body[bad].split(","), line_numbers[bad], header, index, path)
+    line_array = np.asarray(line_numbers, dtype=np.int64)
+
+    finite = np.isfinite(numbers)
+    if not finite.all():
+        row, col = map(int, np.argwhere(~finite)[0])
+        name = ("time_s", *JOINT_COLUMNS)[col]
+        raise FormatError(f"line {line_array[row]}: {name} is {numbers[row, col]} (must be finite)", path)
+
+    arm_ids = np.array([cell.strip() for cell in cells[index["arm"] :: n_columns]], dtype=object)
+    known = None if known_arms is None else tuple(known_arms)
+    present = list(dict.fromkeys(arm_ids.tolist()))
+    for arm in present:
+        if not arm or (known is not None and arm not in known):
+            first = int(np.nonzero(arm_ids == arm)[0][0])
+            expected = f" (expected one of: {', '.join(known)})" if known else ""
+            raise FormatError(f"line {line_array[first]}: unknown arm id {arm!r}{expected}", path)
+
+    times: dict[str, np.ndarray] = {}
+    joints: dict[str, np.ndarray] = {}
+    arm_lines: dict[str, np.ndarray] = {}
+    for arm in present:
+        mask = arm_ids == arm
+        t = numbers[mask, 0]
+        back = np.nonzero(np.diff(t) < 0.0)[0]
+        if back.size:
+            k = int(back[0]) + 1
+            line = int(line_array[mask][k])
+            raise FormatError(
+                f"line {line}: time goes backwards for {arm} ({_fmt_pair(t[k], t[k - 1])})", path
+            )
+        times[arm] = _frozen(t)
+        joints[arm] = _frozen(numbers[mask, 1:])
+        arm_lines[arm] = _frozen(line_array[mask])
+    return ArmPoseLog(path, times, joints, arm_lines, truncated, tuple(ignored))
+
+
+def _column_index(
+    header: list[str], path: Path, allow_extra: bool
+) -> tuple[dict[str, int], list[str]]:
+    missing = [name for name in COLUMNS if name not in header]
+    if len(missing) == len(COLUMNS):
+        raise FormatError(f"line 1: no header row (the first line must be {','.join(COLUMNS)})", path)
+    duplicated = sorted({name for name in header if header.count(name) > 1})
+    if duplicated:
+        raise FormatError(f"line 1: column(s) {', '.join(map(repr, duplicated))} appear twice", path)
+    if missing:
+        raise FormatError(f"line 1: missing column(s) {', '.join(missing)}", path)
+    extra = [name for name in header if name not in COLUMNS]
+    if extra and not allow_extra:
+        raise FormatError(
+            f"line 1: unexpected column(s) {', '.join(repr(n) for n in extra)} "
+            f"(expected exactly {','.join(COLUMNS)})",
+            path,
+        )
+    return {name: header.index(name) for name in COLUMNS}, extra
+
+
+def _row_ok(row: list[str], n_columns: int, index: dict[str, int]) -> bool:
+    if len(row) != n_columns or not row[index["arm"]].strip():
+        return False
+    try:
+        for name in ("time_s", *JOINT_COLUMNS):
+            float(row[index[name]])
+    except ValueError:
+        return False
+    return True
+
+
+def _row_error(
+    row: list[str], line: int, header: list[str], index: dict[str, int], path: Path, tail: bool = False
+) -> NoReturn:
+    """Raise the most specific error for a row that failed the fast path."""
+    suffix = " (last line cut short: the writer probably crashed)" if tail else ""
+    if len(row) != len(header):
+        joints_found = len(row) - (len(header) - N_JOINTS)
+        detail = f" ({joints_found} joint values instead of {N_JOINTS})" if joints_found >= 0 else ""
+        raise FormatError(
+            f"line {line}: expected {len(header)} fields, found {len(row)}{detail}{suffix}", path
+        )
+    if not row[index["arm"]].strip():
+        raise FormatError(f"line {line}: empty arm id{suffix}", path)
+    for name in ("time_s", *JOINT_COLUMNS):
+        cell = row[index[name]]
+        try:
+            float(cell)
+        except ValueError:
+            message = f"line {line}: {name} is not a number: {cell.strip()!r}{suffix}"
+            raise FormatError(message, path) from None
+    raise FormatError(f"line {line}: malformed row{suffix}", path)
+
+
+def _fmt_pair(later: float, earlier: float) -> str:
+    for digits in (3, 6, 9):
+        a, b = f"{later:.{digits}f}", f"{earlier:.{digits}f}"
+        if a != b:
+            return f"{a} < {b}"
+    return f"{later!r} < {earlier!r}"
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.ascontiguousarray(array)
+    array.flags.writeable = False
+    return array
+
+
+class ArmPoseWriter:
+    """Streaming, thread-safe writer of ``arm_poses.csv`` for the joint logger.
+
+    The header is written on open; rows are flushed to the OS every ``flush_every`` rows (so a crash of
+    the process loses at most that many) and fsynced on :meth:`close`. Rows are validated with the
+    reader's rules, so the writer cannot produce a file the reader refuses.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        known_arms: Iterable[str] | None = DEFAULT_ARMS,
+        flush_every: int = 8,
+        overwrite: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        self.flush_every = max(1, int(flush_every))
+        self._known = None if known_arms is None else tuple(known_arms)
+        self._lock = threading.Lock()
+        self._last_time: dict[str, float] = {}
+        self._pending = 0
+        self.rows_written = 0
+        try:
+            self._handle = open(self.path, "w" if overwrite else "x", encoding="utf-8", newline="\n")
+        except FileExistsError:
+            raise FormatError("already exists (refusing to overwrite a joint log)", self.path) from None
+        except OSError as err:
+            raise FormatError(f"cannot create: {err.strerror}", self.path) from err
+        self._handle.write(",".join(COLUMNS) + "\n")
+        self._handle.flush()
+
+    def write(self, time_s: float, arm: str, q: Sequence[float] | np.ndarray) -> None:
+        """Append one row: host time in seconds, arm id, six joint angles in radians."""
+        values = [float(v) for v in np.asarray(q, dtype=np.float64).reshape(-1)]
+        time_s = float(time_s)
+        if len(values) != N_JOINTS:
+            message = f"row for {arm}: expected {N_JOINTS} joint values, got {len(values)}"
+            raise FormatError(message, self.path)
+        if not math.isfinite(time_s) or not all(math.isfinite(v) for v in values):
+            raise FormatError(f"row for {arm} at {time_s!r}: values must be finite", self.path)
+        if not arm or "," in arm or "\n" in arm or (self._known is not None and arm not in self._known):
+            raise FormatError(f"unknown arm id {arm!r}", self.path)
+        line = f"{time_s:.6f},{arm}," + ",".join(f"{v:.9f}" for v in values) + "\n"
+        with self._lock:
+            if self._handle.closed:
+                raise FormatError("write after close", self.path)
+            last = self._last_time.get(arm)
+            if last is not None and time_s < last:
+                raise FormatError(f"time goes backwards for {arm} ({_fmt_pair(time_s, last)})", self.path)
+            self._last_time[arm] = time_s
+            self._handle.write(line)
+            self.rows_written += 1
+            self._pending += 1
+            if self._pending >= self.flush_every:
+                self._handle.flush()
+                self._pending = 0
+
+    def flush(self, sync: bool = False) -> None:
+        """Push buffered rows to the OS (and to disk with ``sync``)."""
+        with self._lock:
+            if not self._handle.closed:
+                self._handle.flush()
+                self._pending = 0
+                if sync:
+                    os.fsync(self._handle.fileno())
+
+    def close(self) -> None:
+        """Flush, fsync and close; idempotent."""
+        with self._lock:
+            if self._handle.closed:
+                return
+            self._handle.flush()
+            os.fsync(self._handle.fileno())
+            self._handle.close()
+
+    def __enter__(self) -> ArmPoseWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -1,0 +1,223 @@
+"""The calibration file of one rig epoch (JSON): hand-eye, base-to-world and joint-zero offsets per arm.
+
+This module is only the data container and its on-disk form; computing a calibration lives in
+``darp.calibration``. Schema 1::
+
+    schema_version  1
+    epoch           label of the calibration epoch (a remount or a moved base starts a new one)
+    date            ISO 8601 date or date-time of the calibration
+    board           ChArUco board: squares_x, squares_y, square_length_m, marker_length_m, dictionary
+                    (null when the calibration did not come from a board, e.g. a nominal one)
+    world_frame     free text: how the world frame is defined
+    arms            {arm: {serial, T_world_base, T_wrist_cam, joint_offsets_rad,
+                           joint_offsets_std_rad?, identifiable?, residuals?, n_captures?}}
+    report          free object (statistics, settings, notes)
+
+``T_world_base`` and ``T_wrist_cam`` are 4x4 rigid transforms (``T_a_b`` maps points from b to a);
+the wrist frame is the Z1 flange. ``joint_offsets_rad`` is the static joint-zero correction dq of
+eq. 1: the model is evaluated at q + dq.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.errors import FormatError
+from darp.formats.schema import (
+    as_array,
+    as_dict,
+    as_float,
+    as_int,
+    as_rigid_transform,
+    as_str,
+    load_json_object,
+    to_jsonable,
+    write_json_checked,
+)
+
+SCHEMA_VERSION = 1
+N_JOINTS = 6
+
+
+@dataclass(frozen=True)
+class CharucoBoardSpec:
+    """A ChArUco board as printed: squares, their size, the marker size and the ArUco dictionary."""
+
+    squares_x: int
+    squares_y: int
+    square_length_m: float
+    marker_length_m: float
+    dictionary: str  # OpenCV name, e.g. "DICT_5X5_100"
+
+
+@dataclass
+class ArmCalibration:
+    """The static transforms and joint-zero correction of one arm."""
+
+    serial: str  # camera serial on this arm's wrist
+    T_world_base: np.ndarray  # noqa: N815 (frame naming convention)
+    T_wrist_cam: np.ndarray  # noqa: N815
+    joint_offsets_rad: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS))
+    joint_offsets_std_rad: np.ndarray | None = None
+    identifiable: tuple[bool, ...] | None = None  # per joint: could its offset be estimated?
+    residuals: dict[str, Any] = field(default_factory=dict)
+    n_captures: int | None = None
+
+
+@dataclass
+class Calibration:
+    """One epoch's calibration of the whole rig."""
+
+    epoch: str
+    date: str  # ISO 8601
+    arms: dict[str, ArmCalibration]
+    board: CharucoBoardSpec | None = None
+    world_frame: str = ""
+    report: dict[str, Any] = field(default_factory=dict)
+    schema_version: int = SCHEMA_VERSION
+
+    def arm(self, name: str) -> ArmCalibration:
+        """The calibration of arm ``name``, or an error listing the arms there are."""
+        try:
+            return self.arms[name]
+        except KeyError:
+            raise FormatError(
+                f"no calibration for arm {name!r} (arms: {', '.join(self.arms) or 'none'})"
+            ) from None
+
+    def arm_for_serial(self, serial: str) -> str:
+        """The arm whose wrist carries camera ``serial``."""
+        for name, arm in self.arms.items():
+            if arm.serial == serial:
+                return name
+        raise FormatError(f"no arm carries camera {serial!r} in calibration epoch {self.epoch!r}")
+
+
+def _board_from(value: Any, path: Path | None) -> CharucoBoardSpec:
+    board = as_dict(value, "board", path)
+    missing = [k for k in ("squares_x", "squares_y", "square_length_m", "marker_length_m", "dictionary")
+               if k not in board]
+    if missing:
+        raise FormatError(f"board: missing {', '.join(missing)}", path)
+    spec = CharucoBoardSpec(
+        squares_x=as_int(board["squares_x"], "board.squares_x", path, minimum=2),
+        squares_y=as_int(board["squares_y"], "board.squares_y", path, minimum=2),
+        square_length_m=as_float(board["square_length_m"], "board.square_length_m", path, positive=True),
+        marker_length_m=as_float(board["marker_length_m"], "board.marker_length_m", path, positive=True),
+        dictionary=as_str(board["dictionary"], "board.dictionary", path),
+    )
+    if spec.marker_length_m >= spec.square_length_m:
+        raise FormatError("board: marker_length_m must be smaller than square_length_m", path)
+    return spec
+
+
+def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
+    where = f"arms.{name}"
+    arm = as_dict(value, where, path)
+    missing = [k for k in ("serial", "T_world_base", "T_wrist_cam", "joint_offsets_rad") if k not in arm]
+    if missing:
+        raise FormatError(f"{where}: missing {', '.join(missing)}", path)
+    std = arm.get("joint_offsets_std_rad")
+    flags = arm.get("identifiable")
+    if flags is not None and (
+        not isinstance(flags, list) or len(flags) != N_JOINTS or not all(isinstance(f, bool) for f in flags)
+    ):
+        raise FormatError(f"{where}.identifiable: expected a list of {N_JOINTS} booleans", path)
+    n_captures = arm.get("n_captures")
+    return ArmCalibration(
+        serial=as_str(arm["serial"], f"{where}.serial", path),
+        T_world_base=as_rigid_transform(arm["T_world_base"], f"{where}.T_world_base", path),
+        T_wrist_cam=as_rigid_transform(arm["T_wrist_cam"], f"{where}.T_wrist_cam", path),
+        joint_offsets_rad=as_array(arm["joint_offsets_rad"], f"{where}.joint_offsets_rad", path, (N_JOINTS,)),
+        joint_offsets_std_rad=None if std is None
+        else as_array(std, f"{where}.joint_offsets_std_rad", path, (N_JOINTS,)),
+        identifiable=None if flags is None else tuple(flags),
+        residuals=as_dict(arm.get("residuals", {}), f"{where}.residuals", path),
+        n_captures=None if n_captures is None else as_int(n_captures, f"{where}.n_captures", path, minimum=0),
+    )
+
+
+def calibration_from_dict(payload: dict[str, Any], path: str | Path | None = None) -> Calibration:
+    """Validate a parsed JSON object and build the :class:`Calibration`."""
+    path = Path(path) if path is not None else None
+    if "schema_version" not in payload:
+        raise FormatError("missing schema_version", path)
+    version = as_int(payload["schema_version"], "schema_version", path, minimum=1)
+    if version > SCHEMA_VERSION:
+        raise FormatError(
+            f"schema_version {version} is newer than this darp understands ({SCHEMA_VERSION})", path
+        )
+    missing = [k for k in ("epoch", "date", "arms") if k not in payload]
+    if missing:
+        raise FormatError(f"missing {', '.join(missing)}", path)
+    date = as_str(payload["date"], "date", path)
+    try:
+        dt.datetime.fromisoformat(date)
+    except ValueError:
+        raise FormatError(f"date: not an ISO 8601 date: {date!r}", path) from None
+    arms = as_dict(payload["arms"], "arms", path)
+    if not arms:
+        raise FormatError("arms: no arm calibrated", path)
+    board = payload.get("board")
+    return Calibration(
+        epoch=as_str(payload["epoch"], "epoch", path),
+        date=date,
+        arms={name: _arm_from(name, value, path) for name, value in arms.items()},
+        board=None if board is None else _board_from(board, path),
+        world_frame=as_str(payload.get("world_frame", ""), "world_frame", path),
+        report=as_dict(payload.get("report", {}), "report", path),
+        schema_version=version,
+    )
+
+
+def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
+    """The JSON object for ``cal`` (schema 1)."""
+    arms: dict[str, Any] = {}
+    for name, arm in cal.arms.items():
+        entry: dict[str, Any] = {
+            "serial": arm.serial,
+            "T_world_base": np.asarray(arm.T_world_base, dtype=float).tolist(),
+            "T_wrist_cam": np.asarray(arm.T_wrist_cam, dtype=float).tolist(),
+            "joint_offsets_rad": np.asarray(arm.joint_offsets_rad, dtype=float).tolist(),
+        }
+        if arm.joint_offsets_std_rad is not None:
+            entry["joint_offsets_std_rad"] = np.asarray(arm.joint_offsets_std_rad, dtype=float).tolist()
+        if arm.identifiable is not None:
+            entry["identifiable"] = [bool(f) for f in arm.identifiable]
+        entry["residuals"] = arm.residuals
+        if arm.n_captures is not None:
+            entry["n_captures"] = int(arm.n_captures)
+        arms[name] = entry
+    board = None if cal.board is None else {
+        "squares_x": cal.board.squares_x,
+        "squares_y": cal.board.squares_y,
+        "square_length_m": cal.board.square_length_m,
+        "marker_length_m": cal.board.marker_length_m,
+        "dictionary": cal.board.dictionary,
+    }
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "epoch": cal.epoch,
+        "date": cal.date,
+        "board": board,
+        "world_frame": cal.world_frame,
+        "arms": arms,
+        "report": cal.report,
+    }
+
+
+def read_calibration(path: str | Path) -> Calibration:
+    """Read and validate a calibration file."""
+    return calibration_from_dict(load_json_object(path), Path(path))
+
+
+def write_calibration(path: str | Path, cal: Calibration) -> None:
+    """Validate ``cal`` with the reader's rules and write it atomically."""
+    payload = to_jsonable(calibration_to_dict(cal))
+    calibration_from_dict(payload, path)  # refuse to write what the reader would refuse
+    write_json_checked(path, payload)

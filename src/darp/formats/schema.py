@@ -1,0 +1,188 @@
+"""Small validation helpers shared by the JSON formats (envelope, calibration).
+
+Each helper checks one value and raises :class:`darp.errors.FormatError` (or the subclass given) with
+the file path and the dotted name of the field, so that a bad file is reported in one line:
+``calibration.json: arms.arm110.T_world_base: rotation is not orthonormal (error 3.2e-02)``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.errors import FormatError
+from darp.formats.atomic import write_text_atomic
+
+RIGID_TOLERANCE = 1e-5  # max |R^T R - I| entry and |det R - 1| accepted for a stored rotation
+
+
+def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -> dict[str, Any]:
+    """Read a JSON file whose top level is an object; syntax errors name the line and column."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise error("no such file", path) from None
+    except IsADirectoryError:
+        raise error("is a folder, not a JSON file", path) from None
+    except UnicodeDecodeError as err:
+        raise error(f"not UTF-8 text (byte {err.start})", path) from err
+    if not text.strip():
+        raise error("empty file: expected a JSON object", path)
+    try:
+        payload = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise error(f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}", path) from err
+    if not isinstance(payload, dict):
+        raise error(f"top level must be a JSON object, not {_type_name(payload)}", path)
+    return payload
+
+
+def write_json_checked(path: str | Path, payload: Any) -> None:
+    """Write ``payload`` atomically as indented JSON; NaN/inf are refused (JSON has no such numbers)."""
+    try:
+        text = json.dumps(to_jsonable(payload), indent=2, allow_nan=False)
+    except ValueError as err:
+        raise FormatError(f"cannot write: {err}", path) from err
+    write_text_atomic(path, text + "\n")
+
+
+def to_jsonable(value: Any) -> Any:
+    """numpy arrays/scalars and tuples to plain lists and numbers, recursively."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    return value
+
+
+def _type_name(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__
+
+
+def as_float(
+    value: Any,
+    field: str,
+    path: str | Path | None,
+    *,
+    positive: bool = False,
+    error: type[FormatError] = FormatError,
+) -> float:
+    """A finite JSON number (booleans are not numbers); optionally > 0."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise error(f"{field}: expected a number, got {_type_name(value)}", path)
+    number = float(value)
+    if not math.isfinite(number):
+        raise error(f"{field}: must be finite, got {number}", path)
+    if positive and number <= 0.0:
+        raise error(f"{field}: must be positive, got {number}", path)
+    return number
+
+
+def as_optional_float(
+    value: Any, field: str, path: str | Path | None, *, positive: bool = False,
+    error: type[FormatError] = FormatError,
+) -> float | None:
+    """Like :func:`as_float`, but ``None`` (JSON null or an absent key) stays ``None``."""
+    return None if value is None else as_float(value, field, path, positive=positive, error=error)
+
+
+def as_int(
+    value: Any, field: str, path: str | Path | None, *, minimum: int | None = None,
+    error: type[FormatError] = FormatError,
+) -> int:
+    """A JSON integer (``3.0`` is refused: counts are written as integers)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise error(f"{field}: expected an integer, got {_type_name(value)}", path)
+    if minimum is not None and value < minimum:
+        raise error(f"{field}: must be >= {minimum}, got {value}", path)
+    return int(value)
+
+
+def as_str(value: Any, field: str, path: str | Path | None, error: type[FormatError] = FormatError) -> str:
+    if not isinstance(value, str):
+        raise error(f"{field}: expected a string, got {_type_name(value)}", path)
+    return value
+
+
+def as_dict(
+    value: Any, field: str, path: str | Path | None, error: type[FormatError] = FormatError
+) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise error(f"{field}: expected an object, got {_type_name(value)}", path)
+    return value
+
+
+def as_array(
+    value: Any,
+    field: str,
+    path: str | Path | None,
+    shape: tuple[int, ...],
+    error: type[FormatError] = FormatError,
+) -> np.ndarray:
+    """A nested list of finite numbers with exactly ``shape``, as a float64 array."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if not isinstance(value, Sequence) or isinstance(value, str):
+        raise error(f"{field}: expected a list of shape {shape}, got {_type_name(value)}", path)
+    _check_numbers(value, field, path, error)
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except ValueError as err:  # ragged nesting
+        raise error(f"{field}: expected a list of shape {shape} (ragged rows)", path) from err
+    if array.shape != shape:
+        raise error(f"{field}: expected shape {shape}, got {array.shape}", path)
+    if not np.all(np.isfinite(array)):
+        raise error(f"{field}: all values must be finite", path)
+    return array
+
+
+def _check_numbers(value: Any, field: str, path: str | Path | None, error: type[FormatError]) -> None:
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            _check_numbers(item, field, path, error)
+    elif isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise error(f"{field}: expected numbers, found {_type_name(value)}", path)
+
+
+def as_rigid_transform(
+    value: Any,
+    field: str,
+    path: str | Path | None,
+    *,
+    tolerance: float = RIGID_TOLERANCE,
+    error: type[FormatError] = FormatError,
+) -> np.ndarray:
+    """A 4x4 rigid transform: orthonormal right-handed rotation, bottom row exactly ``0 0 0 1``."""
+    T = as_array(value, field, path, (4, 4), error)
+    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise error(f"{field}: last row must be [0, 0, 0, 1], got {T[3].tolist()}", path)
+    R = T[:3, :3]
+    ortho_error = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if ortho_error > tolerance:
+        raise error(f"{field}: rotation is not orthonormal (error {ortho_error:.1e})", path)
+    det = float(np.linalg.det(R))
+    if abs(det - 1.0) > tolerance:
+        raise error(f"{field}: rotation is a reflection (det {det:+.3f})", path)
+    return T
