@@ -7,6 +7,7 @@ on demand. Everything generic (nearest-frame lookup, frame sets, time windows) l
 from __future__ import annotations
 
 import bisect
+from collections import deque
 from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -32,7 +33,7 @@ class Recording(ABC):
     device: DeviceInfo
     streams: dict[str, StreamProfile]  # by darp stream key
     depth_scale: float  # metres per depth unit
-    file_version: int | None  # /file_version of ROS1 bags; None for .db3
+    file_version: int | None  # /file_version stored in the recording (3 or 4), None if absent
 
     # -- what a concrete reader provides -------------------------------------------------------
     @abstractmethod
@@ -88,14 +89,18 @@ class Recording(ABC):
 
     @property
     def duration_s(self) -> float:
-        """Span of frame timestamps over all streams, in seconds."""
+        """Span of recording times over all streams, in seconds.
+
+        Recording time is one clock for the whole file, whereas frame timestamps may use different
+        domains per stream (images on global time, IMU on the hardware clock).
+        """
         first, last = [], []
         for key in self.streams:
-            stamps = self.timestamps_ms(key)
-            if stamps.size:
-                first.append(stamps.min())
-                last.append(stamps.max())
-        return (max(last) - min(first)) / 1000.0 if first else 0.0
+            infos = self.frame_infos(key)
+            if infos:
+                first.append(min(info.recording_time_ns for info in infos))
+                last.append(max(info.recording_time_ns for info in infos))
+        return (max(last) - min(first)) / 1e9 if first else 0.0
 
     def nearest_index(self, stream: str, timestamp_ms: float) -> int:
         """Index of the frame of ``stream`` whose timestamp is nearest ``timestamp_ms``."""
@@ -122,23 +127,34 @@ class Recording(ABC):
         color_stamps = self.timestamps_ms("color") if "color" in present else np.empty(0)
         color_order = np.argsort(color_stamps, kind="stable")
         color_sorted = color_stamps[color_order]
-        pending: dict[str, list[Frame]] = {"ir1": [], "ir2": []}
-        for frame in self.iter_frames(
-            [k for k in ("depth", "ir1", "ir2") if k in present], start_ms=start_ms, stop_ms=stop_ms
-        ):
-            key = frame.info.stream
-            if key != "depth":
-                pending[key].append(frame)
-                pending[key] = pending[key][-8:]
-                continue
-            ir = {k: _match(pending[k], frame.info) for k in ("ir1", "ir2")}
+        ir_keys = [k for k in ("ir1", "ir2") if k in present]
+        buffers: dict[str, deque[Frame]] = {k: deque(maxlen=_FRAMESET_BUFFER) for k in ir_keys}
+        waiting: deque[Frame] = deque()
+
+        def complete(depth: Frame) -> bool:
+            return all(_match(buffers[k], depth.info) is not None for k in ir_keys)
+
+        def emit(depth: Frame) -> FrameSet:
+            ir = {k: (_match(buffers[k], depth.info) if k in buffers else None) for k in ("ir1", "ir2")}
             color = None
             if color_sorted.size:
-                pos = int(np.searchsorted(color_sorted, frame.info.timestamp_ms))
+                pos = int(np.searchsorted(color_sorted, depth.info.timestamp_ms))
                 cands = [c for c in (pos - 1, pos) if 0 <= c < color_sorted.size]
-                best = min(cands, key=lambda c: abs(color_sorted[c] - frame.info.timestamp_ms))
+                best = min(cands, key=lambda c: abs(color_sorted[c] - depth.info.timestamp_ms))
                 color = self.read_frame("color", int(color_order[best]))
-            yield FrameSet(depth=frame, ir1=ir["ir1"], ir2=ir["ir2"], color=color)
+            return FrameSet(depth=depth, ir1=ir["ir1"], ir2=ir["ir2"], color=color)
+
+        # IR frames may be stored before or after their depth frame: hold a few depth frames back
+        # until their IR partners arrive (or can no longer arrive), so memory stays bounded.
+        for frame in self.iter_frames(["depth", *ir_keys], start_ms=start_ms, stop_ms=stop_ms):
+            if frame.info.stream == "depth":
+                waiting.append(frame)
+            else:
+                buffers[frame.info.stream].append(frame)
+            while waiting and (complete(waiting[0]) or len(waiting) > _FRAMESET_LOOKAHEAD):
+                yield emit(waiting.popleft())
+        while waiting:
+            yield emit(waiting.popleft())
 
     # -- context manager ------------------------------------------------------------------------
     def __enter__(self) -> Recording:
@@ -153,8 +169,13 @@ class Recording(ABC):
         self.close()
 
 
-def _match(candidates: list[Frame], depth: FrameInfo) -> Frame | None:
+_FRAMESET_LOOKAHEAD = 4  # depth frames held back while waiting for their infrared partners
+_FRAMESET_BUFFER = 16  # recent infrared frames kept per stream for matching
+
+
+def _match(candidates: Iterable[Frame], depth: FrameInfo) -> Frame | None:
     """The buffered IR frame with the depth frame's frame number, else the nearest in time (<= 1 ms)."""
+    candidates = list(candidates)
     for frame in reversed(candidates):
         if frame.info.frame_number == depth.frame_number:
             return frame
