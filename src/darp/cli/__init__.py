@@ -14,6 +14,9 @@ from darp.cli._app import app
 
 # Command modules register themselves on ``app`` when imported.
 from darp.cli import recording as _recording  # noqa: F401,E402
+from darp.cli import inspect as _inspect  # noqa: F401,E402
+from darp.cli import rig as _rig  # noqa: F401,E402
+from darp.cli import poses as _poses  # noqa: F401,E402
 
 
 def main() -> None:

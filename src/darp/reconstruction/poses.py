@@ -1,0 +1,247 @@
+"""Camera trajectories of a whole survey: eq. 1 at every frame of both cameras, and their outputs.
+
+``recover_survey_poses`` reads the survey (joint log and each recording's frame index; no pixels) and
+evaluates :func:`darp.kinematics.camera_poses.camera_poses` per arm. ``write_survey_poses`` writes,
+per camera, a TUM trajectory (posed frames only) and an ``.npz`` with every frame, plus
+``summary.json`` (and the figure, see :mod:`darp.reconstruction.rig_figures`). Every file is written
+atomically; the survey folder is never written to.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.errors import FormatError, SurveyError
+from darp.formats.atomic import atomic_open, write_text_atomic
+from darp.formats.calibration import Calibration
+from darp.formats.envelope import Envelope
+from darp.formats.schema import write_json_checked
+from darp.formats.survey import Survey
+from darp.kinematics.camera_poses import DEFAULT_MAX_GAP_S, STATUS_NAMES, CameraPoses, camera_poses
+from darp.kinematics.transforms import quaternion_to_rotation, rotation_to_quaternion
+
+HOST_TIME_DOMAINS = ("Global Time", "System Time")
+SUMMARY_FILE = "summary.json"
+FIGURE_FILE = "trajectories.png"
+
+
+@dataclass(frozen=True)
+class CameraTrajectory:
+    """One camera's frames (of one stream) with their eq. 1 poses."""
+
+    arm: str
+    serial: str
+    stream: str
+    frame_numbers: np.ndarray  # (N,) device frame counters
+    timestamps_ms: np.ndarray  # (N,) frame timestamps as recorded (camera clock)
+    timestamp_domains: tuple[str, ...]  # distinct domains seen in the stream
+    poses: CameraPoses
+    log_span_s: tuple[float, float]  # first and last joint-log time of this arm (host clock)
+    log_rows: int
+
+    @property
+    def camera_span_s(self) -> tuple[float, float] | None:
+        if self.timestamps_ms.size == 0:
+            return None
+        return float(self.timestamps_ms.min()) / 1000.0, float(self.timestamps_ms.max()) / 1000.0
+
+    @property
+    def file_stem(self) -> str:
+        return f"cam{self.serial}_{self.arm}"
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "serial": self.serial,
+            "stream": self.stream,
+            **self.poses.counts(),
+            "log_rows": self.log_rows,
+            "log_span_s": list(self.log_span_s),
+            "camera_span_s": None if self.camera_span_s is None else list(self.camera_span_s),
+            "timestamp_domains": list(self.timestamp_domains),
+        }
+
+
+@dataclass
+class SurveyPoses:
+    """Trajectories of every camera of a survey and how they were made."""
+
+    survey_path: Path
+    calibration: Calibration
+    calibration_path: Path | None  # None: the rig's nominal values
+    stream: str
+    max_gap_s: float
+    clock_offset_s: float
+    trajectories: dict[str, CameraTrajectory]
+    envelope: Envelope | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "survey": str(self.survey_path),
+            "calibration": {
+                "path": None if self.calibration_path is None else str(self.calibration_path),
+                "epoch": self.calibration.epoch,
+                "nominal": self.calibration_path is None,
+            },
+            "stream": self.stream,
+            "max_gap_s": self.max_gap_s,
+            "clock_offset_s": self.clock_offset_s,
+            "arms": {arm: traj.summary() for arm, traj in self.trajectories.items()},
+            "warnings": list(self.warnings),
+        }
+
+
+def recover_survey_poses(
+    survey: Survey,
+    calibration: Calibration,
+    *,
+    calibration_path: Path | None = None,
+    stream: str = "depth",
+    max_gap_s: float = DEFAULT_MAX_GAP_S,
+    clock_offset_s: float = 0.0,
+    wrist_frame: str = "flange",
+    on_arm: Callable[[str], None] | None = None,
+) -> SurveyPoses:
+    """Eq. 1 at every ``stream`` frame of every camera of ``survey``.
+
+    ``on_arm(arm)`` is called before each arm is processed (for progress display). A camera whose
+    serial differs from the calibration's for its arm is refused: its poses would belong to another arm.
+    """
+    log = survey.arm_poses()
+    result = SurveyPoses(
+        survey_path=survey.path,
+        calibration=calibration,
+        calibration_path=calibration_path,
+        stream=stream,
+        max_gap_s=max_gap_s,
+        clock_offset_s=clock_offset_s,
+        trajectories={},
+        envelope=survey.envelope(),
+    )
+    for arm in survey.arms:
+        if on_arm is not None:
+            on_arm(arm)
+        try:
+            cal = calibration.arms[arm]
+        except KeyError:
+            raise SurveyError(
+                f"the calibration (epoch {calibration.epoch!r}) has no arm {arm!r} "
+                f"(arms: {', '.join(calibration.arms)})", survey.path) from None
+        serial = survey.serials[arm]
+        if cal.serial != serial:
+            raise SurveyError(
+                f"{arm}'s camera is {serial} but the calibration (epoch {calibration.epoch!r}) "
+                f"calibrated camera {cal.serial} on {arm}", survey.path)
+        with survey.open_recording(arm) as recording:
+            infos = recording.frame_infos(recording.stream(stream).key)
+        frame_numbers = np.array([i.frame_number for i in infos], dtype=np.int64)
+        timestamps_ms = np.array([i.timestamp_ms for i in infos], dtype=np.float64)
+        domains = tuple(sorted({i.timestamp_domain for i in infos}))
+        foreign = [d for d in domains if d not in HOST_TIME_DOMAINS]
+        if foreign:
+            result.warnings.append(
+                f"{arm}: {stream} timestamps are in the {', '.join(foreign)} domain, not host time; "
+                "poses assume camera time = host time + clock offset")
+        log_t, log_q = log.times(arm), log.joints(arm)
+        poses = camera_poses(
+            log_t, log_q, timestamps_ms / 1000.0,
+            T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam,
+            joint_offsets_rad=cal.joint_offsets_rad, max_gap_s=max_gap_s,
+            clock_offset_s=clock_offset_s, wrist_frame=wrist_frame,
+        )
+        counts = poses.counts()
+        if counts["frames"] and counts["posed"] == 0:
+            result.warnings.append(
+                f"{arm}: none of {counts['frames']} frames lies inside the joint log "
+                f"({log_t[0]:.3f} .. {log_t[-1]:.3f} s); check the clock offset")
+        result.trajectories[arm] = CameraTrajectory(
+            arm=arm, serial=serial, stream=stream, frame_numbers=frame_numbers,
+            timestamps_ms=timestamps_ms, timestamp_domains=domains, poses=poses,
+            log_span_s=(float(log_t[0]), float(log_t[-1])), log_rows=int(log_t.size),
+        )
+    return result
+
+
+# -- TUM trajectories ----------------------------------------------------------------------------
+def format_tum(timestamps_s: np.ndarray, T_world_cam: np.ndarray) -> str:
+    """TUM text: one ``timestamp tx ty tz qx qy qz qw`` line per pose (quaternion w >= 0)."""
+    lines = ["# timestamp tx ty tz qx qy qz qw  (T_world_cam; seconds, metres)"]
+    if len(timestamps_s):
+        quats = rotation_to_quaternion(T_world_cam[:, :3, :3])
+        for t, T, q in zip(timestamps_s, T_world_cam, quats):
+            x, y, z = T[:3, 3]
+            lines.append(f"{t:.6f} {x:.9f} {y:.9f} {z:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
+    return "\n".join(lines) + "\n"
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory: ``(timestamps_s (N,), T (N, 4, 4))``; ``#`` lines are comments."""
+    path = Path(path)
+    rows = []
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            values = [float(v) for v in line.split()]
+        except ValueError:
+            raise FormatError(f"line {number}: not numbers", path) from None
+        if len(values) != 8:
+            raise FormatError(f"line {number}: expected 8 values, got {len(values)}", path)
+        rows.append(values)
+    data = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    T = np.tile(np.eye(4), (data.shape[0], 1, 1))
+    if data.shape[0]:
+        T[:, :3, :3] = quaternion_to_rotation(data[:, 4:8])
+        T[:, :3, 3] = data[:, 1:4]
+    return data[:, 0], T
+
+
+# -- writing ---------------------------------------------------------------------------------------
+def write_survey_poses(result: SurveyPoses, out_dir: str | Path) -> dict[str, Path]:
+    """Write TUM + npz per camera and ``summary.json`` into ``out_dir``; returns the paths by name."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise SurveyError("output path exists and is not a folder", out)
+    out.mkdir(parents=True, exist_ok=True)
+    written: dict[str, Path] = {}
+    summary = result.summary()
+    for arm, traj in result.trajectories.items():
+        posed = traj.poses.posed
+        tum = out / f"{traj.file_stem}.tum"
+        write_text_atomic(tum, format_tum(traj.timestamps_ms[posed] / 1000.0, traj.poses.T_world_cam[posed]))
+        npz = out / f"{traj.file_stem}.npz"
+        with atomic_open(npz, "wb") as handle:
+            np.savez(
+                handle,
+                frame_numbers=traj.frame_numbers,
+                timestamps_ms=traj.timestamps_ms,
+                T_world_cam=traj.poses.T_world_cam,
+                status=traj.poses.status,
+                status_names=np.array(STATUS_NAMES),
+                joint_velocity=traj.poses.joint_velocity_rad_s,
+                q_rad=traj.poses.q_rad,
+            )
+        written[f"{arm}.tum"], written[f"{arm}.npz"] = tum, npz
+        summary["arms"][arm].update({"tum": tum.name, "npz": npz.name})
+    summary_path = out / SUMMARY_FILE
+    write_json_checked(summary_path, summary)
+    written["summary"] = summary_path
+    return written
+
+
+__all__ = [
+    "FIGURE_FILE",
+    "SUMMARY_FILE",
+    "CameraTrajectory",
+    "SurveyPoses",
+    "format_tum",
+    "read_tum",
+    "recover_survey_poses",
+    "write_survey_poses",
+]
