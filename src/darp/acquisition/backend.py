@@ -89,8 +89,11 @@ class CameraBackend(ABC):
     serial: str
 
     @abstractmethod
-    def start_recording(self, path: Path) -> None:
-        """Start continuous recording of every stream to ``path`` (``cam<serial>.bag``)."""
+    def start_recording(self, path: Path) -> Path | None:
+        """Start continuous recording of every stream to ``path`` (``cam<serial>.bag``).
+
+        Returns the path actually written when it differs (pyrealsense2 >= 2.58 records ``.db3``).
+        """
 
     @abstractmethod
     def stop_recording(self) -> None:

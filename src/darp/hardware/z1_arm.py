@@ -1,0 +1,370 @@
+"""``Z1Arm``: one Unitree Z1 driven through the Z1 SDK's Python binding as an :class:`ArmBackend`.
+
+How the SDK is used (z1_sdk ``unitree_arm_interface``; docs/hardware.md):
+
+- ``ArmInterface`` talks UDP to a ``z1_ctrl`` controller process. The SDK's own 500 Hz exchange thread
+  is started with ``loopOn()``; until its first exchange ``lowstate`` holds zeros and
+  ``getCurrentState()`` is ``INVALID``, so :meth:`Z1Arm.connect` waits for a real state first.
+- ``MoveJ`` takes a *Cartesian* posture (the controller's IK picks the joints), so it cannot command a
+  joint target. Joint targets are streamed instead: ``startTrack(ArmFSMState.JOINTCTRL)`` makes the
+  controller track ``(q, qd)`` commands, and a darp control thread samples a smooth, speed- and
+  acceleration-limited trajectory (:mod:`darp.hardware.trajectory`) at 500 Hz and sends each sample
+  with ``setArmCmd(q, qd, tau)`` (also written to ``arm.q``/``arm.qd``, which older SDK releases send
+  instead). ``move_to`` only swaps the trajectory, so it returns at once. The trajectory's clock
+  advances at most two periods per cycle, so a stalled Python thread slows a move down rather than
+  sending a step.
+- Every SDK call happens in the control thread after connecting; it caches the latest joint state with
+  its host-clock time (``time.time()``, the clock of RealSense global timestamps), which
+  :meth:`Z1Arm.read_state` returns.
+- If the controller leaves joint control (collision protection, another client), the thread stops
+  commanding and the next call raises a HardwareError. :meth:`Z1Arm.close` brakes, holds and stops the
+  SDK loop; it never switches the arm to PASSIVE (the arm would fall).
+
+Targets outside the Z1's joint limits (the tighter of darp's table and the SDK's model) are refused
+before anything is sent.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from types import ModuleType, TracebackType
+from typing import Self
+
+import numpy as np
+
+from darp.acquisition.backend import ArmBackend, JointState
+from darp.errors import ConfigError, HardwareError, KinematicsError
+from darp.hardware import sdk as sdk_loader
+from darp.hardware.trajectory import JointPlan, plan_hold, plan_move, plan_stop
+from darp.kinematics import z1
+
+log = logging.getLogger(__name__)
+
+CONTROL_HZ = 500.0
+DEFAULT_CONTROLLER_PORT = 8071  # where the stock SDK sends (z1_ctrl's SDK port)
+DEFAULT_SDK_PORT = 8072  # where the stock SDK listens
+
+
+@dataclass(frozen=True)
+class Z1Connection:
+    """How to reach one arm's ``z1_ctrl`` controller (UDP on this host)."""
+
+    controller_ip: str = "127.0.0.1"
+    controller_port: int = DEFAULT_CONTROLLER_PORT
+    sdk_port: int = DEFAULT_SDK_PORT
+    has_gripper: bool = False
+    arm_ip: str | None = None  # the arm's own address in that controller's config.xml (for messages)
+
+    @property
+    def uses_stock_ports(self) -> bool:
+        """True when the stock binding (which hard-codes 127.0.0.1:8071/8072) can reach the controller."""
+        return (self.controller_ip, self.controller_port, self.sdk_port) == (
+            "127.0.0.1", DEFAULT_CONTROLLER_PORT, DEFAULT_SDK_PORT)
+
+    def describe(self) -> str:
+        arm = f", arm {self.arm_ip}" if self.arm_ip else ""
+        return f"z1_ctrl at {self.controller_ip}:{self.controller_port} (SDK port {self.sdk_port}{arm})"
+
+
+@dataclass(frozen=True)
+class MotionLimits:
+    """Speed and acceleration of moves, and when a move counts as done."""
+
+    max_speed_rad_s: float = 0.6
+    max_accel_rad_s2: float = 2.0
+    target_tolerance_rad: float = 0.02  # measured joints within this of the target: arrived
+    settle_timeout_s: float = 2.0  # after the trajectory ends, how long the arm may take to arrive
+    limit_margin_rad: float = 0.0  # refuse targets closer than this to a joint limit
+
+    def __post_init__(self) -> None:
+        top = float(np.max(z1.VELOCITY_LIMIT_RAD_S))
+        if not 0 < self.max_speed_rad_s <= top:
+            raise ConfigError(f"motion.max_speed_rad_s: must be in (0, {top:.4f}], got {self.max_speed_rad_s}")
+        for name in ("max_accel_rad_s2", "target_tolerance_rad", "settle_timeout_s"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"motion.{name}: must be positive, got {getattr(self, name)}")
+        if not self.limit_margin_rad >= 0:
+            raise ConfigError(f"motion.limit_margin_rad: must be >= 0, got {self.limit_margin_rad}")
+
+
+def make_arm_interface(sdk: ModuleType, connection: Z1Connection, arm_id: str):
+    """An ``ArmInterface`` for ``connection``: the stock constructor, or the multi-arm one for other ports."""
+    if connection.uses_stock_ports:
+        return sdk.ArmInterface(bool(connection.has_gripper))
+    missing = [name for name in sdk_loader.MULTI_ARM_NAMES if not hasattr(sdk, name)]
+    if missing:
+        raise HardwareError(
+            f"{arm_id}: {connection.describe()} needs a unitree_arm_interface built with multi-arm support "
+            f"(missing: {', '.join(missing)}); the stock binding only reaches 127.0.0.1:8071 from port 8072. "
+            f"Rebuild it with darp's patch (docs/hardware.md, 'Two arms')")
+    try:
+        comp = sdk.CtrlComponents()
+        comp.dt = 1.0 / CONTROL_HZ
+        comp.udp = sdk.UDPPort(connection.controller_ip, int(connection.controller_port), int(connection.sdk_port),
+                               sdk.RECVSTATE_LENGTH, sdk.BlockYN.NO, 500000)
+        comp.armModel = sdk.Z1Model()
+        return sdk.ArmInterface(comp)
+    except TypeError as err:  # pybind11: a constructor the binding does not define
+        raise HardwareError(f"{arm_id}: this unitree_arm_interface cannot build an arm for {connection.describe()} "
+                            f"({err}); rebuild it with darp's multi-arm patch (docs/hardware.md, 'Two arms')") from err
+
+
+class Z1Arm(ArmBackend):
+    """One Z1 through the SDK; a 500 Hz control thread streams a smooth trajectory to the target."""
+
+    def __init__(self, arm_id: str, connection: Z1Connection | None = None, *, motion: MotionLimits | None = None,
+                 sdk: ModuleType | None = None, control_hz: float = CONTROL_HZ) -> None:
+        self.arm_id = arm_id
+        self.connection = connection or Z1Connection()
+        self.motion = motion or MotionLimits()
+        self.control_hz = float(control_hz)
+        self._sdk = sdk
+        self._arm = None
+        self._lock = threading.Lock()
+        self._stop_event = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._plan: JointPlan | None = None
+        self._traj_t = 0.0  # the trajectory clock: advances with the control loop (see _run)
+        self._wall_t = 0.0
+        self._latest: JointState | None = None
+        self._fault: HardwareError | None = None
+        self._fsm_jointctrl = None
+        self.cycles = 0
+        self.late_cycles = 0
+        lower = np.maximum(z1.JOINT_LOWER, z1.SDK_JOINT_LOWER)
+        upper = np.minimum(z1.JOINT_UPPER, z1.SDK_JOINT_UPPER)
+        self._lower, self._upper = lower.copy(), upper.copy()
+
+    # -- connection -------------------------------------------------------------------------------
+    @property
+    def connected(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) limits that targets must respect (rad), margin included."""
+        m = self.motion.limit_margin_rad
+        return self._lower + m, self._upper - m
+
+    def connect(self, timeout_s: float = 3.0) -> None:
+        """Start the SDK loop, wait for the controller, enter joint tracking holding the current pose."""
+        if self.connected:
+            return
+        sdk = self._sdk if self._sdk is not None else sdk_loader.load_unitree_sdk()
+        self._sdk = sdk
+        states = sdk.ArmFSMState
+        self._fsm_jointctrl = states.JOINTCTRL
+        arm = make_arm_interface(sdk, self.connection, self.arm_id)
+        arm.loopOn()
+        try:
+            state = self._wait_for_controller(arm, states, timeout_s)
+            if state not in (states.PASSIVE, states.JOINTCTRL):
+                raise HardwareError(f"{self.arm_id}: the controller is busy in state {_name(state)} "
+                                    f"(another program is driving the arm?)")
+            self._adopt_sdk_limits(arm)
+            arm.startTrack(states.JOINTCTRL)
+            q0 = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
+            qd0 = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+        except BaseException:
+            arm.loopOff()
+            raise
+        self._arm = arm
+        self._fault = None
+        self._latest = JointState(time.time(), q0, qd0)
+        self._wall_t = time.monotonic()
+        self._traj_t = 0.0
+        self._plan = plan_hold(self._traj_t, q0)
+        self._stop_event.clear()
+        self._thread = threading.Thread(target=self._run, name=f"z1-{self.arm_id}", daemon=True)
+        self._thread.start()
+        log.info("%s: connected to %s at q = %s", self.arm_id, self.connection.describe(), np.round(q0, 4))
+
+    def _wait_for_controller(self, arm, states, timeout_s: float):
+        if not hasattr(arm, "getCurrentState"):  # older bindings: no way to ask, give the loop a moment
+            time.sleep(0.1)
+            return states.PASSIVE
+        deadline = time.monotonic() + timeout_s
+        while True:
+            state = arm.getCurrentState()
+            if state != states.INVALID:
+                return state
+            if time.monotonic() > deadline:
+                raise HardwareError(f"{self.arm_id}: no answer from {self.connection.describe()} within "
+                                    f"{timeout_s:g} s: is that z1_ctrl running and the arm powered and reachable?")
+            time.sleep(0.005)
+
+    def _adopt_sdk_limits(self, arm) -> None:
+        """Tighten the joint limits to the SDK model's where it is stricter."""
+        try:
+            model = arm._ctrlComp.armModel
+            q_max = np.array(model.getJointQMax(), dtype=np.float64).reshape(-1)[:6]
+            q_min = np.array(model.getJointQMin(), dtype=np.float64).reshape(-1)[:6]
+        except (AttributeError, TypeError, ValueError):
+            return
+        if q_min.shape == (6,) and q_max.shape == (6,) and np.all(np.isfinite(q_min + q_max)):
+            self._lower = np.maximum(self._lower, q_min)
+            self._upper = np.minimum(self._upper, q_max)
+
+    def close(self, brake_timeout_s: float = 3.0) -> None:
+        """Brake to rest, hold that pose, stop the control thread and the SDK loop (idempotent)."""
+        if self._thread is None:
+            return
+        try:
+            if self._thread.is_alive() and self._fault is None:
+                with self._lock:
+                    self._plan = self._stop_plan(self._traj_t)
+                    end = self._plan.end_s
+                deadline = time.monotonic() + brake_timeout_s
+                while self._traj_t < end + 0.05 and time.monotonic() < deadline and self._thread.is_alive():
+                    time.sleep(0.01)
+        finally:
+            self._stop_event.set()
+            self._thread.join(timeout=2.0)
+            self._thread = None
+            arm, self._arm = self._arm, None
+            if arm is not None:
+                arm.loopOff()
+        log.info("%s: disconnected (holding its last pose)", self.arm_id)
+
+    def __enter__(self) -> Self:
+        self.connect()
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    # -- control thread ---------------------------------------------------------------------------
+    def _run(self) -> None:
+        """Sample the plan every period and send it. Plans run on a trajectory clock that advances by the
+        elapsed time but at most two periods per cycle: if the OS stalls this thread, the move is slowed
+        down instead of the next command jumping ahead (a step the motors would follow with a jerk)."""
+        period = 1.0 / self.control_hz
+        max_step = 2.0 * period
+        next_t = time.monotonic()
+        zeros = np.zeros(6)
+        while not self._stop_event.is_set():
+            try:
+                now = time.monotonic()
+                with self._lock:
+                    self._traj_t += min(max(now - self._wall_t, 0.0), max_step)
+                    self._wall_t = now
+                self._cycle(zeros)
+            except Exception as err:  # noqa: BLE001 (any SDK failure stops commanding; reported later)
+                message = err.message if isinstance(err, HardwareError) else f"{type(err).__name__}: {err}"
+                self._fault = HardwareError(f"{self.arm_id}: control loop stopped: {message}")
+                log.error("%s", self._fault)
+                return
+            self.cycles += 1
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop_event.wait(delay)
+            else:
+                self.late_cycles += 1
+                if delay < -5 * period:  # fell far behind (machine busy): resynchronise, do not burst
+                    next_t = time.monotonic()
+
+    def _cycle(self, zeros: np.ndarray) -> None:
+        arm = self._arm
+        q_meas = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
+        qd_meas = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+        stamp = time.time()
+        if hasattr(arm, "getCurrentState"):
+            state = arm.getCurrentState()
+            if state != self._fsm_jointctrl:
+                raise HardwareError(f"the controller left joint control (now {_name(state)}): collision "
+                                    f"protection, an emergency stop or another client; motion stopped")
+        with self._lock:
+            self._latest = JointState(stamp, q_meas, qd_meas)
+            q_cmd, qd_cmd, _ = self._plan.sample(self._traj_t)
+        arm.q = q_cmd
+        arm.qd = qd_cmd
+        arm.setArmCmd(q_cmd, qd_cmd, zeros)
+
+    def _stop_plan(self, now: float) -> JointPlan:
+        q, qd, qdd = self._plan.sample(now)
+        return plan_stop(now, q, qd, qdd, self.motion.max_speed_rad_s, self.motion.max_accel_rad_s2,
+                         self._lower, self._upper)
+
+    def _check_running(self) -> None:
+        if self._fault is not None:
+            raise self._fault
+        if not self.connected:
+            raise HardwareError(f"{self.arm_id}: not connected (call connect() first)")
+
+    # -- ArmBackend -------------------------------------------------------------------------------
+    def read_state(self) -> JointState:
+        """The latest joint state from the controller (at most one control cycle old), host-clock time."""
+        self._check_running()
+        with self._lock:
+            s = self._latest
+        return JointState(s.time_s, s.q_rad.copy(), s.qd_rad_s.copy())
+
+    def move_to(self, q_target_rad: np.ndarray, max_speed_rad_s: float | None = None) -> None:
+        """Start a smooth joint move to ``q_target_rad`` (rad, SDK angles); returns at once."""
+        target = self._check_target(q_target_rad)
+        speed = self.motion.max_speed_rad_s if max_speed_rad_s is None else float(max_speed_rad_s)
+        top = float(np.max(z1.VELOCITY_LIMIT_RAD_S))
+        if not (np.isfinite(speed) and 0 < speed <= top):
+            raise KinematicsError(f"{self.arm_id}: max speed must be in (0, {top:.4f}] rad/s, got {speed}")
+        self._check_running()
+        with self._lock:
+            now = self._traj_t
+            q, qd, qdd = self._plan.sample(now)
+            self._plan = plan_move(now, q, qd, qdd, target, speed, self.motion.max_accel_rad_s2,
+                                   self._lower, self._upper)
+
+    def is_moving(self) -> bool:
+        """True until the trajectory has ended and the measured joints are within tolerance of its end."""
+        self._check_running()
+        with self._lock:
+            now, end, target, q = self._traj_t, self._plan.end_s, self._plan.q_end, self._latest.q_rad
+        if now < end:
+            return True
+        error = np.abs(q - target)
+        if float(np.max(error)) <= self.motion.target_tolerance_rad:
+            return False
+        if now - end < self.motion.settle_timeout_s:
+            return True
+        j = int(np.argmax(error))
+        raise HardwareError(f"{self.arm_id}: joint{j + 1} is {error[j]:.4f} rad from its target "
+                            f"{self.motion.settle_timeout_s:g} s after the move ended (blocked or overloaded?)")
+
+    def stop(self) -> None:
+        """Brake to rest at the acceleration limit and hold there."""
+        self._check_running()
+        with self._lock:
+            self._plan = self._stop_plan(self._traj_t)
+
+    def wait_until_still(self, timeout_s: float, poll_s: float = 0.01) -> bool:
+        """Block until :meth:`is_moving` is False; False on timeout."""
+        deadline = time.monotonic() + timeout_s
+        while self.is_moving():
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(poll_s)
+        return True
+
+    def _check_target(self, q_target_rad: np.ndarray) -> np.ndarray:
+        q = np.asarray(q_target_rad, dtype=np.float64)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise KinematicsError(f"{self.arm_id}: joint target must be 6 finite angles in rad, got "
+                                  f"shape {np.shape(q_target_rad)}")
+        lower, upper = self.joint_limits
+        outside = np.flatnonzero((q < lower - 1e-9) | (q > upper + 1e-9))
+        if outside.size:
+            j = int(outside[0])
+            raise KinematicsError(f"{self.arm_id}: joint{j + 1} target {q[j]:.4f} rad is outside the Z1 limits "
+                                  f"[{lower[j]:.4f}, {upper[j]:.4f}] (nothing was sent to the arm)")
+        return q.copy()
+
+
+def _name(state) -> str:
+    return getattr(state, "name", None) or str(state)
+
+
+__all__ = ["CONTROL_HZ", "MotionLimits", "Z1Arm", "Z1Connection", "make_arm_interface"]
