@@ -8,6 +8,22 @@ import typer
 
 from darp.errors import DarpError
 
+def _click_error_types() -> tuple[type[BaseException], ...]:
+    """Click's exception base, from click itself and from the copy recent typer versions vendor."""
+    import click
+
+    types: list[type[BaseException]] = [click.ClickException]
+    try:
+        from typer._click.exceptions import ClickException as VendoredClickException
+
+        types.append(VendoredClickException)
+    except ImportError:
+        pass
+    return tuple(types)
+
+
+_CLICK_ERRORS = _click_error_types()
+
 app = typer.Typer(
     name="darp",
     help="darp: calibrated dual-arm eye-in-hand RGB-D-IR perception (calibrate, acquire, process, simulate).",
@@ -44,11 +60,7 @@ def run(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, IsADirectoryError, PermissionError) as err:
         typer.echo(f"darp: error: {err.filename}: {err.strerror}", err=True)
         return 2
-    except Exception as err:  # click usage errors
-        import click
-
-        if isinstance(err, click.ClickException):
-            err.show(file=sys.stderr)
-            return 2
-        raise
+    except _CLICK_ERRORS as err:  # usage errors: unknown option, missing argument, bad value
+        err.show(file=sys.stderr)
+        return int(getattr(err, "exit_code", 2))
     return int(rc or 0) if isinstance(rc, int) else 0

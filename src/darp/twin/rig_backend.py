@@ -1,0 +1,235 @@
+"""``TwinRig``: the digital twin as a :class:`RigBackend` (world, two arms, two cameras, clock, joint log).
+
+Everything runs on one :class:`~darp.twin.clock.SimClock`. Scheduled processes, in insertion order
+for equal times: the two cameras' frame ticks (30 fps, staggered), the joint logger once started
+(about 33 Hz with Gaussian interval jitter; each row's time is the host-clock time of its sample) and
+the collision monitor (while any arm moves, every arm's contacts with the table, the object and the
+other arm are checked at ``collision_check_hz`` and recorded in :attr:`TwinRig.contact_events`).
+
+The true rig (joint-zero offsets, camera mounts, second base) is drawn from the nominal rig and the
+settings' seed (:func:`darp.twin.truth.draw_true_rig`); arms report SDK angles, the world and the
+cameras use the true ones.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.acquisition.backend import RigBackend
+from darp.errors import TwinError
+from darp.formats.arm_poses import ArmPoseWriter
+from darp.kinematics.rig import Rig, load_rig
+from darp.twin.arm_sim import SimArm
+from darp.twin.camera_backend import TwinCameraBackend
+from darp.twin.clock import NS_PER_S, SimClock, s_to_ns
+from darp.twin.settings import TwinSettings
+from darp.twin.truth import TrueRig, draw_true_rig
+from darp.twin.world import Contact, TwinWorld
+
+MAX_CONTACT_EVENTS = 10_000
+
+
+@dataclass(frozen=True)
+class ContactEvent:
+    """A contact seen by the collision monitor at host time ``time_s``."""
+
+    time_s: float
+    contact: Contact
+
+
+class TwinRig(RigBackend):
+    """The simulated rig. Use as a context manager; the cameras render only while recording."""
+
+    def __init__(self, settings: TwinSettings | None = None, *, rig: Rig | None = None,
+                 obj: Any | None = None, placement: Any | None = None, board: Any | None = None,
+                 T_world_board: np.ndarray | None = None,
+                 q_initial_rad: dict[str, np.ndarray] | None = None, camera_workers: bool = False) -> None:
+        """``obj``: a :class:`darp.twin.objects.TwinObject` placed by ``placement`` (an ``ObjectPlacement``);
+        ``board``: a :class:`darp.twin.board.CharucoBoardSpec` lying on the table at ``T_world_board``;
+        ``q_initial_rad``: starting SDK angles per arm (default: the rig's park configurations);
+        ``camera_workers``: render and record each camera in its own subprocess (same files, faster on
+        several cores; a few seconds to start)."""
+        self.settings = settings if settings is not None else TwinSettings.from_profile("realistic")
+        self.rig = rig if rig is not None else load_rig()
+        self.true_rig: TrueRig = draw_true_rig(self.rig, self.settings)
+        self.obj = obj
+        self.placement = placement
+        s = self.settings
+        self.clock = SimClock(s.timing.start_time_s)
+        T_world_object = None
+        if obj is not None:
+            if placement is None:
+                raise TwinError("an object needs a placement")
+            T_world_object = placement.T_world_object
+        self.world = TwinWorld(self.rig, self.true_rig.arms, parts=obj.parts if obj is not None else (),
+                               T_world_object=T_world_object, board=board, T_world_board=T_world_board,
+                               seed=s.seed)
+        self.arms: dict[str, SimArm] = {}
+        for arm_id, true_arm in self.true_rig.arms.items():
+            q0 = (q_initial_rad or {}).get(arm_id, self.rig.arms[arm_id].park_q_rad)
+            self.arms[arm_id] = SimArm(
+                arm_id, self.clock, np.asarray(q0, dtype=float),
+                joint_offsets_rad=true_arm.joint_offsets_rad,
+                encoder_noise_std_rad=np.deg2rad(s.joints.encoder_noise_std_deg),
+                rng=s.rng(f"encoder:{arm_id}"),
+                max_speed_rad_s=s.motion.max_speed_rad_s, max_accel_rad_s2=s.motion.max_accel_rad_s2,
+                settle_s=s.motion.settle_s)
+        self._world_time_ns: int | None = None
+        self._renderer = None
+        self._log_writer: ArmPoseWriter | None = None
+        self._log_handle: int | None = None
+        self.cameras: dict[str, TwinCameraBackend] = {}
+        self._build_cameras(camera_workers)
+        self._log_rng = s.rng("joint_log")
+        self.contact_events: list[ContactEvent] = []
+        self.contacts_dropped = 0
+        self._monitor_period_ns = max(1, round(NS_PER_S / s.motion.collision_check_hz))
+        self.clock.add_process("collision-monitor", self._monitor_tick, first_due_ns=0)
+
+    # -- cameras ----------------------------------------------------------------------------------
+    def _build_cameras(self, workers: bool) -> None:
+        from darp.twin.camera_spec import UnitCalibration, draw_unit, make_camera_spec
+        from darp.twin.camera_worker import CameraWorker
+        from darp.twin.imu import ImuSettings, ImuSimulator
+        from darp.twin.render import SceneRenderer
+        from darp.twin.sensor import TwinCamera, TwinCameraSettings
+
+        c, s = self.settings.camera, self.settings
+        size = (c.width, c.height)
+        self._renderer = SceneRenderer(self.world.model, c.width, c.height)
+        # Segmentation is rendered only when an object part can drop out (the camera forces it then).
+        cam_settings = TwinCameraSettings.from_profile(c.depth_noise, segmentation=False)
+        dropouts = self._dropout_map()
+        model = self.world.model
+        try:
+            for index, (arm_id, true_arm) in enumerate(self.true_rig.arms.items()):
+                unit = draw_unit(s.rng(f"unit:{true_arm.serial}")) if c.unit_variation else UnitCalibration()
+                spec = make_camera_spec(unit, serial=true_arm.serial, depth_resolution=size, color_resolution=size,
+                                        fps=c.fps, color_fps=c.fps, accel_hz=c.accel_hz, gyro_hz=c.gyro_hz)
+                seed = int(s.rng(f"camera:{true_arm.serial}").integers(2**31))
+                worker = CameraWorker(model, spec, cam_settings, seed, dropouts) if workers else None
+                record_cam = None if workers else TwinCamera(model, spec, cam_settings, seed=seed,
+                                                             renderer=self._renderer, dropout_geoms=dropouts)
+
+                def live(spec: Any = spec, seed: int = seed) -> Any:
+                    return TwinCamera(model, spec, cam_settings, seed=seed + 1, renderer=self._renderer,
+                                      dropout_geoms=dropouts)
+
+                imu = None
+                if c.imu:
+                    imu_settings = ImuSettings() if c.imu_noise == "realistic" else ImuSettings.ideal()
+                    imu = ImuSimulator(imu_settings, s.rng(f"imu:{true_arm.serial}"))
+                self.cameras[arm_id] = TwinCameraBackend(
+                    arm_id, spec, self.clock, self, camera=record_cam, live_camera=live, imu=imu,
+                    phase_ns=s_to_ns(index * s.timing.camera_stagger_ms / 1e3),
+                    clock_offset_ms=s.timing.camera_clock_offset_ms, compression=c.compression, worker=worker)
+        except BaseException:
+            self.close()
+            raise
+
+    def _dropout_map(self) -> dict[int, float]:
+        """Depth dropout probability per object geom from its part's material flags."""
+        c, g = self.settings.camera, self.world.geoms
+        out: dict[int, float] = {}
+        for gid in self.world.object_geom_ids:
+            prob = max(c.dropout_dark if g.dark[gid] else 0.0, c.dropout_specular if g.specular[gid] else 0.0,
+                       c.dropout_transparent if g.transparent[gid] else 0.0)
+            if prob > 0:
+                out[int(gid)] = prob
+        return out
+
+    # -- CameraHost -------------------------------------------------------------------------------
+    def prepare_world(self, t_ns: int) -> Any:
+        """Set every arm to its true joint angles at ``t_ns`` and update the scene; returns MjData."""
+        if self._world_time_ns != t_ns:
+            for arm_id, arm in self.arms.items():
+                self.world.set_arm_q(arm_id, arm.true_q(t_ns))
+            self.world.forward()
+            self._world_time_ns = t_ns
+        return self.world.data
+
+    def true_camera_poses(self, arm_id: str, t_ns: np.ndarray) -> np.ndarray:
+        q = np.atleast_2d(self.arms[arm_id].true_state(np.asarray(t_ns, dtype=np.int64))[0])
+        return self.true_rig.T_world_cam(arm_id, q)
+
+    def true_q(self, arm_id: str, t_ns: int) -> np.ndarray:
+        return self.arms[arm_id].true_q(int(t_ns))
+
+    # -- joint log --------------------------------------------------------------------------------
+    def start_joint_log(self, path: Path) -> None:
+        """Log both arms to ``path`` from now on (first row now), about ``joint_log_rate_hz``."""
+        if self._log_writer is not None:
+            raise TwinError("the joint log is already running")
+        self._log_writer = ArmPoseWriter(path, known_arms=tuple(self.arms))
+        self._log_handle = self.clock.add_process("joint-log", self._log_tick)
+
+    def _log_tick(self, now_ns: int) -> int | None:
+        if self._log_writer is None:
+            return None
+        for arm_id, arm in self.arms.items():
+            state = arm.read_state()
+            self._log_writer.write(state.time_s, arm_id, state.q_rad)
+        t = self.settings.timing
+        period_s = 1.0 / t.joint_log_rate_hz
+        jitter_s = t.joint_log_jitter_ms / 1e3
+        interval = period_s
+        if jitter_s > 0:
+            interval = float(np.clip(period_s + self._log_rng.normal(0.0, jitter_s), 0.6 * period_s, 1.4 * period_s))
+        return now_ns + max(1, s_to_ns(interval))
+
+    def stop_joint_log(self) -> None:
+        """Stop logging and close ``arm_poses.csv``."""
+        if self._log_writer is None:
+            return
+        writer, self._log_writer = self._log_writer, None
+        if self._log_handle is not None:
+            self.clock.remove(self._log_handle)
+            self._log_handle = None
+        writer.close()
+
+    # -- collisions -------------------------------------------------------------------------------
+    def contacts(self) -> list[Contact]:
+        """Contacts at the current instant (any arm against the table, the object or the other arm)."""
+        self.prepare_world(self.clock.elapsed_ns)
+        return self.world.contacts()
+
+    def _monitor_tick(self, now_ns: int) -> int:
+        if any(arm.is_moving() for arm in self.arms.values()):
+            for contact in self.contacts():
+                if len(self.contact_events) < MAX_CONTACT_EVENTS:
+                    self.contact_events.append(ContactEvent(self.clock.host_time_s(now_ns), contact))
+                else:
+                    self.contacts_dropped += 1
+        return now_ns + self._monitor_period_ns
+
+    def clearance(self, arm_id: str) -> tuple[float, str, str]:
+        """Smallest distance from ``arm_id`` to the table, the object or the other arm now (m, geom, geom)."""
+        self.prepare_world(self.clock.elapsed_ns)
+        return self.world.clearance(arm_id)
+
+    # -- poses --------------------------------------------------------------------------------------
+    def park_q(self, arm_id: str) -> np.ndarray:
+        """The rig file's park configuration (SDK angles)."""
+        return np.array(self.rig.arms[arm_id].park_q_rad, dtype=float)
+
+    def T_world_cam_true(self, arm_id: str) -> np.ndarray:
+        """The camera's true pose now."""
+        return self.true_camera_poses(arm_id, np.array([self.clock.elapsed_ns]))[0]
+
+    def close(self) -> None:
+        """Abort unfinished recordings, close the log and free the renderer (idempotent)."""
+        try:
+            for camera in self.cameras.values():
+                camera.close()
+        finally:
+            self.stop_joint_log()
+            if self._renderer is not None:
+                self._renderer.close()
+                self._renderer = None
+
+
+__all__ = ["ContactEvent", "TwinRig"]

@@ -1,0 +1,289 @@
+"""Ground truth of the twin: drawing the true rig from the nominal one, and the ``truth/`` folder.
+
+The true rig differs from the nominal rig file by the errors of :mod:`darp.twin.settings`:
+
+- joint-zero offsets ``dq`` per arm (uniform per joint); the true link angles are ``q_sdk + dq``,
+  the sign convention of eq. 1, so ``truth/calibration.json`` is exactly what a perfect calibration
+  would find;
+- each camera mount ``T_flange_cam = T_flange_cam_nominal @ T_err`` (the error expressed in the
+  camera frame: a translation of fixed length and a rotation of fixed angle, random directions);
+- the second arm's base ``T_world_base`` moved in the table plane, turned about the vertical and
+  tilted slightly about its own origin; the first base is exact (with the table it defines the world).
+
+``truth/`` (beside the survey files, never needed to read the survey)::
+
+    calibration.json          the true calibration, darp's calibration format
+    object.ply                the object's surface in the world frame (metres)
+    object.json               name, T_world_object, placement, scale, centre/radius/height
+    camera_poses_<arm>.npz    per recorded frame: frame_number, timestamp_ms, t_host_s, T_world_cam, q_true_rad
+    settings.yaml             the twin settings (profile, seed, every magnitude)
+    README.txt                this description
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import io
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.errors import FormatError
+from darp.formats.atomic import atomic_path, write_json_atomic, write_text_atomic
+from darp.formats.calibration import ArmCalibration, Calibration, read_calibration, write_calibration
+from darp.kinematics import z1
+from darp.kinematics.rig import WORLD_FRAME_TEXT, Rig
+from darp.kinematics.transforms import axis_angle_to_rotation, make_transform, rot_z
+from darp.twin.settings import TwinSettings
+
+TRUTH_DIR = "truth"
+CALIBRATION_FILE = "calibration.json"
+OBJECT_MESH_FILE = "object.ply"
+OBJECT_JSON_FILE = "object.json"
+SETTINGS_FILE = "settings.yaml"
+README_FILE = "README.txt"
+POSE_ARRAYS = ("frame_number", "timestamp_ms", "t_host_s", "T_world_cam", "q_true_rad")
+
+
+@dataclass(frozen=True, eq=False)
+class TrueArm:
+    """One arm as it really is."""
+
+    arm_id: str
+    serial: str
+    T_world_base: np.ndarray
+    T_flange_cam: np.ndarray
+    joint_offsets_rad: np.ndarray  # dq: q_true = q_sdk + dq
+
+
+@dataclass(frozen=True, eq=False)
+class TrueRig:
+    """Both arms as they really are, plus the nominal rig they were drawn from."""
+
+    nominal: Rig
+    arms: dict[str, TrueArm]
+
+    def T_world_cam(self, arm_id: str, q_true_rad: np.ndarray) -> np.ndarray:
+        """True camera pose(s) for true joint angles (6,) or (N, 6): (4, 4) or (N, 4, 4)."""
+        arm = self.arms[arm_id]
+        Q = np.atleast_2d(q_true_rad)
+        poses = arm.T_world_base @ z1.fk_batch(Q, self.nominal.wrist_frame) @ arm.T_flange_cam
+        return poses[0] if np.ndim(q_true_rad) == 1 else poses
+
+    def calibration(self, settings: TwinSettings) -> Calibration:
+        """The true calibration in darp's format (what a perfect calibration would find)."""
+        date = dt.datetime.fromtimestamp(settings.timing.start_time_s, tz=dt.UTC).date().isoformat()
+        arms = {
+            arm_id: ArmCalibration(
+                serial=arm.serial,
+                T_world_base=arm.T_world_base.copy(),
+                T_wrist_cam=arm.T_flange_cam.copy(),
+                joint_offsets_rad=arm.joint_offsets_rad.copy(),
+                residuals={},
+            )
+            for arm_id, arm in self.arms.items()
+        }
+        return Calibration(
+            epoch=f"twin-truth:{settings.profile}:seed{settings.seed}",
+            date=date,
+            arms=arms,
+            world_frame=WORLD_FRAME_TEXT,
+            report={"source": "darp digital twin ground truth", "profile": settings.profile,
+                    "seed": settings.seed, "joint_offset_convention": "q_true = q_logged + joint_offsets_rad"},
+        )
+
+
+def _random_unit(rng: np.random.Generator) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
+
+
+def perturbation(rng: np.random.Generator, translation_m: float, rotation_rad: float) -> np.ndarray:
+    """A rigid transform whose translation has length ``translation_m`` and rotation angle ``rotation_rad``."""
+    R = axis_angle_to_rotation(_random_unit(rng), rotation_rad) if rotation_rad > 0 else np.eye(3)
+    t = _random_unit(rng) * translation_m if translation_m > 0 else np.zeros(3)
+    return make_transform(R, t)
+
+
+def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
+    """Draw the true rig (joint-zero offsets, camera mounts, second base) for ``settings``' seed."""
+    j, m = settings.joints, settings.mounts
+    arms: dict[str, TrueArm] = {}
+    for index, (arm_id, nominal) in enumerate(rig.arms.items()):
+        g_joint = settings.rng(f"joint_zero:{arm_id}")
+        bias = np.deg2rad(j.zero_bias_max_deg)
+        dq = g_joint.uniform(-bias, bias, 6) if bias > 0 else np.zeros(6)
+        g_mount = settings.rng(f"mount:{arm_id}")
+        T_err = perturbation(g_mount, m.hand_eye_translation_mm * 1e-3, np.deg2rad(m.hand_eye_rotation_deg))
+        T_flange_cam = nominal.T_flange_cam @ T_err
+        T_world_base = np.array(nominal.T_world_base, dtype=float)
+        if index > 0:
+            g_base = settings.rng(f"base:{arm_id}")
+            phi = g_base.uniform(0.0, 2 * np.pi)
+            yaw = np.deg2rad(m.base_yaw_deg) * g_base.choice([-1.0, 1.0])
+            psi = g_base.uniform(0.0, 2 * np.pi)
+            tilt_axis = np.array([np.cos(psi), np.sin(psi), 0.0])
+            R_err = rot_z(yaw) @ axis_angle_to_rotation(tilt_axis, np.deg2rad(m.base_tilt_deg))
+            T_world_base = make_transform(R_err @ T_world_base[:3, :3],
+                                          T_world_base[:3, 3] + m.base_translation_mm * 1e-3
+                                          * np.array([np.cos(phi), np.sin(phi), 0.0]))
+        arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_flange_cam, dq)
+    return TrueRig(nominal=rig, arms=arms)
+
+
+# -- per-frame camera poses -----------------------------------------------------------------------
+
+@dataclass
+class CameraPoseTruth:
+    """True pose of one camera at every recorded frame (appended while recording)."""
+
+    frame_number: list[int] = field(default_factory=list)
+    timestamp_ms: list[float] = field(default_factory=list)  # as written in the bag
+    t_host_s: list[float] = field(default_factory=list)  # host-clock instant of the exposure
+    T_world_cam: list[np.ndarray] = field(default_factory=list)
+    q_true_rad: list[np.ndarray] = field(default_factory=list)
+
+    def append(self, frame_number: int, timestamp_ms: float, t_host_s: float, T_world_cam: np.ndarray,
+               q_true_rad: np.ndarray) -> None:
+        self.frame_number.append(int(frame_number))
+        self.timestamp_ms.append(float(timestamp_ms))
+        self.t_host_s.append(float(t_host_s))
+        self.T_world_cam.append(np.asarray(T_world_cam, dtype=np.float64))
+        self.q_true_rad.append(np.asarray(q_true_rad, dtype=np.float64))
+
+    def __len__(self) -> int:
+        return len(self.frame_number)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = len(self)
+        return {
+            "frame_number": np.asarray(self.frame_number, dtype=np.int64),
+            "timestamp_ms": np.asarray(self.timestamp_ms, dtype=np.float64),
+            "t_host_s": np.asarray(self.t_host_s, dtype=np.float64),
+            "T_world_cam": np.asarray(self.T_world_cam, dtype=np.float64).reshape(n, 4, 4),
+            "q_true_rad": np.asarray(self.q_true_rad, dtype=np.float64).reshape(n, 6),
+        }
+
+
+def save_npz_deterministic(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """``np.savez``-compatible archive with fixed zip timestamps (byte-identical for equal arrays)."""
+    with atomic_path(path) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, array in arrays.items():
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.ascontiguousarray(array), allow_pickle=False)
+            zf.writestr(zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0)), buffer.getvalue())
+
+
+def read_camera_poses(path: str | Path) -> dict[str, np.ndarray]:
+    """Arrays of ``truth/camera_poses_<arm>.npz`` (see :data:`POSE_ARRAYS`)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except FileNotFoundError:
+        raise FormatError("no such file", path) from None
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise FormatError(f"not a readable .npz archive: {err}", path) from err
+    missing = [name for name in POSE_ARRAYS if name not in arrays]
+    if missing:
+        raise FormatError(f"missing array(s) {', '.join(missing)}", path)
+    return arrays
+
+
+# -- the truth folder ------------------------------------------------------------------------------
+
+README_TEXT = """darp digital twin: ground truth of this survey (not part of the DARP survey format).
+
+calibration.json        the TRUE calibration in darp's calibration format (schema 1): per arm the true
+                        T_world_base, the true hand-eye T_wrist_cam (wrist = Z1 flange, camera = depth /
+                        left-IR optical frame) and the true joint-zero offsets with eq. 1's convention
+                        q_true = q_logged + joint_offsets_rad. Recovering camera poses with eq. 1 from
+                        arm_poses.csv and this file reproduces camera_poses_<arm>.npz up to encoder noise
+                        and the linear interpolation of the joint log.
+object.ply              the object's true surface, world frame, metres.
+object.json             object name, T_world_object, placement (x_m, y_m, yaw_rad), scale, centre/radius/height.
+camera_poses_<arm>.npz  per recorded depth frame of that arm's camera: frame_number, timestamp_ms (as in
+                        the bag, host clock plus any simulated clock offset), t_host_s (true exposure time
+                        on the host clock), T_world_cam (N, 4, 4) and the true joint angles q_true_rad (N, 6).
+settings.yaml           the twin settings: profile, seed and every error magnitude (darp twin docs).
+contacts.json           contacts the collision monitor saw during the recording (empty: none).
+"""
+
+
+def write_truth(
+    folder: str | Path,
+    *,
+    true_rig: TrueRig,
+    settings: TwinSettings,
+    camera_poses: dict[str, CameraPoseTruth],
+    object_info: dict[str, Any] | None = None,
+    object_mesh_world: Any | None = None,
+) -> Path:
+    """Write ``folder/truth/``; ``object_mesh_world`` is a trimesh mesh in the world frame. Returns the path."""
+    truth = Path(folder) / TRUTH_DIR
+    truth.mkdir(parents=True, exist_ok=True)
+    write_calibration(truth / CALIBRATION_FILE, true_rig.calibration(settings))
+    settings.save(truth / SETTINGS_FILE)
+    for arm_id, poses in camera_poses.items():
+        save_npz_deterministic(truth / f"camera_poses_{arm_id}.npz", poses.arrays())
+    if object_info is not None:
+        write_json_atomic(truth / OBJECT_JSON_FILE, object_info)
+    if object_mesh_world is not None:
+        with atomic_path(truth / OBJECT_MESH_FILE) as tmp:
+            tmp.write_bytes(object_mesh_world.export(file_type="ply", encoding="binary"))
+    write_text_atomic(truth / README_FILE, README_TEXT)
+    return truth
+
+
+@dataclass
+class SurveyTruth:
+    """What ``read_truth`` returns."""
+
+    calibration: Calibration
+    settings: TwinSettings
+    camera_poses: dict[str, dict[str, np.ndarray]]
+    object_info: dict[str, Any] | None
+    object_mesh_path: Path | None
+
+
+def read_truth(survey_folder: str | Path) -> SurveyTruth:
+    """Read ``<survey>/truth/`` (or the truth folder itself)."""
+    folder = Path(survey_folder)
+    truth = folder if folder.name == TRUTH_DIR else folder / TRUTH_DIR
+    if not truth.is_dir():
+        raise FormatError("no truth/ folder (only twin surveys have one)", folder)
+    poses = {p.stem.removeprefix("camera_poses_"): read_camera_poses(p)
+             for p in sorted(truth.glob("camera_poses_*.npz"))}
+    object_info = None
+    if (truth / OBJECT_JSON_FILE).is_file():
+        try:
+            object_info = json.loads((truth / OBJECT_JSON_FILE).read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as err:
+            raise FormatError(f"invalid JSON: {err}", truth / OBJECT_JSON_FILE) from err
+    mesh = truth / OBJECT_MESH_FILE
+    return SurveyTruth(
+        calibration=read_calibration(truth / CALIBRATION_FILE),
+        settings=TwinSettings.load(truth / SETTINGS_FILE),
+        camera_poses=poses,
+        object_info=object_info,
+        object_mesh_path=mesh if mesh.is_file() else None,
+    )
+
+
+__all__ = [
+    "TRUTH_DIR",
+    "CameraPoseTruth",
+    "SurveyTruth",
+    "TrueArm",
+    "TrueRig",
+    "draw_true_rig",
+    "perturbation",
+    "read_camera_poses",
+    "read_truth",
+    "save_npz_deterministic",
+    "write_truth",
+]
