@@ -1,0 +1,382 @@
+"""Depth images to world-frame points: metric depth, back-projection, edge rejection, normals, colour.
+
+For one depth frame (raw Z16 values, the recording's depth scale, its intrinsics and the eq. 1 pose):
+
+1. ``z = raw * depth_scale`` (metres); 0 and values outside ``[min_depth_m, max_depth_m]`` are invalid.
+2. A pixel ``(u, v)`` (pixel centres at integer coordinates) with depth ``z`` is the camera-frame point
+   ``((u - ppx) z / fx, (v - ppy) z / fy, z)``, after undistortion when the model has non-zero
+   coefficients (``Brown Conrady`` and ``Inverse Brown Conrady``, matching librealsense's deprojection).
+3. Optionally only pixels whose world point lies in a region (the object envelope) are kept; the rest of
+   the work is done in the bounding window of those pixels, which is what makes a frame cheap.
+4. Local depth discontinuities are rejected: two 8-neighbours whose depths differ by more than
+   ``discontinuity_abs_m + discontinuity_rel * z`` mark both pixels, and every pixel within
+   ``edge_margin_px`` of a marked or invalid pixel is dropped. This removes the flying pixels and the
+   fattened foreground that stereo depth leaves at silhouettes.
+5. Normals come from the depth image (cross product of central differences ``normal_step_px`` apart),
+   oriented toward the camera; points seen at more than ``max_incidence_deg`` from their normal are
+   dropped (grazing stereo depth is the least accurate).
+6. Points and normals are moved to the world frame with ``T_world_cam``; colours are looked up in a
+   colour image aligned to the depth image when one is given.
+
+Pure numpy, float32 per pixel; no Open3D.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from darp.errors import ReconstructionError
+from darp.formats.recording_types import Intrinsics
+
+_UNDISTORT_ITERATIONS = 30
+_UNDISTORT_TOLERANCE = 1e-7  # normalised image units (about 4e-5 px at fx = 383)
+
+
+@dataclass(frozen=True)
+class DepthFilterSettings:
+    """Per-frame depth filters, shared by fusion and held-out evaluation (defaults: see docs/processing.md)."""
+
+    min_depth_m: float = 0.10  # below the D435's minimum range (~0.15 m at 640x480) nothing is valid
+    max_depth_m: float = 1.0  # the paper's standoffs are 0.34-0.52 m; farther is background
+    discontinuity_abs_m: float = 0.002  # neighbour depth jump that marks an edge: abs + rel * z
+    discontinuity_rel: float = 0.01  # 1 % of z: a plane up to ~80 deg from frontal stays smooth at 0.35 m
+    edge_margin_px: int = 2  # pixels dropped around an edge or a hole (D4 edge fattening is 1-2 px)
+    normal_step_px: int = 2  # half-width of the central differences behind the normals
+    max_incidence_deg: float = 80.0  # drop points seen this far from their normal or more
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_depth_m < self.max_depth_m:
+            raise ReconstructionError(
+                f"depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty or negative")
+        if self.discontinuity_abs_m < 0 or self.discontinuity_rel < 0:
+            raise ReconstructionError("discontinuity thresholds must be >= 0")
+        if self.edge_margin_px < 0 or self.normal_step_px < 1:
+            raise ReconstructionError("edge_margin_px must be >= 0 and normal_step_px >= 1")
+        if not 0.0 < self.max_incidence_deg <= 90.0:
+            raise ReconstructionError(f"max_incidence_deg must be in (0, 90], got {self.max_incidence_deg}")
+
+
+@dataclass(frozen=True, eq=False)
+class PosedDepth:
+    """One depth frame ready to back-project: raw depth, its scale, intrinsics and world pose."""
+
+    arm: str
+    frame_id: int  # unique per arm (e.g. the device frame number)
+    depth: np.ndarray  # (H, W) uint16 raw Z16 values (0 = no depth)
+    depth_scale: float  # metres per depth unit
+    intrinsics: Intrinsics
+    T_world_cam: np.ndarray  # (4, 4) eq. 1 pose of the depth camera
+    colour: np.ndarray | None = None  # (H, W, 3) uint8 RGB aligned to the depth image
+
+
+@dataclass(frozen=True, eq=False)
+class FrameCloud:
+    """The surviving pixels of one frame as world points (float32), with normals toward the camera."""
+
+    points: np.ndarray  # (N, 3) world frame, metres
+    normals: np.ndarray  # (N, 3) unit, world frame, pointing toward the camera
+    colours: np.ndarray | None  # (N, 3) uint8 RGB or None
+    pixels: np.ndarray  # (N,) int64 flat pixel index v * W + u
+    camera_centre: np.ndarray  # (3,) world position of the camera
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+class Region(Protocol):
+    """A world-frame region: ``contains(points (N, 3)) -> bool (N,)``."""
+
+    def contains(self, points_world: np.ndarray) -> np.ndarray: ...
+
+
+# -- metric depth and rays ------------------------------------------------------------------------
+def depth_to_metres(depth: np.ndarray, depth_scale: float) -> np.ndarray:
+    """Raw Z16 depth (or already-metric float depth with scale 1) to float32 metres; 0 stays 0."""
+    if depth.ndim != 2:
+        raise ReconstructionError(f"depth image must be 2-D, got shape {depth.shape}")
+    if not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise ReconstructionError(f"depth scale must be positive, got {depth_scale}")
+    depth_m = depth.astype(np.float32) * np.float32(depth_scale)
+    if not np.issubdtype(depth.dtype, np.integer):
+        depth_m[~np.isfinite(depth_m)] = 0.0
+    return depth_m
+
+
+def _has_distortion(intrinsics: Intrinsics) -> bool:
+    return intrinsics.model.lower() != "none" and any(abs(c) > 0.0 for c in intrinsics.coeffs)
+
+
+def _distort(x: np.ndarray, y: np.ndarray, model: str, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """librealsense's forward distortion of normalised coordinates for the two supported models."""
+    r2 = x * x + y * y
+    f = 1.0 + k[0] * r2 + k[1] * r2 * r2 + k[4] * r2 * r2 * r2
+    if model == "brown conrady":  # tangential terms on the undistorted coordinates (OpenCV's model)
+        return (x * f + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
+                y * f + 2 * k[3] * x * y + k[2] * (r2 + 2 * y * y))
+    xf, yf = x * f, y * f  # inverse Brown-Conrady: tangential terms on the radially scaled coordinates
+    return xf + 2 * k[2] * xf * yf + k[3] * (r2 + 2 * xf * xf), yf + 2 * k[3] * xf * yf + k[2] * (r2 + 2 * yf * yf)
+
+
+def _undistort(xd: np.ndarray, yd: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    model = intrinsics.model.lower()
+    if model not in ("brown conrady", "inverse brown conrady"):
+        raise ReconstructionError(
+            f"cannot back-project through {intrinsics.model!r} distortion with non-zero coefficients "
+            f"{intrinsics.coeffs} (supported: Brown Conrady, Inverse Brown Conrady)")
+    k = tuple(float(c) for c in intrinsics.coeffs)
+    x, y = xd.copy(), yd.copy()
+    for _ in range(_UNDISTORT_ITERATIONS):  # fixed point: x <- x + (target - distort(x))
+        dx, dy = _distort(x, y, model, k)
+        x += xd - dx
+        y += yd - dy
+    dx, dy = _distort(x, y, model, k)
+    residual = float(np.max(np.hypot(dx - xd, dy - yd)))
+    if not residual < _UNDISTORT_TOLERANCE:
+        raise ReconstructionError(
+            f"{intrinsics.model} undistortion did not converge (residual {residual:.2e}); "
+            f"coefficients {intrinsics.coeffs} look implausible")
+    return x, y
+
+
+@functools.lru_cache(maxsize=16)
+def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W, 2) float32 normalised coordinates ``(x/z, y/z)`` of every pixel centre (cached)."""
+    w, h = int(intrinsics.width), int(intrinsics.height)
+    if w <= 0 or h <= 0 or not (intrinsics.fx > 0 and intrinsics.fy > 0):
+        raise ReconstructionError(f"invalid intrinsics {intrinsics}")
+    u = (np.arange(w, dtype=np.float64) - intrinsics.ppx) / intrinsics.fx
+    v = (np.arange(h, dtype=np.float64) - intrinsics.ppy) / intrinsics.fy
+    x, y = np.meshgrid(u, v)
+    if _has_distortion(intrinsics):
+        x, y = _undistort(x, y, intrinsics)
+    rays = np.stack([x, y], axis=-1).astype(np.float32)
+    rays.flags.writeable = False
+    return rays
+
+
+def camera_points(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """(H, W, 3) float32 camera-frame points of a metric depth image (z = 0 where there is no depth)."""
+    rays = _rays_for(depth_m, intrinsics)
+    z = depth_m.astype(np.float32, copy=False)
+    return np.stack([rays[..., 0] * z, rays[..., 1] * z, z], axis=-1)
+
+
+def _rays_for(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    rays = pixel_rays(intrinsics)
+    if depth_m.shape != rays.shape[:2]:
+        raise ReconstructionError(
+            f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but the intrinsics are "
+            f"{intrinsics.width}x{intrinsics.height}")
+    return rays
+
+
+def check_pose(T: np.ndarray, what: str = "T_world_cam") -> np.ndarray:
+    """``T`` as a float64 4x4 rigid transform, or a ReconstructionError saying why not."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise ReconstructionError(f"{what} must be a finite 4x4 matrix (an unposed frame has NaN)")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1.0) > 1e-5:
+        raise ReconstructionError(f"{what} is not a rigid transform")
+    return T
+
+
+def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Points (N, 3) from frame b to frame a, float32 out."""
+    p = np.asarray(points_b, dtype=np.float32)
+    return _to_world(T_a_b, p[:, 0], p[:, 1], p[:, 2])
+
+
+def _to_world(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """``T @ (x, y, z, 1)`` by columns, float32: much faster than numpy's matmul for (N, 3) x (3, 3)."""
+    R = T[:3, :3].astype(np.float32)
+    t = T[:3, 3].astype(np.float32)
+    out = np.empty((z.size, 3), np.float32)
+    for i in range(3):
+        out[:, i] = x * R[i, 0] + y * R[i, 1] + z * R[i, 2] + t[i]
+    return out
+
+
+def world_points(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray,
+                 pixel_index: np.ndarray) -> np.ndarray:
+    """World points (N, 3) float32 of the given flat pixel indices of a metric depth image."""
+    rays = _rays_for(depth_m, intrinsics).reshape(-1, 2)
+    z = depth_m.reshape(-1)[pixel_index]
+    return _to_world(T_world_cam, rays[pixel_index, 0] * z, rays[pixel_index, 1] * z, z)
+
+
+# -- filters --------------------------------------------------------------------------------------
+def valid_depth_mask(depth_m: np.ndarray, settings: DepthFilterSettings) -> np.ndarray:
+    """Pixels with a depth inside the settings' range."""
+    return (depth_m >= max(settings.min_depth_m, 1e-9)) & (depth_m <= settings.max_depth_m)
+
+
+def edge_free_mask(depth_m: np.ndarray, valid: np.ndarray, settings: DepthFilterSettings) -> np.ndarray:
+    """Valid pixels with no depth discontinuity, hole or image border within ``edge_margin_px``.
+
+    A pixel is on a discontinuity when one of its valid 8-neighbours differs from it by more than
+    ``abs + rel * (the nearer of the two depths)``; that marks both pixels of the pair. The 3x3
+    maximum and minimum over valid neighbours (OpenCV dilate/erode) find every such pair at once.
+    """
+    abs_m, rel = np.float32(settings.discontinuity_abs_m), np.float32(settings.discontinuity_rel)
+    kernel3 = np.ones((3, 3), np.uint8)
+    z = np.where(valid, depth_m, np.float32(0.0)).astype(np.float32)
+    highest = cv2.dilate(z, kernel3)  # invalid pixels (0) never win the maximum
+    lowest = cv2.erode(np.where(valid, z, np.float32(np.inf)), kernel3)  # ... nor the minimum
+    jump = (highest - z > abs_m + rel * z) | (z - lowest > abs_m + rel * lowest)
+    bad = (~valid | jump).view(np.uint8)
+    m = settings.edge_margin_px
+    if m > 0:
+        kernel = np.ones((2 * m + 1, 2 * m + 1), np.uint8)
+        bad = cv2.dilate(bad, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    return bad == 0
+
+
+def depth_normals(points_cam: np.ndarray, step_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit normals of an organised camera-frame point image (H, W, 3) from central differences.
+
+    The differences are taken ``step_px`` pixels apart. Returns ``(normals (H, W, 3) float32 toward
+    the camera, ok (H, W) bool)``; ``ok`` is False where a stencil pixel lies outside the image or has
+    no depth (z = 0).
+    """
+    s = step_px
+    h, w = points_cam.shape[:2]
+    normals = np.zeros((h, w, 3), np.float32)
+    ok = np.zeros((h, w), bool)
+    if h <= 2 * s or w <= 2 * s:
+        return normals, ok
+    pts = points_cam
+    du = pts[s:-s, 2 * s:] - pts[s:-s, :-2 * s]  # right - left
+    dv = pts[2 * s:, s:-s] - pts[:-2 * s, s:-s]  # down - up
+    n = np.cross(dv, du)  # x right, y down: (down x right) points at the camera
+    length = np.sqrt(np.einsum("ijk,ijk->ij", n, n))
+    valid = pts[..., 2] > 0
+    ok[s:-s, s:-s] = (valid[s:-s, 2 * s:] & valid[s:-s, :-2 * s] & valid[2 * s:, s:-s] & valid[:-2 * s, s:-s]
+                      & (length > 0))
+    normals[s:-s, s:-s] = n / np.where(length > 0, length, 1.0)[..., None]
+    return normals, ok
+
+
+# -- the whole frame ------------------------------------------------------------------------------
+def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
+                region: Region | None = None) -> FrameCloud:
+    """Back-project one frame to filtered world points (see the module docstring for the steps).
+
+    ``region`` (e.g. :class:`darp.reconstruction.crop.EnvelopeCrop`) keeps only points inside it.
+    """
+    settings = settings or DepthFilterSettings()
+    T = check_pose(frame.T_world_cam)
+    depth = np.asarray(frame.depth)
+    if depth.ndim != 2:
+        raise ReconstructionError(f"depth image must be 2-D, got shape {depth.shape}")
+    rays = _rays_for(depth, frame.intrinsics)
+    h, w = depth.shape
+    colour = None if frame.colour is None else np.asarray(frame.colour)
+    if colour is not None and (colour.ndim != 3 or colour.shape[:2] != (h, w) or colour.shape[2] < 3):
+        raise ReconstructionError(f"colour image {colour.shape} is not aligned to the {w}x{h} depth image")
+    # work only in the pixel window that can see the region (grown so every stencil stays inside)
+    pad = settings.edge_margin_px + settings.normal_step_px + 1
+    window = region_window(region, T, frame.intrinsics) if region is not None else None
+    r0, r1, c0, c1 = (0, h, 0, w) if window is None else (
+        max(window[0] - pad, 0), min(window[1] + pad, h), max(window[2] - pad, 0), min(window[3] + pad, w))
+    depth_w = depth_to_metres(depth[r0:r1, c0:c1], frame.depth_scale)
+    valid_w = valid_depth_mask(depth_w, settings)
+    depth_w[~valid_w] = 0.0
+    rays_w = rays[r0:r1, c0:c1]
+    pts_w = np.stack([rays_w[..., 0] * depth_w, rays_w[..., 1] * depth_w, depth_w], axis=-1)
+    rows, cols = np.nonzero(valid_w)
+    if region is not None and rows.size:
+        inside = region.contains(transform_points(T, pts_w[rows, cols]))
+        rows, cols = rows[inside], cols[inside]
+    if rows.size == 0:
+        return _empty_cloud(T, frame.colour is not None)
+
+    # filters run in the candidates' own bounding box (grown by the stencils' reach)
+    a0, a1 = max(int(rows.min()) - pad, 0), min(int(rows.max()) + pad + 1, r1 - r0)
+    b0, b1 = max(int(cols.min()) - pad, 0), min(int(cols.max()) + pad + 1, c1 - c0)
+    r0, c0 = r0 + a0, c0 + b0
+    rows, cols = rows - a0, cols - b0
+    depth_w, valid_w, pts_w = depth_w[a0:a1, b0:b1], valid_w[a0:a1, b0:b1], pts_w[a0:a1, b0:b1]
+    keep = edge_free_mask(depth_w, valid_w, settings)[rows, cols]
+    # image borders are holes too (the window's own border is an image border only where it touches one)
+    border = settings.edge_margin_px
+    keep &= (rows + r0 >= border) & (rows + r0 < h - border) & (cols + c0 >= border) & (cols + c0 < w - border)
+    rows, cols = rows[keep], cols[keep]
+
+    normal_image, normal_ok = depth_normals(pts_w, settings.normal_step_px)
+    normals_cam, ok, pts_cam = normal_image[rows, cols], normal_ok[rows, cols], pts_w[rows, cols]
+    cos_incidence = -np.einsum("ij,ij->i", normals_cam, pts_cam) / np.linalg.norm(pts_cam, axis=1)
+    ok &= cos_incidence >= np.float32(math.cos(math.radians(settings.max_incidence_deg)))
+    pts_cam, normals_cam = pts_cam[ok], normals_cam[ok]
+    candidates = (rows[ok] + r0).astype(np.int64) * w + (cols[ok] + c0)
+
+    colours = None if colour is None else colour.reshape(h * w, -1)[candidates, :3].astype(np.uint8)
+    return FrameCloud(
+        points=transform_points(T, pts_cam),
+        normals=transform_points(_rotation_only(T), normals_cam),
+        colours=colours,
+        pixels=candidates.astype(np.int64),
+        camera_centre=T[:3, 3].copy(),
+    )
+
+
+def region_window(region: Region, T_world_cam: np.ndarray,
+                  intrinsics: Intrinsics) -> tuple[int, int, int, int] | None:
+    """Pixel rows/cols ``(r0, r1, c0, c1)`` that can see the region's bounding box, or None (all).
+
+    The box's corners are projected with the pinhole model; with lens distortion, or when a corner
+    lies behind the camera, no window is used.
+    """
+    bounds = getattr(region, "bounds_m", None)
+    if bounds is None or _has_distortion(intrinsics):
+        return None
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    T_cam_world = np.linalg.inv(T_world_cam)
+    cam = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    if np.any(cam[:, 2] <= 1e-6):
+        return None
+    u = intrinsics.fx * cam[:, 0] / cam[:, 2] + intrinsics.ppx
+    v = intrinsics.fy * cam[:, 1] / cam[:, 2] + intrinsics.ppy
+    c0, c1 = max(int(np.floor(u.min())) - 1, 0), min(int(np.ceil(u.max())) + 2, intrinsics.width)
+    r0, r1 = max(int(np.floor(v.min())) - 1, 0), min(int(np.ceil(v.max())) + 2, intrinsics.height)
+    return (r0, max(r1, r0), c0, max(c1, c0))
+
+
+def _rotation_only(T: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = T[:3, :3]
+    return out
+
+
+def _empty_cloud(T: np.ndarray, with_colour: bool) -> FrameCloud:
+    return FrameCloud(
+        points=np.empty((0, 3), np.float32), normals=np.empty((0, 3), np.float32),
+        colours=np.empty((0, 3), np.uint8) if with_colour else None,
+        pixels=np.empty(0, np.int64), camera_centre=T[:3, 3].copy(),
+    )
+
+
+__all__ = [
+    "DepthFilterSettings",
+    "FrameCloud",
+    "PosedDepth",
+    "Region",
+    "backproject",
+    "camera_points",
+    "check_pose",
+    "depth_normals",
+    "depth_to_metres",
+    "edge_free_mask",
+    "pixel_rays",
+    "region_window",
+    "transform_points",
+    "valid_depth_mask",
+    "world_points",
+]

@@ -1,0 +1,356 @@
+"""Measured-surface fusion: keyframes of both arms -> supported voxels -> per-arm and fused clouds.
+
+Every keyframe is back-projected with its own eq. 1 pose (:mod:`darp.reconstruction.backproject`),
+cropped to the object envelope, and reduced to per-voxel statistics that are merged as frames stream
+in (memory grows with the observed surface, not with the number of frames). At the end, per arm and
+for both arms together:
+
+1. **voxel support**: a voxel is kept only if at least ``min_frames`` distinct frames and
+   ``min_view_bins`` distinct viewing-direction bins (64 bins on the sphere, ~25 deg apart) saw it;
+   isolated and single-view measurements (flying pixels, multipath, one bad frame) fall out;
+2. each kept voxel becomes one point: the mean of its points, colours and camera-oriented normals;
+3. statistical outlier removal: points whose mean distance to their ``sor_neighbours`` nearest
+   neighbours exceeds the cloud's mean of that distance by ``sor_std_ratio`` standard deviations go;
+4. a local surface fit: each point moves along its normal onto the weighted mean plane of its
+   neighbours within ``surface_fit_radius_voxels`` voxels, which collapses the noise layer; points
+   that then share a voxel are merged.
+
+No ICP, no centroid alignment: the two arms meet where their calibrated poses put them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from darp.errors import ReconstructionError
+from darp.formats.envelope import Envelope
+from darp.reconstruction.backproject import DepthFilterSettings, FrameCloud, PosedDepth, Region, backproject
+from darp.reconstruction.cloud_io import write_cloud_ply
+from darp.reconstruction.crop import EnvelopeCrop
+from darp.reconstruction.voxel_stats import (
+    VoxelStats,
+    frame_stats,
+    merge_stats,
+    pack_keys,
+    popcount64,
+    unpack_keys,
+    voxel_indices,
+)
+
+ARM_COLOURS = {"arm110": (220, 40, 40), "arm111": (40, 70, 220)}
+
+
+@dataclass(frozen=True)
+class FusionSettings:
+    """Every fusion parameter; defaults and reasons in docs/processing.md."""
+
+    depth: DepthFilterSettings = field(default_factory=DepthFilterSettings)
+    voxel_size_m: float = 0.0015  # 1.5 mm: ~1.6 pixel footprints at 0.35 m; several points per frame
+    min_frames: int = 3  # distinct frames that must see a voxel
+    min_view_bins: int = 2  # distinct viewing-direction bins that must see a voxel
+    envelope_margin_m: float = 0.01  # envelope crop: radial and top margin
+    table_margin_m: float = 0.003  # envelope crop: kept only above table + this
+    sor_neighbours: int = 20  # statistical outlier removal: neighbours per point (0 = off)
+    sor_std_ratio: float = 2.0  # ... and the tolerated excess of the mean neighbour distance, in std
+    surface_fit_radius_voxels: float = 1.5  # local plane fit along the normal (0 = off), in voxels
+    surface_fit_neighbours: int = 16  # at most this many neighbours enter a plane fit
+    merge_rows: int = 400_000  # pending per-frame voxel rows merged into the state beyond this
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.voxel_size_m) and 1e-4 <= self.voxel_size_m <= 0.1):
+            raise ReconstructionError(f"voxel_size_m must be within 0.1 mm .. 10 cm, got {self.voxel_size_m}")
+        if self.min_frames < 1 or self.min_view_bins < 1:
+            raise ReconstructionError("min_frames and min_view_bins must be >= 1")
+        if self.sor_neighbours < 0 or self.sor_std_ratio <= 0:
+            raise ReconstructionError("sor_neighbours must be >= 0 and sor_std_ratio > 0")
+        if self.surface_fit_radius_voxels < 0 or self.surface_fit_neighbours < 2:
+            raise ReconstructionError("surface_fit_radius_voxels must be >= 0 and surface_fit_neighbours >= 2")
+        if self.merge_rows < 1:
+            raise ReconstructionError("merge_rows must be >= 1")
+
+    def crop(self, envelope: Envelope, table_z_m: float | None = None) -> EnvelopeCrop:
+        """The envelope crop with this fusion's margins."""
+        return EnvelopeCrop.from_envelope(envelope, table_z_m=table_z_m, margin_m=self.envelope_margin_m,
+                                          table_margin_m=self.table_margin_m)
+
+
+@dataclass(frozen=True, eq=False)
+class VoxelCloud:
+    """A fused point cloud: one point per supported voxel, with how it was supported."""
+
+    points: np.ndarray  # (N, 3) float32 world, metres
+    normals: np.ndarray  # (N, 3) float32 unit, toward the cameras that saw the voxel
+    colours: np.ndarray | None  # (N, 3) uint8 RGB
+    n_points: np.ndarray  # (N,) int32 observations averaged
+    n_frames: np.ndarray  # (N,) int32 distinct frames
+    n_views: np.ndarray  # (N,) int32 distinct viewing-direction bins
+    arm_mask: np.ndarray  # (N,) uint8 bit i: arm ``arms[i]`` saw the voxel
+    voxel_ijk: np.ndarray  # (N, 3) int64 voxel coordinates
+    arms: tuple[str, ...]  # arm names by bit
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def seen_by(self, arm: str) -> np.ndarray:
+        """Boolean (N,): the points of voxels that ``arm`` saw."""
+        if arm not in self.arms:
+            return np.zeros(len(self), bool)
+        return (self.arm_mask & np.uint8(1 << self.arms.index(arm))) > 0
+
+    def select(self, keep: np.ndarray) -> VoxelCloud:
+        return VoxelCloud(self.points[keep], self.normals[keep],
+                          None if self.colours is None else self.colours[keep], self.n_points[keep],
+                          self.n_frames[keep], self.n_views[keep], self.arm_mask[keep], self.voxel_ijk[keep],
+                          self.arms)
+
+
+@dataclass(frozen=True, eq=False)
+class FusionResult:
+    """The fused cloud of both arms, each arm's own partial cloud, and counts of what happened."""
+
+    fused: VoxelCloud
+    per_arm: dict[str, VoxelCloud]
+    settings: FusionSettings
+    stats: dict[str, Any]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Settings and counts (frames, points in, voxels, supported, after SOR, points out), for JSON."""
+        return {"settings": dataclasses.asdict(self.settings), "counts": self.stats,
+                "points": {"fused": len(self.fused), **{arm: len(c) for arm, c in self.per_arm.items()}}}
+
+
+def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
+    """Boolean (N,) inliers: mean distance to the ``neighbours`` nearest points <= mean + ratio * std.
+
+    The same rule as Open3D's ``remove_statistical_outlier`` (population std over the cloud).
+    """
+    n = points.shape[0]
+    if neighbours <= 0 or n <= neighbours:
+        return np.ones(n, bool)
+    tree = cKDTree(points)
+    dist, _ = tree.query(points, k=neighbours + 1, workers=-1)  # the first neighbour is the point itself
+    mean_d = dist[:, 1:].mean(axis=1)
+    return mean_d <= mean_d.mean() + std_ratio * mean_d.std()
+
+
+def fit_to_local_surface(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, radius_m: float,
+                         neighbours: int) -> np.ndarray:
+    """Move each point along its normal onto the weighted mean plane of its neighbours within ``radius_m``.
+
+    Voxel means of noisy depth form a layer a few noise sigmas thick; this order-1 moving-least-squares
+    step collapses it onto the surface (and lets ball pivoting use every point). It only moves points
+    along their own normals, by at most ``radius_m``; it rounds edges sharper than the radius.
+    """
+    n = points.shape[0]
+    if radius_m <= 0 or n < 2:
+        return points
+    k = min(neighbours, n)
+    p = points.astype(np.float64)
+    dist, idx = cKDTree(p).query(p, k=k, distance_upper_bound=radius_m, workers=-1)
+    found = np.isfinite(dist)
+    idx = np.where(found, idx, 0)
+    w = np.where(found, weights[idx].astype(np.float64), 0.0)
+    offsets = np.einsum("ikj,ij->ik", p[idx] - p[:, None, :], normals.astype(np.float64))
+    shift = (w * offsets).sum(axis=1) / w.sum(axis=1)  # the point itself is always found (w > 0)
+    return (p + shift[:, None] * normals).astype(np.float32)
+
+
+def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],
+                     counts: dict[str, int] | None = None) -> VoxelCloud:
+    """Apply voxel support, average each voxel and remove statistical outliers."""
+    n_views = popcount64(stats.view_mask)
+    supported = (stats.n_frames >= settings.min_frames) & (n_views >= settings.min_view_bins)
+    kept = stats.select(supported)
+    n = kept.n_points.astype(np.float64)[:, None]
+    points = (kept.sum_xyz / n).astype(np.float32)
+    normal_len = np.linalg.norm(kept.sum_normal, axis=1)
+    normals = (kept.sum_normal / np.where(normal_len > 0, normal_len, 1.0)[:, None]).astype(np.float32)
+    colours = None if kept.sum_rgb is None else np.clip(np.rint(kept.sum_rgb / n), 0, 255).astype(np.uint8)
+    cloud = VoxelCloud(points, normals, colours, kept.n_points.astype(np.int32), kept.n_frames,
+                       n_views[supported], kept.arm_mask, unpack_keys(kept.keys), arms)
+    inliers = statistical_outliers(points, settings.sor_neighbours, settings.sor_std_ratio)
+    if counts is not None:
+        counts.update(voxels=len(stats), supported=int(supported.sum()), after_sor=int(inliers.sum()))
+    cloud = cloud.select(inliers)
+    radius = settings.surface_fit_radius_voxels * settings.voxel_size_m
+    fitted = fit_to_local_surface(cloud.points, cloud.normals, cloud.n_points, radius,
+                                  settings.surface_fit_neighbours)
+    merged = merge_coincident(dataclasses.replace(cloud, points=fitted), settings.voxel_size_m)
+    if counts is not None:
+        counts["points"] = len(merged)
+    return merged
+
+
+def merge_coincident(cloud: VoxelCloud, voxel_size_m: float) -> VoxelCloud:
+    """Merge points that share a voxel after the surface fit (weighted by their observation counts).
+
+    Noise spreads a surface over two voxel layers; once the fit has put both layers' means on the
+    surface they nearly coincide, and near-duplicate points make ball pivoting leave holes.
+    """
+    if len(cloud) == 0:
+        return cloud
+    ijk = voxel_indices(cloud.points, voxel_size_m)
+    keys, first, inverse = np.unique(pack_keys(ijk), return_index=True, return_inverse=True)
+    if keys.size == len(cloud):
+        return dataclasses.replace(cloud, voxel_ijk=ijk)
+    m = keys.size
+    w = cloud.n_points.astype(np.float64)
+    total = np.bincount(inverse, weights=w, minlength=m)
+
+    def weighted(values: np.ndarray) -> np.ndarray:
+        return np.column_stack([np.bincount(inverse, weights=w * values[:, j], minlength=m)
+                                for j in range(values.shape[1])])
+
+    points = (weighted(cloud.points.astype(np.float64)) / total[:, None]).astype(np.float32)
+    normal_sum = weighted(cloud.normals.astype(np.float64))
+    normals = (normal_sum / np.maximum(np.linalg.norm(normal_sum, axis=1), 1e-12)[:, None]).astype(np.float32)
+    colours = None
+    if cloud.colours is not None:
+        colours = np.clip(np.rint(weighted(cloud.colours.astype(np.float64)) / total[:, None]), 0, 255)
+        colours = colours.astype(np.uint8)
+    order = np.argsort(inverse, kind="stable")
+    starts = np.searchsorted(inverse[order], np.arange(m))
+    return VoxelCloud(
+        points=points, normals=normals, colours=colours,
+        n_points=np.rint(total).astype(np.int32),
+        n_frames=np.maximum.reduceat(cloud.n_frames[order], starts),
+        n_views=np.maximum.reduceat(cloud.n_views[order], starts),
+        arm_mask=np.bitwise_or.reduceat(cloud.arm_mask[order], starts),
+        voxel_ijk=ijk[first], arms=cloud.arms,
+    )
+
+
+class VoxelFusion:
+    """Streaming accumulator: add frames (any order, both arms), then :meth:`result`."""
+
+    def __init__(self, settings: FusionSettings | None = None, region: Region | None = None) -> None:
+        self.settings = settings or FusionSettings()
+        self.region = region
+        self.arms: list[str] = []
+        self._state: dict[str, VoxelStats] = {}
+        self._pending: dict[str, list[VoxelStats]] = {}
+        self._pending_rows = 0
+        self._seen: set[tuple[str, int]] = set()
+        self._colour: bool | None = None
+        self.points_in: dict[str, int] = {}
+        self.peak_rows = 0
+
+    @property
+    def frames(self) -> dict[str, int]:
+        """Frames added, per arm."""
+        out: dict[str, int] = {}
+        for arm, _ in self._seen:
+            out[arm] = out.get(arm, 0) + 1
+        return out
+
+    @property
+    def rows(self) -> int:
+        """Voxel rows held (state and pending): the accumulator's memory in rows."""
+        return sum(len(s) for s in self._state.values()) + self._pending_rows
+
+    def add(self, frame: PosedDepth) -> int:
+        """Back-project, filter and accumulate one frame; returns the number of points it added."""
+        self._check_new(frame.arm, frame.frame_id)
+        cloud = backproject(frame, self.settings.depth, self.region)
+        return self._accumulate(frame.arm, frame.frame_id, cloud)
+
+    def add_cloud(self, arm: str, frame_id: int, cloud: FrameCloud) -> int:
+        """Accumulate an already back-projected (and filtered) frame."""
+        self._check_new(arm, frame_id)
+        return self._accumulate(arm, frame_id, cloud)
+
+    def _check_new(self, arm: str, frame_id: int) -> None:
+        if (arm, int(frame_id)) in self._seen:
+            raise ReconstructionError(f"frame {frame_id} of {arm} was already fused")
+
+    def _accumulate(self, arm: str, frame_id: int, cloud: FrameCloud) -> int:
+        self._seen.add((arm, int(frame_id)))
+        if arm not in self.arms:
+            if len(self.arms) == 8:
+                raise ReconstructionError("fusion supports at most 8 arms")
+            self.arms.append(arm)
+        with_colour = cloud.colours is not None
+        if self._colour is None:
+            self._colour = with_colour
+        elif self._colour != with_colour and len(cloud):
+            raise ReconstructionError(f"frame {frame_id} of {arm}: mixing frames with and without colour")
+        self.points_in[arm] = self.points_in.get(arm, 0) + len(cloud)
+        if len(cloud) == 0:
+            return 0
+        stats = frame_stats(cloud.points, cloud.normals, cloud.colours, cloud.camera_centre,
+                            self.settings.voxel_size_m, self.arms.index(arm))
+        self._pending.setdefault(arm, []).append(stats)
+        self._pending_rows += len(stats)
+        self.peak_rows = max(self.peak_rows, self.rows)
+        if self._pending_rows >= self.settings.merge_rows:
+            self._merge()
+        return len(cloud)
+
+    def _merge(self) -> None:
+        for arm, parts in self._pending.items():
+            if parts:
+                self._state[arm] = merge_stats([self._state.get(arm, VoxelStats.empty(bool(self._colour))),
+                                                *parts])
+        self._pending = {}
+        self._pending_rows = 0
+
+    def result(self) -> FusionResult:
+        """Support, averaging and outlier removal per arm and for all arms together."""
+        self._merge()
+        if not self._state:
+            raise ReconstructionError("nothing to fuse: no frame left any point inside the envelope")
+        arms = tuple(self.arms)
+        per_arm: dict[str, VoxelCloud] = {}
+        counts: dict[str, Any] = {}
+        for arm in arms:
+            c: dict[str, int] = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
+            per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
+                                            self.settings, arms, c)
+            counts[arm] = c
+        c = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
+        fused = cloud_from_stats(merge_stats(list(self._state.values())), self.settings, arms, c)
+        counts["fused"] = c
+        counts["peak_rows"] = self.peak_rows
+        return FusionResult(fused=fused, per_arm=per_arm, settings=self.settings, stats=counts)
+
+
+def write_voxel_cloud(path: str | Path, cloud: VoxelCloud) -> Path:
+    """Write a fused cloud as binary PLY with its support counts (``n_frames``, ``n_views``, ...)."""
+    return write_cloud_ply(
+        path, cloud.points, normals=cloud.normals, colours=cloud.colours,
+        fields={"n_points": cloud.n_points.astype(np.int32), "n_frames": cloud.n_frames.astype(np.int32),
+                "n_views": cloud.n_views.astype(np.uint8), "arm_mask": cloud.arm_mask.astype(np.uint8)},
+        comments=[f"arms {' '.join(cloud.arms)}"],
+    )
+
+
+def fuse(frames: Iterable[PosedDepth], settings: FusionSettings | None = None,
+         region: Region | None = None) -> FusionResult:
+    """Fuse ``frames`` (streamed: each frame is reduced and dropped before the next one is read)."""
+    fusion = VoxelFusion(settings, region)
+    for frame in frames:
+        fusion.add(frame)
+    return fusion.result()
+
+
+__all__ = [
+    "ARM_COLOURS",
+    "FusionResult",
+    "FusionSettings",
+    "VoxelCloud",
+    "VoxelFusion",
+    "cloud_from_stats",
+    "fit_to_local_surface",
+    "fuse",
+    "merge_coincident",
+    "statistical_outliers",
+    "write_voxel_cloud",
+]
