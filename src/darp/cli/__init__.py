@@ -18,6 +18,7 @@ from darp.cli import inspect as _inspect  # noqa: F401,E402
 from darp.cli import rig as _rig  # noqa: F401,E402
 from darp.cli import poses as _poses  # noqa: F401,E402
 from darp.cli import twin as _twin  # noqa: F401,E402
+from darp.cli import calib as _calib  # noqa: F401,E402
 
 
 def main() -> None:

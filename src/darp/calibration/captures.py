@@ -1,0 +1,331 @@
+"""The calibration capture folder: one image and one JSON record per capture, plus an index.
+
+Layout (every file written atomically; the index is rewritten after each capture, so an interrupted
+run leaves a readable folder of the captures taken so far)::
+
+    captures.json          schema "darp-calib-captures/1": board spec, source, notes, list of captures
+    arm110_000.png         the image (8-bit grey or BGR) exactly as the camera gave it
+    arm110_000.json        schema "darp-calib-capture/1": the capture's record (below)
+    ...
+    truth/calibration.json optional (twin captures): the true calibration, for evaluation only
+
+A capture record holds what the solver needs and nothing it has to guess::
+
+    id             "arm110_000"
+    arm            arm id
+    camera_serial  serial of the camera on that arm's wrist
+    time_s         host-clock time of the capture
+    q_rad          joint angles as the arm reported them (SDK angles, radians, no joint-zero correction)
+    q_std_rad      spread of the joint readings averaged into q_rad (optional)
+    stream         image stream: "color" or "ir1"
+    image          image file name (PNG), relative to the folder
+    image_size     [width, height]
+    intrinsics     the stream's intrinsics as the camera reports them: fx, fy, ppx, ppy, model, coeffs
+    T_depth_stream 4x4 pose of the stream's optical frame in the depth (left IR) optical frame; the
+                   hand-eye is calibrated for the depth frame, so colour captures carry the factory
+                   depth-to-colour extrinsic (identity for ir1)
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from darp.errors import CalibrationError, FormatError
+from darp.formats.atomic import atomic_path
+from darp.formats.calibration import CharucoBoardSpec
+from darp.formats.recording_types import Intrinsics
+from darp.formats.schema import (
+    as_array,
+    as_dict,
+    as_float,
+    as_int,
+    as_rigid_transform,
+    as_str,
+    load_json_object,
+    write_json_checked,
+)
+
+INDEX_FILE = "captures.json"
+INDEX_SCHEMA = "darp-calib-captures/1"
+RECORD_SCHEMA = "darp-calib-capture/1"
+STREAMS = ("color", "ir1")
+TRUTH_CALIBRATION = Path("truth") / "calibration.json"
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureRecord:
+    """One capture: which arm, its joints as logged, and how to read and model its image."""
+
+    capture_id: str
+    arm: str
+    camera_serial: str
+    time_s: float
+    q_rad: np.ndarray  # (6,)
+    stream: str
+    image_file: str
+    intrinsics: Intrinsics
+    T_depth_stream: np.ndarray
+    q_std_rad: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def image_size(self) -> tuple[int, int]:
+        return self.intrinsics.width, self.intrinsics.height
+
+
+@dataclass
+class CaptureSet:
+    """A capture folder: board, records, and image access."""
+
+    folder: Path
+    board: CharucoBoardSpec
+    captures: list[CaptureRecord]
+    source: str = ""
+    notes: dict[str, Any] = field(default_factory=dict)
+    created: str = ""
+
+    @property
+    def arms(self) -> tuple[str, ...]:
+        """Arm ids in order of first appearance."""
+        return tuple(dict.fromkeys(c.arm for c in self.captures))
+
+    def for_arm(self, arm: str) -> list[CaptureRecord]:
+        return [c for c in self.captures if c.arm == arm]
+
+    def image_path(self, record: CaptureRecord) -> Path:
+        return self.folder / record.image_file
+
+    def load_image(self, record: CaptureRecord) -> np.ndarray:
+        """The capture's image as 8-bit grey; its size must match the recorded intrinsics."""
+        path = self.image_path(record)
+        if not path.is_file():
+            raise FormatError(f"capture {record.capture_id}: image file is missing", path)
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise FormatError(f"capture {record.capture_id}: not a readable image", path)
+        if image.dtype != np.uint8:
+            raise FormatError(f"capture {record.capture_id}: expected an 8-bit image, got {image.dtype}", path)
+        if image.ndim == 3:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY if image.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        h, w = image.shape[:2]
+        if (w, h) != record.image_size:
+            raise FormatError(f"capture {record.capture_id}: image is {w}x{h} but its intrinsics say "
+                              f"{record.image_size[0]}x{record.image_size[1]}", path)
+        return image
+
+    def truth_calibration_path(self) -> Path | None:
+        """``truth/calibration.json`` of twin captures, if present."""
+        path = self.folder / TRUTH_CALIBRATION
+        return path if path.is_file() else None
+
+
+# -- (de)serialisation ------------------------------------------------------------------------------
+
+def board_to_dict(board: CharucoBoardSpec) -> dict[str, Any]:
+    return {"squares_x": board.squares_x, "squares_y": board.squares_y,
+            "square_length_m": board.square_length_m, "marker_length_m": board.marker_length_m,
+            "dictionary": board.dictionary}
+
+
+def board_from_dict(value: Any, path: Path | None) -> CharucoBoardSpec:
+    data = as_dict(value, "board", path)
+    missing = [k for k in ("squares_x", "squares_y", "square_length_m", "marker_length_m", "dictionary")
+               if k not in data]
+    if missing:
+        raise FormatError(f"board: missing {', '.join(missing)}", path)
+    from darp.calibration.board import validate_board
+
+    spec = CharucoBoardSpec(
+        squares_x=as_int(data["squares_x"], "board.squares_x", path, minimum=3),
+        squares_y=as_int(data["squares_y"], "board.squares_y", path, minimum=3),
+        square_length_m=as_float(data["square_length_m"], "board.square_length_m", path, positive=True),
+        marker_length_m=as_float(data["marker_length_m"], "board.marker_length_m", path, positive=True),
+        dictionary=as_str(data["dictionary"], "board.dictionary", path),
+    )
+    try:
+        validate_board(spec)
+    except CalibrationError as err:
+        raise FormatError(f"board: {err.message}", path) from None
+    return spec
+
+
+def intrinsics_to_dict(intr: Intrinsics) -> dict[str, Any]:
+    return {"width": intr.width, "height": intr.height, "fx": intr.fx, "fy": intr.fy, "ppx": intr.ppx,
+            "ppy": intr.ppy, "model": intr.model, "coeffs": list(intr.coeffs)}
+
+
+def intrinsics_from_dict(value: Any, where: str, path: Path | None) -> Intrinsics:
+    data = as_dict(value, where, path)
+    missing = [k for k in ("width", "height", "fx", "fy", "ppx", "ppy") if k not in data]
+    if missing:
+        raise FormatError(f"{where}: missing {', '.join(missing)}", path)
+    coeffs = as_array(data.get("coeffs", [0.0] * 5), f"{where}.coeffs", path, (5,))
+    return Intrinsics(
+        width=as_int(data["width"], f"{where}.width", path, minimum=1),
+        height=as_int(data["height"], f"{where}.height", path, minimum=1),
+        fx=as_float(data["fx"], f"{where}.fx", path, positive=True),
+        fy=as_float(data["fy"], f"{where}.fy", path, positive=True),
+        ppx=as_float(data["ppx"], f"{where}.ppx", path),
+        ppy=as_float(data["ppy"], f"{where}.ppy", path),
+        model=as_str(data.get("model", "Brown Conrady"), f"{where}.model", path),
+        coeffs=tuple(float(c) for c in coeffs),  # type: ignore[arg-type]
+    )
+
+
+def record_to_dict(rec: CaptureRecord) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "schema": RECORD_SCHEMA, "id": rec.capture_id, "arm": rec.arm, "camera_serial": rec.camera_serial,
+        "time_s": rec.time_s, "q_rad": np.asarray(rec.q_rad, float).tolist(),
+    }
+    if rec.q_std_rad is not None:
+        out["q_std_rad"] = np.asarray(rec.q_std_rad, float).tolist()
+    out.update({"stream": rec.stream, "image": rec.image_file, "image_size": list(rec.image_size),
+                "intrinsics": intrinsics_to_dict(rec.intrinsics),
+                "T_depth_stream": np.asarray(rec.T_depth_stream, float).tolist()})
+    if rec.extra:
+        out["extra"] = rec.extra
+    return out
+
+
+def record_from_dict(data: dict[str, Any], path: Path | None) -> CaptureRecord:
+    schema = data.get("schema")
+    if schema != RECORD_SCHEMA:
+        raise FormatError(f"schema: expected {RECORD_SCHEMA!r}, got {schema!r}", path)
+    missing = [k for k in ("id", "arm", "camera_serial", "time_s", "q_rad", "stream", "image", "intrinsics",
+                           "T_depth_stream") if k not in data]
+    if missing:
+        raise FormatError(f"missing {', '.join(missing)}", path)
+    stream = as_str(data["stream"], "stream", path)
+    if stream not in STREAMS:
+        raise FormatError(f"stream: must be one of {', '.join(STREAMS)}, got {stream!r}", path)
+    image = as_str(data["image"], "image", path)
+    if Path(image).is_absolute() or ".." in Path(image).parts:
+        raise FormatError(f"image: must be a file name inside the capture folder, got {image!r}", path)
+    intr = intrinsics_from_dict(data["intrinsics"], "intrinsics", path)
+    if "image_size" in data:
+        size = as_array(data["image_size"], "image_size", path, (2,))
+        if (int(size[0]), int(size[1])) != (intr.width, intr.height):
+            raise FormatError(f"image_size {size.astype(int).tolist()} differs from the intrinsics' "
+                              f"{intr.width}x{intr.height}", path)
+    std = data.get("q_std_rad")
+    return CaptureRecord(
+        capture_id=as_str(data["id"], "id", path),
+        arm=as_str(data["arm"], "arm", path),
+        camera_serial=str(data["camera_serial"]),
+        time_s=as_float(data["time_s"], "time_s", path),
+        q_rad=as_array(data["q_rad"], "q_rad", path, (6,)),
+        stream=stream,
+        image_file=image,
+        intrinsics=intr,
+        T_depth_stream=as_rigid_transform(data["T_depth_stream"], "T_depth_stream", path),
+        q_std_rad=None if std is None else as_array(std, "q_std_rad", path, (6,)),
+        extra=as_dict(data.get("extra", {}), "extra", path),
+    )
+
+
+def read_captures(folder: str | Path) -> CaptureSet:
+    """Read and validate a capture folder (index and every record; images are read on demand)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FormatError("not a capture folder (no such directory)", folder)
+    index_path = folder / INDEX_FILE
+    index = load_json_object(index_path)
+    if index.get("schema") != INDEX_SCHEMA:
+        raise FormatError(f"schema: expected {INDEX_SCHEMA!r}, got {index.get('schema')!r}", index_path)
+    if "board" not in index or "captures" not in index:
+        raise FormatError("missing board or captures", index_path)
+    board = board_from_dict(index["board"], index_path)
+    entries = index["captures"]
+    if not isinstance(entries, list):
+        raise FormatError("captures: expected a list", index_path)
+    records: list[CaptureRecord] = []
+    seen: set[str] = set()
+    for k, entry in enumerate(entries):
+        entry = as_dict(entry, f"captures[{k}]", index_path)
+        meta = as_str(entry.get("meta"), f"captures[{k}].meta", index_path)
+        if Path(meta).is_absolute() or ".." in Path(meta).parts:
+            raise FormatError(f"captures[{k}].meta: must be a file name inside the folder", index_path)
+        record = record_from_dict(load_json_object(folder / meta), folder / meta)
+        if record.capture_id in seen:
+            raise FormatError(f"captures[{k}]: duplicate capture id {record.capture_id!r}", index_path)
+        seen.add(record.capture_id)
+        records.append(record)
+    return CaptureSet(folder=folder, board=board, captures=records,
+                      source=str(index.get("source", "")), notes=as_dict(index.get("notes", {}), "notes",
+                                                                         index_path),
+                      created=str(index.get("created", "")))
+
+
+class CaptureWriter:
+    """Writes a capture folder one capture at a time (PNG + JSON, then the index, all atomic)."""
+
+    def __init__(self, folder: str | Path, board: CharucoBoardSpec, *, source: str = "",
+                 notes: dict[str, Any] | None = None, overwrite: bool = False) -> None:
+        self.folder = Path(folder)
+        if (self.folder / INDEX_FILE).exists() and not overwrite:
+            raise CalibrationError("already holds captures (captures.json); choose another folder",
+                                   self.folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.board = board
+        self.source = source
+        self.notes = dict(notes or {})
+        self.created = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+        self.records: list[CaptureRecord] = []
+        self._counts: dict[str, int] = {}
+        self._write_index()
+
+    def add(self, *, arm: str, camera_serial: str, time_s: float, q_rad: np.ndarray, image: np.ndarray,
+            intrinsics: Intrinsics, T_depth_stream: np.ndarray, stream: str = "color",
+            q_std_rad: np.ndarray | None = None, extra: dict[str, Any] | None = None) -> CaptureRecord:
+        """Write one capture; returns its record."""
+        if stream not in STREAMS:
+            raise CalibrationError(f"stream must be one of {', '.join(STREAMS)}, got {stream!r}")
+        image = np.asarray(image)
+        if image.dtype != np.uint8 or image.ndim not in (2, 3):
+            raise CalibrationError(f"capture image must be 8-bit grey or colour, got {image.dtype} {image.shape}")
+        h, w = image.shape[:2]
+        if (w, h) != (intrinsics.width, intrinsics.height):
+            raise CalibrationError(f"image is {w}x{h} but the intrinsics are for "
+                                   f"{intrinsics.width}x{intrinsics.height}")
+        n = self._counts.get(arm, 0)
+        self._counts[arm] = n + 1
+        capture_id = f"{arm}_{n:03d}"
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise CalibrationError(f"cannot encode capture {capture_id} as PNG")
+        with atomic_path(self.folder / f"{capture_id}.png") as tmp:
+            tmp.write_bytes(png.tobytes())
+        record = CaptureRecord(capture_id=capture_id, arm=arm, camera_serial=str(camera_serial),
+                               time_s=float(time_s), q_rad=np.asarray(q_rad, float).copy(), stream=stream,
+                               image_file=f"{capture_id}.png", intrinsics=intrinsics,
+                               T_depth_stream=np.asarray(T_depth_stream, float).copy(),
+                               q_std_rad=None if q_std_rad is None else np.asarray(q_std_rad, float).copy(),
+                               extra=dict(extra or {}))
+        write_json_checked(self.folder / f"{capture_id}.json", record_to_dict(record))
+        self.records.append(record)
+        self._write_index()
+        return record
+
+    def _write_index(self) -> None:
+        payload = {"schema": INDEX_SCHEMA, "created": self.created, "source": self.source,
+                   "board": board_to_dict(self.board), "notes": self.notes,
+                   "captures": [{"id": r.capture_id, "arm": r.arm, "meta": f"{r.capture_id}.json"}
+                                for r in self.records]}
+        write_json_checked(self.folder / INDEX_FILE, payload)
+
+    def close(self) -> CaptureSet:
+        """Final index; returns the folder as read back."""
+        self._write_index()
+        return read_captures(self.folder)
+
+
+__all__ = [
+    "INDEX_FILE", "STREAMS", "CaptureRecord", "CaptureSet", "CaptureWriter", "board_from_dict", "board_to_dict",
+    "intrinsics_from_dict", "intrinsics_to_dict", "read_captures", "record_from_dict", "record_to_dict",
+]

@@ -1,0 +1,160 @@
+"""The calibrated chain of eq. 1 applied to board observations: parameters, observations, prediction.
+
+For capture i of arm a (logged joints q_i), the board corner P (board frame) is seen at
+
+    u = pi(K_i, T_stream_depth_i @ inv(T_ref_base_a @ fk(q_i + dq_a) @ T_flange_cam_a) @ T_ref_board @ P)
+
+in the *ideal* pinhole image of the capture's stream (pixels undistorted at detection).
+``T_ref_*`` are expressed in the **reference frame** of the solve: the base frame of the first arm,
+whose own ``T_ref_base`` is the identity. The world frame is chosen afterwards
+(:mod:`darp.calibration.world_frame`). Everything is vectorised over captures and corners.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from darp.calibration.board import corners_board_m
+from darp.calibration.detect import Detection
+from darp.errors import CalibrationError
+from darp.formats.calibration import CharucoBoardSpec
+from darp.kinematics import z1
+from darp.kinematics.transforms import invert_transform
+
+
+@dataclass
+class ChainParams:
+    """Every unknown of the rig in the reference (first base) frame."""
+
+    arms: tuple[str, ...]
+    T_ref_base: dict[str, np.ndarray]
+    T_flange_cam: dict[str, np.ndarray]
+    dq: dict[str, np.ndarray]
+    T_ref_board: np.ndarray
+
+    def copy(self) -> ChainParams:
+        return replace(self, T_ref_base={a: T.copy() for a, T in self.T_ref_base.items()},
+                       T_flange_cam={a: T.copy() for a, T in self.T_flange_cam.items()},
+                       dq={a: v.copy() for a, v in self.dq.items()}, T_ref_board=self.T_ref_board.copy())
+
+
+@dataclass(eq=False)
+class Observations:
+    """Accepted detections flattened for vectorised residuals."""
+
+    arms: tuple[str, ...]
+    capture_ids: list[str]
+    arm_index: np.ndarray  # (M,) index into arms
+    q_rad: np.ndarray  # (M, 6) logged joints
+    T_stream_depth: np.ndarray
+    K: np.ndarray  # (M, 3, 3)
+    corner_capture: np.ndarray  # (C,) capture index of each corner
+    corner_id: np.ndarray  # (C,)
+    P_board: np.ndarray  # (C, 3)
+    uv: np.ndarray  # (C, 2) ideal pixels
+    T_depth_board_pnp: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_captures(self) -> int:
+        return len(self.capture_ids)
+
+    def subset(self, captures: np.ndarray) -> Observations:
+        """The observations of the captures selected by a boolean mask or index array (M,)."""
+        idx = np.flatnonzero(captures) if np.asarray(captures).dtype == bool else np.asarray(captures, int)
+        remap = -np.ones(self.n_captures, dtype=int)
+        remap[idx] = np.arange(len(idx))
+        keep = remap[self.corner_capture] >= 0
+        return Observations(arms=self.arms, capture_ids=[self.capture_ids[i] for i in idx],
+                            arm_index=self.arm_index[idx], q_rad=self.q_rad[idx],
+                            T_stream_depth=self.T_stream_depth[idx], K=self.K[idx],
+                            corner_capture=remap[self.corner_capture[keep]], corner_id=self.corner_id[keep],
+                            P_board=self.P_board[keep], uv=self.uv[keep],
+                            T_depth_board_pnp=self.T_depth_board_pnp[idx])
+
+    def for_arm(self, arm: str) -> np.ndarray:
+        """Boolean capture mask of ``arm``."""
+        return self.arm_index == self.arms.index(arm)
+
+
+def build_observations(detections: Sequence[Detection], board: CharucoBoardSpec,
+                       arms: Sequence[str] | None = None) -> Observations:
+    """Observations from the accepted detections (``ok``); ``arms`` fixes the order (first = reference)."""
+    good = [d for d in detections if d.ok]
+    if not good:
+        raise CalibrationError("no capture has a usable board detection")
+    arm_order = tuple(arms) if arms is not None else tuple(dict.fromkeys(d.arm for d in good))
+    good = [d for d in good if d.arm in arm_order]
+    P = corners_board_m(board)
+    arm_index = np.array([arm_order.index(d.arm) for d in good])
+    counts = np.array([len(d.ids) for d in good])
+    return Observations(
+        arms=arm_order,
+        capture_ids=[d.capture_id for d in good],
+        arm_index=arm_index,
+        q_rad=np.array([d.record.q_rad for d in good], dtype=float),
+        T_stream_depth=invert_transform(np.array([d.record.T_depth_stream for d in good])),
+        K=np.array([d.K for d in good]),
+        corner_capture=np.repeat(np.arange(len(good)), counts),
+        corner_id=np.concatenate([d.ids for d in good]),
+        P_board=np.concatenate([P[d.ids] for d in good]),
+        uv=np.concatenate([d.corners_ideal_px for d in good]),
+        T_depth_board_pnp=np.array([d.T_depth_board for d in good]),
+    )
+
+
+def camera_poses(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
+    """``T_ref_cam`` (M, 4, 4) of every capture (depth optical frame) by eq. 1."""
+    T = np.empty((obs.n_captures, 4, 4))
+    for a, arm in enumerate(obs.arms):
+        sel = obs.arm_index == a
+        if np.any(sel):
+            T[sel] = (params.T_ref_base[arm] @ z1.fk_batch(obs.q_rad[sel] + params.dq[arm], wrist_frame)
+                      @ params.T_flange_cam[arm])
+    return T
+
+
+def board_in_stream(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
+    """Predicted ``T_stream_board`` (M, 4, 4) of every capture."""
+    return obs.T_stream_depth @ invert_transform(camera_poses(params, obs, wrist_frame)) @ params.T_ref_board
+
+
+def predict_points(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
+    """Predicted corners in their capture's stream frame (C, 3)."""
+    T = board_in_stream(params, obs, wrist_frame)[obs.corner_capture]
+    return np.einsum("cij,cj->ci", T[:, :3, :3], obs.P_board) + T[:, :3, 3]
+
+
+def predict_pixels(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
+    """Predicted ideal pixels (C, 2) of every observed corner."""
+    P = predict_points(params, obs, wrist_frame)
+    K = obs.K[obs.corner_capture]
+    z = np.maximum(P[:, 2], 1e-6)
+    return np.stack([K[:, 0, 0] * P[:, 0] / z + K[:, 0, 2], K[:, 1, 1] * P[:, 1] / z + K[:, 1, 2]], axis=1)
+
+
+def reprojection_errors(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
+    """Per-corner reprojection error (C,) in pixels."""
+    return np.linalg.norm(predict_pixels(params, obs, wrist_frame) - obs.uv, axis=1)
+
+
+def per_capture(values: np.ndarray, obs: Observations, reduce: str = "median") -> np.ndarray:
+    """Reduce per-corner values (C,) to per-capture values (M,)."""
+    fn = {"median": np.median, "mean": np.mean, "max": np.max, "rms": lambda v: np.sqrt(np.mean(v**2))}[reduce]
+    return np.array([fn(values[obs.corner_capture == m]) for m in range(obs.n_captures)])
+
+
+def pnp_pixels(obs: Observations) -> np.ndarray:
+    """The single-image PnP prediction of every corner (C, 2): how well one image alone fits."""
+    T = obs.T_stream_depth @ obs.T_depth_board_pnp
+    Tc = T[obs.corner_capture]
+    P = np.einsum("cij,cj->ci", Tc[:, :3, :3], obs.P_board) + Tc[:, :3, 3]
+    K = obs.K[obs.corner_capture]
+    return np.stack([K[:, 0, 0] * P[:, 0] / P[:, 2] + K[:, 0, 2], K[:, 1, 1] * P[:, 1] / P[:, 2] + K[:, 1, 2]], 1)
+
+
+__all__ = ["ChainParams", "Observations", "board_in_stream", "build_observations", "camera_poses", "per_capture",
+           "pnp_pixels", "predict_pixels", "predict_points", "reprojection_errors"]

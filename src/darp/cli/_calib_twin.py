@@ -1,0 +1,88 @@
+"""Calibration captures on the digital twin (the glue between darp.calibration and darp.twin).
+
+Builds the twin with a ChArUco board lying face up on the table, plans the captures on the *nominal*
+rig, runs them on :class:`darp.twin.rig_backend.TwinRig` and writes the capture folder plus
+``truth/`` (the twin's true calibration, its settings and the board pose), which ``darp calib solve``
+uses to report errors against truth. ``mount_offsets`` moves camera mounts (in the flange frame) to
+simulate a knocked camera for ``darp calib check``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.calibration.board import DEFAULT_BOARD
+from darp.calibration.capture_run import CaptureRunSettings, run_capture_plan
+from darp.calibration.captures import CaptureSet, CaptureWriter
+from darp.calibration.plan import CapturePlan, PlanSettings, default_board_pose, plan_captures
+from darp.formats.atomic import write_json_atomic
+from darp.formats.calibration import CharucoBoardSpec, write_calibration
+from darp.kinematics.rig import Rig, load_rig
+
+BOARD_TEXTURE_PX_PER_SQUARE = 128  # a multiple of 64
+BOARD_TEXTURE_MARGIN_PX = 32
+
+
+def twin_board(board: CharucoBoardSpec) -> Any:
+    """The twin's board object for a calibration board spec.
+
+    The texture's width and height are multiples of 64 (128 px per square, a 32 px white margin), so
+    that every mipmap level MuJoCo's trilinear sampling uses has exactly half the texels of the one
+    above. With an odd level (e.g. 1366 -> 683 -> 341) the coarser levels are stretched by a fraction
+    of a texel, which moved corners by a few hundredths of a pixel depending on the viewing angle and
+    biased the base-to-base tilt by about 0.05 deg on the twin.
+    """
+    from darp.twin.board import CharucoBoardSpec as TwinBoard
+
+    px = BOARD_TEXTURE_PX_PER_SQUARE
+    return TwinBoard(squares_x=board.squares_x, squares_y=board.squares_y, square_m=board.square_length_m,
+                     marker_m=board.marker_length_m, dictionary=board.dictionary, px_per_square=px,
+                     margin_m=BOARD_TEXTURE_MARGIN_PX * board.square_length_m / px)
+
+
+def moved_rig(rig: Rig, mount_offsets: dict[str, np.ndarray]) -> Rig:
+    """``rig`` with camera mounts moved: ``T_flange_cam <- T_offset @ T_flange_cam`` per arm."""
+    arms = {a: (dataclasses.replace(cfg, T_flange_cam=np.asarray(mount_offsets[a]) @ cfg.T_flange_cam)
+                if a in mount_offsets else cfg) for a, cfg in rig.arms.items()}
+    return dataclasses.replace(rig, arms=arms)
+
+
+def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", n_per_arm: int = 30,
+                 board: CharucoBoardSpec = DEFAULT_BOARD, rig: Rig | None = None, plan: CapturePlan | None = None,
+                 plan_seed: int | None = None, stream: str = "color", resolution: tuple[int, int] = (640, 480),
+                 mount_offsets: dict[str, np.ndarray] | None = None, overwrite: bool = False,
+                 on_capture: Callable[[str, int], None] | None = None) -> CaptureSet:
+    """Plan (unless given) and run calibration captures on the twin; returns the capture folder."""
+    from darp.twin.rig_backend import TwinRig
+    from darp.twin.settings import TwinSettings
+
+    nominal = rig or load_rig()
+    tb = twin_board(board)
+    T_world_board = plan.T_world_board if plan is not None else default_board_pose(
+        nominal, board, thickness_m=tb.thickness_m + 2e-4)
+    if plan is None:
+        plan = plan_captures(nominal, board, T_world_board, settings=PlanSettings(n_per_arm=n_per_arm),
+                             seed=seed if plan_seed is None else plan_seed)
+    settings = TwinSettings.from_profile(profile, seed=seed).with_camera(width=resolution[0], height=resolution[1],
+                                                                         imu=False)
+    true_rig = moved_rig(nominal, mount_offsets) if mount_offsets else nominal
+    writer = CaptureWriter(out, board, source=f"twin:{profile}:seed{seed}", overwrite=overwrite,
+                           notes={"profile": profile, "seed": seed, "plan_seed": plan.seed,
+                                  "mount_offsets": {a: np.asarray(T).tolist() for a, T in (mount_offsets or {}).items()}})
+    with TwinRig(settings, rig=true_rig, board=tb, T_world_board=T_world_board) as twin:
+        park = {a: twin.park_q(a) for a in twin.arms}
+        run_capture_plan(twin, plan, writer, park_q=park, settings=CaptureRunSettings(stream=stream, joint_reads=10),
+                         on_capture=on_capture)
+        truth = Path(out) / "truth"
+        write_calibration(truth / "calibration.json", twin.true_rig.calibration(settings))
+        settings.save(truth / "settings.yaml")
+        write_json_atomic(truth / "board.json", {"T_world_board": np.asarray(T_world_board).tolist()})
+    return writer.close()
+
+
+__all__ = ["capture_twin", "moved_rig", "twin_board"]
