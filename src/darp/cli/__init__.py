@@ -19,6 +19,8 @@ from darp.cli import rig as _rig  # noqa: F401,E402
 from darp.cli import poses as _poses  # noqa: F401,E402
 from darp.cli import twin as _twin  # noqa: F401,E402
 from darp.cli import calib as _calib  # noqa: F401,E402
+from darp.cli import collect as _collect  # noqa: F401,E402
+from darp.cli import process as _process  # noqa: F401,E402
 
 
 def main() -> None:

@@ -1,0 +1,181 @@
+"""Cross-arm confirmation: combine the two arms' object estimates, or fall back, or terminate.
+
+The searching arm's estimate A is an initial hypothesis; the other arm, looking straight at A while
+the first is parked, gives B. :func:`decide` applies these rules, in order, and records every step:
+
+1. **Consistent** (:func:`consistent`): the centres lie within ``max(centre_tolerance_m,
+   centre_tolerance_rel * larger radius)`` of each other and the heights within ``max(height_tolerance_m,
+   height_tolerance_rel * larger height)``. They are **combined** (:func:`combine`): centres averaged,
+   the larger radius kept and grown by half the centre distance (so the combined cylinder still
+   contains both arms' cylinders' axes), the larger height kept: a conservative envelope.
+2. **One valid estimate** (the other arm saw nothing usable even when looking straight at it): the
+   valid one is the reference if its depth support is at least ``fallback_min_points``; otherwise
+   the survey terminates (``unconfirmed``).
+3. **Conflicting** (both valid, not consistent): never averaged. With ``conflict_policy="reobserve"``
+   each arm looks again, straight at the *other* arm's estimate (C: the searching arm at B; D: the
+   other arm at A). An estimate that both arms now support is the reference (**fallback**: A when
+   C and D agree with A, B when both agree with B), combined with the re-observation that
+   re-confirmed it. When each arm re-confirms its own estimate the disagreement is systematic (a
+   calibration or encoder fault that two arms cannot resolve) and the survey terminates
+   (``conflict``); so it does when the re-observations are invalid or agree with neither.
+   ``conflict_policy="terminate"`` terminates at once.
+4. **Neither valid**: terminate with the searching arm's reason (``no_object``, ``outside_workspace``...).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from darp.acquisition.localise import LocalisationResult, ObjectEstimate
+from darp.errors import AcquisitionError
+
+CONFLICT_POLICIES = ("reobserve", "terminate")
+STATUSES = ("consistent", "fallback", "terminated")
+
+Reobserve = Callable[[str, ObjectEstimate], "ObjectEstimate | None"]
+"""``reobserve(arm_id, hint)``: the arm looks straight at ``hint`` and returns its estimate (or None)."""
+
+
+@dataclass(frozen=True)
+class ConfirmSettings:
+    """Thresholds of cross-arm confirmation."""
+
+    centre_tolerance_m: float = 0.04
+    centre_tolerance_rel: float = 0.5  # times the larger radius
+    height_tolerance_m: float = 0.03
+    height_tolerance_rel: float = 0.3  # times the larger height
+    fallback_min_points: int = 300
+    conflict_policy: str = "reobserve"
+
+    def __post_init__(self) -> None:
+        if self.conflict_policy not in CONFLICT_POLICIES:
+            raise AcquisitionError(f"conflict_policy must be one of {', '.join(CONFLICT_POLICIES)}, "
+                                   f"got {self.conflict_policy!r}")
+        if not (self.centre_tolerance_m > 0 and self.height_tolerance_m > 0):
+            raise AcquisitionError("confirmation tolerances must be positive")
+
+
+@dataclass
+class Decision:
+    """The confirmed envelope (None when terminated), the rule that decided, and the record."""
+
+    status: str  # consistent | fallback | terminated
+    estimate: ObjectEstimate | None
+    reason: str  # a code: combined, single_estimate, reconfirmed_primary, conflict, no_object, ...
+    message: str
+    steps: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return self.estimate is not None
+
+    def to_record(self) -> dict[str, Any]:
+        return {"status": self.status, "reason": self.reason, "message": self.message,
+                "estimate": None if self.estimate is None else self.estimate.to_record(), "steps": self.steps}
+
+
+def consistency(a: ObjectEstimate, b: ObjectEstimate, settings: ConfirmSettings) -> dict[str, Any]:
+    """Centre distance and height difference against their tolerances (a record; ``consistent`` key)."""
+    d = float(np.linalg.norm(np.asarray(a.centre_m)[:2] - np.asarray(b.centre_m)[:2]))
+    dh = abs(a.height_m - b.height_m)
+    tol_c = max(settings.centre_tolerance_m, settings.centre_tolerance_rel * max(a.radius_m, b.radius_m))
+    tol_h = max(settings.height_tolerance_m, settings.height_tolerance_rel * max(a.height_m, b.height_m))
+    return {"centre_distance_m": round(d, 5), "centre_tolerance_m": round(tol_c, 5),
+            "height_difference_m": round(dh, 5), "height_tolerance_m": round(tol_h, 5),
+            "consistent": bool(d <= tol_c and dh <= tol_h)}
+
+
+def consistent(a: ObjectEstimate, b: ObjectEstimate, settings: ConfirmSettings) -> bool:
+    """True when two estimates agree within the tolerances."""
+    return bool(consistency(a, b, settings)["consistent"])
+
+
+def combine(a: ObjectEstimate, b: ObjectEstimate, stage: str = "confirmed") -> ObjectEstimate:
+    """The conservative envelope of two consistent estimates (centres averaged, larger extents)."""
+    ca, cb = np.asarray(a.centre_m, float), np.asarray(b.centre_m, float)
+    d = float(np.linalg.norm(ca[:2] - cb[:2]))
+    height = max(a.height_m, b.height_m)
+    table_z = float(ca[2] - 0.5 * a.height_m)
+    centre = np.array([0.5 * (ca[0] + cb[0]), 0.5 * (ca[1] + cb[1]), table_z + 0.5 * height])
+    radius = max(a.radius_m, b.radius_m) + 0.5 * d
+    arms = a.arm_id if a.arm_id == b.arm_id else f"{a.arm_id}+{b.arm_id}"
+    return ObjectEstimate(arms, centre, radius, height, a.n_points + b.n_points,
+                          min(a.valid_fraction, b.valid_fraction), stage=stage)
+
+
+def _estimate_record(est: ObjectEstimate | None) -> dict[str, Any] | None:
+    return None if est is None else est.to_record()
+
+
+def decide(primary: LocalisationResult, secondary: LocalisationResult, settings: ConfirmSettings | None = None,
+           reobserve: Reobserve | None = None) -> Decision:
+    """Apply the confirmation rules (module docstring) to the two arms' localisation results."""
+    s = settings if settings is not None else ConfirmSettings()
+    a, b = primary.estimate, secondary.estimate
+    steps: list[dict[str, Any]] = [{"step": "estimates", "primary": primary.arm_id, "secondary": secondary.arm_id,
+                                    "a": _estimate_record(a), "b": _estimate_record(b),
+                                    "primary_reason": primary.reason, "secondary_reason": secondary.reason}]
+    if a is None and b is None:
+        reason = primary.reason or secondary.reason or "no_object"
+        detail = primary.detail or secondary.detail or "no arm found the object"
+        return Decision("terminated", None, reason, f"localisation failed: {detail}", steps)
+    if a is None or b is None:
+        valid, failed = (a, secondary) if b is None else (b, primary)
+        assert valid is not None
+        ok = valid.n_points >= s.fallback_min_points
+        steps.append({"step": "single_estimate", "arm": valid.arm_id, "n_points": valid.n_points,
+                      "required_points": s.fallback_min_points, "other_reason": failed.reason, "accepted": ok})
+        if ok:
+            return Decision("fallback", valid, "single_estimate",
+                            f"only {valid.arm_id} has a valid estimate ({failed.arm_id}: {failed.reason or 'none'}: "
+                            f"{failed.detail}); it has {valid.n_points} depth points and is used as the reference",
+                            steps)
+        return Decision("terminated", None, "unconfirmed",
+                        f"only {valid.arm_id} has a valid estimate, with too little depth support "
+                        f"({valid.n_points} points, {s.fallback_min_points} needed); {failed.arm_id}: "
+                        f"{failed.reason or 'none'}", steps)
+    check = consistency(a, b, s)
+    steps.append({"step": "consistency", **check})
+    if check["consistent"]:
+        return Decision("consistent", combine(a, b), "combined",
+                        f"{a.arm_id} and {b.arm_id} agree (centres {check['centre_distance_m'] * 100:.1f} cm apart, "
+                        f"tolerance {check['centre_tolerance_m'] * 100:.1f} cm): centres averaged, larger extents kept",
+                        steps)
+    gap = f"centres {check['centre_distance_m'] * 100:.1f} cm apart (tolerance {check['centre_tolerance_m'] * 100:.1f} cm)"
+    if s.conflict_policy == "terminate" or reobserve is None:
+        return Decision("terminated", None, "conflict", f"{a.arm_id} and {b.arm_id} disagree: {gap}; "
+                        "conflicting estimates are not averaged", steps)
+    c = reobserve(a.arm_id, b)  # the searching arm, straight at the other's estimate
+    d = reobserve(b.arm_id, a)  # the other arm, straight at the searching arm's estimate
+    votes = {}
+    for name, est in (("c", c), ("d", d)):
+        votes[name] = None if est is None else {"vs_a": consistency(est, a, s), "vs_b": consistency(est, b, s)}
+    steps.append({"step": "reobserve", "c": _estimate_record(c), "d": _estimate_record(d), "votes": votes})
+
+    def agrees(est: ObjectEstimate | None, ref: ObjectEstimate) -> bool:
+        return est is not None and consistent(est, ref, s)
+
+    if agrees(c, a) and agrees(d, a):
+        assert d is not None
+        return Decision("fallback", combine(a, d, "reconfirmed"), "reconfirmed_primary",
+                        f"{a.arm_id} and {b.arm_id} disagreed ({gap}); looking again, both arms support "
+                        f"{a.arm_id}'s estimate, which is the reference", steps)
+    if agrees(c, b) and agrees(d, b):
+        assert c is not None
+        return Decision("fallback", combine(b, c, "reconfirmed"), "reconfirmed_secondary",
+                        f"{a.arm_id} and {b.arm_id} disagreed ({gap}); looking again, both arms support "
+                        f"{b.arm_id}'s estimate, which is the reference", steps)
+    if agrees(c, a) and agrees(d, b):
+        return Decision("terminated", None, "conflict",
+                        f"{a.arm_id} and {b.arm_id} disagree ({gap}) and each re-confirms its own estimate: a "
+                        "systematic disagreement (calibration or encoder fault?) that two arms cannot resolve", steps)
+    return Decision("terminated", None, "conflict",
+                    f"{a.arm_id} and {b.arm_id} disagree ({gap}) and re-observation supports neither estimate", steps)
+
+
+__all__ = ["CONFLICT_POLICIES", "ConfirmSettings", "Decision", "Reobserve", "combine", "consistency", "consistent",
+           "decide"]
