@@ -1,0 +1,167 @@
+"""``darp keyframes``, ``darp process`` and ``darp report``: from survey folders to clouds, meshes and tables."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import typer
+
+from darp.cli._app import app
+
+
+def _warn(message: str) -> None:
+    typer.echo(f"darp: warning: {message}", err=True)
+
+
+def _settings(path: Path | None) -> Any:
+    from darp.reconstruction.process_settings import ProcessSettings, load_settings
+
+    return ProcessSettings() if path is None else load_settings(path)
+
+
+def _job(survey_path: Path, out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
+         progress: Any = None) -> Any:
+    """Open the survey with the calibration's serial mapping; the twin's true calibration with --truth-poses."""
+    from darp.errors import DarpError
+    from darp.formats.calibration import read_calibration
+    from darp.formats.survey import open_survey
+    from darp.reconstruction.pipeline import SurveyJob
+
+    if calibration is not None:
+        cal = read_calibration(calibration)
+    elif truth_poses:
+        from darp.twin.truth import read_truth
+
+        cal = read_truth(survey_path).calibration
+    else:
+        raise DarpError("--calibration is required (only --truth-poses on a twin survey can do without)")
+    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in cal.arms.items()})
+    for note in survey.notes:
+        _warn(f"{survey.name}: {note}")
+    return SurveyJob(survey=survey, out=out, calibration=cal, calibration_path=calibration, settings=settings,
+                     truth_poses=truth_poses, progress=progress)
+
+
+def _progress_bars() -> Any:
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        SpinnerColumn,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
+    return Progress(SpinnerColumn(), TextColumn("{task.description:<34}"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+
+
+def _stage_callback(progress: Any, label: str) -> Any:
+    tasks: dict[str, Any] = {}
+
+    def report(stage: str, done: float, total: float | None) -> None:
+        if stage not in tasks:
+            tasks[stage] = progress.add_task(f"{label}: {stage}", total=total)
+        progress.update(tasks[stage], completed=done, total=total)
+
+    return report
+
+
+@app.command("keyframes")
+def keyframes(
+    survey: Path = typer.Argument(..., help="Survey folder (cam<serial>.bag x2, arm_poses.csv, manip_envelope.json)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/)."),
+    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Calibration JSON of the rig epoch."),
+    truth_poses: bool = typer.Option(False, "--truth-poses", help="Use the twin's true camera poses (truth/)."),
+    settings_file: Path | None = typer.Option(None, "--settings", help="Settings YAML/JSON (keyframes, fusion groups)."),
+) -> None:
+    """Select settled, view-diverse keyframes per arm and export them (aligned RGB, depth, IR, mask, pose)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from darp.reconstruction.pipeline import stage_keyframes, stage_poses
+
+    settings = _settings(settings_file)
+    with _progress_bars() as progress:
+        job = _job(survey, out, calibration, truth_poses, settings, _stage_callback(progress, survey.name))
+        job.keyframes_folder = out
+        try:
+            stage_poses(job)
+            summary = stage_keyframes(job)
+        finally:
+            job.close()
+    table = Table(title=f"{job.survey.name}: keyframes")
+    for column in ("arm", "frames", "settled", "in view", "views", "keyframes", "held out"):
+        table.add_column(column, justify="right")
+    for arm, c in summary["arms"].items():
+        table.add_row(arm, *(str(c.get(k, 0)) for k in ("frames", "settled", "in_view", "views", "keyframes", "heldout")))
+    Console().print(table)
+    typer.echo(f"wrote {out}")
+
+
+@app.command("process")
+def process(
+    surveys: list[Path] = typer.Argument(..., help="Survey folders, or folders holding survey folders."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder: <out>/<survey>/ per survey, results.json."),
+    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Calibration JSON of the rig epoch."),
+    truth_poses: bool = typer.Option(False, "--truth-poses",
+                                     help="Twin surveys: the true camera poses instead of eq. 1 (the accuracy floor)."),
+    settings_file: Path | None = typer.Option(None, "--settings", help="Settings YAML/JSON (docs/processing-pipeline.md)."),
+    resume: bool = typer.Option(False, "--resume", help="Skip stages already done with the same inputs and settings."),
+) -> None:
+    """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from darp.errors import DarpError
+    from darp.evaluation.results import PROCESS_STAGES, write_summary
+    from darp.formats.survey import find_survey_folders
+    from darp.reconstruction.pipeline import process_survey
+
+    settings = _settings(settings_file)
+    folders = find_survey_folders(surveys)
+    names = [f.name for f in folders]
+    duplicated = sorted({n for n in names if names.count(n) > 1})
+    if duplicated:
+        raise DarpError(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide")
+    done: list[Path] = []
+    with _progress_bars() as progress:
+        overall = progress.add_task("surveys", total=len(folders))
+        for folder in folders:
+            job = _job(folder, out / folder.name, calibration, truth_poses, settings,
+                       _stage_callback(progress, folder.name))
+            process_survey(job, PROCESS_STAGES, resume=resume)
+            done.append(job.out)
+            progress.advance(overall)
+    summary_path = write_summary(out, done)
+
+    from darp.evaluation.results import read_results
+
+    def mm(value: Any) -> str:
+        return "-" if value is None else f"{value:.2f}"
+
+    table = Table(title="held-out evaluation and clouds")
+    for column in ("survey", "poses", "keyframes", "fused pts", "median mm", "RMSE mm", "<=10 mm %", "truth acc. mm"):
+        table.add_column(column, justify="right")
+    for folder in done:
+        r = read_results(folder)
+        h = r["heldout"]["aggregate"]
+        acc = ((r.get("truth") or {}).get("cloud") or {}).get("accuracy", {}).get("median_mm")
+        table.add_row(r["survey"], r["pose_source"], str(r["keyframes"]["total"]), f"{r['clouds'].get('fused', 0):,}",
+                      mm(h.get("median_mm")), mm(h.get("rmse_mm")), mm(h.get("within_10mm_pct")), mm(acc))
+    Console().print(table)
+    typer.echo(f"wrote {summary_path}")
+
+
+@app.command("report")
+def report(
+    out: Path = typer.Argument(..., help="Output folder of darp process."),
+) -> None:
+    """Write report.md and report.html (every table and figure across the processed surveys)."""
+    from darp.evaluation.report import write_report
+
+    md_path, html_path = write_report(out)
+    typer.echo(f"wrote {md_path}")
+    typer.echo(f"wrote {html_path}")

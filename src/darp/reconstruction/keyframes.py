@@ -1,0 +1,293 @@
+"""Keyframe selection: settled, view-diverse frames per arm, and a deterministic held-out split.
+
+A survey records both cameras continuously (about 3,000 depth frames per camera in the paper), but
+most frames are redundant or taken while the arm moves. Keyframes are chosen per arm from the pose
+recovery (:func:`darp.reconstruction.poses.recover_survey_poses`) in four steps:
+
+1. **Settled**: the frame has a pose, its own arm's largest joint speed is at most
+   ``max_joint_speed_rad_s`` (above the encoder-noise floor of a still arm, far below a move), and
+   the arm has been still for at least ``settle_s`` (a settled window after a move: the time since
+   the first still frame of the run). The other arm does not matter: it does not move this camera.
+2. **In view**: the object centre (envelope centre) projects into the depth image, in front of the
+   camera, at least ``view_margin_px`` inside the border.
+3. **Views**: consecutive settled frames form a *view* (a dwell), split where the viewing direction
+   drifts more than ``view_split_deg`` from the view's first frame or the frames stop being consecutive.
+4. **Diverse views**: up to ``per_view`` frames spread evenly over each view are its keyframe
+   candidates. Views are considered nearest first (mean camera distance to the object centre: depth
+   noise grows with the square of the distance, so of two views from one direction the closer one
+   wins; then the longer dwell, then the earlier), and a view is taken only when every one of its
+   frames is at least ``min_separation_deg`` from every keyframe of the views already taken. With
+   ``max_views``, the most diverse of those views are kept (farthest-point sampling).
+
+The viewing direction of a frame is the unit vector from the object centre to the camera centre
+(direction bins about the envelope centre). Without an envelope centre, the point closest to all
+settled optical axes (least squares) is used.
+
+**Held-out split**: per arm, in time order, keyframe ``i`` is held out when
+``i % heldout_every == heldout_offset`` (default every 5th: 20 %, about 22 keyframes for a survey
+of 10 views per arm with 3 frames each, the paper's 224 over ten objects). The rule depends only on
+the selection, so it is reproducible and independent of any random seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from darp.errors import ReconstructionError
+from darp.formats.recording_types import Intrinsics
+
+FUSE, HELDOUT = "fuse", "heldout"
+
+
+@dataclass(frozen=True)
+class KeyframeSettings:
+    """Every keyframe-selection parameter (see the module docstring and docs/processing-pipeline.md)."""
+
+    max_joint_speed_rad_s: float = 0.02  # a still Z1 logs ~0.005 rad/s of encoder noise; a move ~0.3-0.6
+    settle_s: float = 0.25  # the arm must have been still this long (a settled window after a move)
+    view_split_deg: float = 2.0  # a still run drifting more than this from its first frame is split
+    min_separation_deg: float = 6.0  # keyframes of different views are at least this far apart
+    per_view: int = 3  # keyframes per view (dwell), spread evenly over its settled frames
+    max_views: int | None = None  # per arm; None: every view that is far enough from the others
+    view_margin_px: float = 0.0  # the object centre must project this far inside the image
+    heldout_every: int = 5  # held-out split: every n-th keyframe per arm (20 %) ...
+    heldout_offset: int = 2  # ... starting with this one
+
+    def __post_init__(self) -> None:
+        if not self.max_joint_speed_rad_s > 0:
+            raise ReconstructionError(f"max_joint_speed_rad_s must be > 0, got {self.max_joint_speed_rad_s}")
+        if self.settle_s < 0 or self.view_split_deg <= 0 or self.min_separation_deg < 0:
+            raise ReconstructionError("settle_s and min_separation_deg must be >= 0 and view_split_deg > 0")
+        if self.per_view < 1 or (self.max_views is not None and self.max_views < 1):
+            raise ReconstructionError("per_view and max_views must be >= 1")
+        if self.heldout_every < 2 or not 0 <= self.heldout_offset < self.heldout_every:
+            raise ReconstructionError(
+                f"held-out split needs heldout_every >= 2 and 0 <= heldout_offset < heldout_every, "
+                f"got {self.heldout_every}, {self.heldout_offset}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> KeyframeSettings:
+        unknown = sorted(set(values) - set(cls.__dataclass_fields__))
+        if unknown:
+            raise ReconstructionError(f"unknown keyframe setting(s) {', '.join(unknown)} "
+                                      f"(known: {', '.join(cls.__dataclass_fields__)})")
+        return cls(**values)
+
+
+@dataclass(frozen=True, eq=False)
+class ArmKeyframes:
+    """The keyframes of one arm: indices into that arm's trajectory, in time order."""
+
+    arm: str
+    indices: np.ndarray  # (K,) int64 positions in the arm's frame list (time order)
+    view_ids: np.ndarray  # (K,) int64 view (dwell) each keyframe comes from
+    heldout: np.ndarray  # (K,) bool: held out of fusion for evaluation
+    directions: np.ndarray  # (K, 3) unit viewing directions (object centre -> camera)
+    counts: dict[str, int] = field(default_factory=dict)  # frames, posed, settled, in_view, views ...
+
+    def __len__(self) -> int:
+        return int(self.indices.size)
+
+    @property
+    def splits(self) -> list[str]:
+        return [HELDOUT if h else FUSE for h in self.heldout]
+
+
+# -- building blocks -------------------------------------------------------------------------------
+def settled_mask(t_s: np.ndarray, joint_speed_rad_s: np.ndarray, settings: KeyframeSettings) -> np.ndarray:
+    """Boolean (N,): frames whose arm is slow and has been still for ``settle_s`` (frames in time order).
+
+    A NaN speed (a frame without a pose) counts as moving: it breaks the still run.
+    """
+    t = np.asarray(t_s, np.float64)
+    speed = np.asarray(joint_speed_rad_s, np.float64)
+    if t.shape != speed.shape or t.ndim != 1:
+        raise ReconstructionError(f"times {t.shape} and speeds {speed.shape} must be equal 1-D arrays")
+    if t.size > 1 and np.any(np.diff(t) < 0):
+        raise ReconstructionError("frame times must be in time order")
+    still = np.isfinite(speed) & (speed <= settings.max_joint_speed_rad_s)
+    # start time of the still run each frame belongs to: a run starts at a still frame after a non-still one
+    starts = still & ~np.concatenate(([False], still[:-1]))
+    run_start = np.where(starts, t, -np.inf)
+    run_start = np.maximum.accumulate(run_start) if t.size else run_start
+    return still & (t - run_start >= settings.settle_s - 1e-9)
+
+
+def viewing_directions(T_world_cam: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
+    """(N, 3) unit vectors from ``centre_m`` to each camera centre (NaN for unposed frames)."""
+    c = np.asarray(T_world_cam, np.float64)[:, :3, 3] - np.asarray(centre_m, np.float64)
+    length = np.linalg.norm(c, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return c / np.where(length > 0, length, np.nan)
+
+
+def centre_in_view(T_world_cam: np.ndarray, centre_m: np.ndarray, intrinsics: Intrinsics,
+                   margin_px: float = 0.0) -> np.ndarray:
+    """Boolean (N,): the centre lies in front of the camera and projects inside the image (pinhole)."""
+    T = np.asarray(T_world_cam, np.float64)
+    rel = np.asarray(centre_m, np.float64) - T[:, :3, 3]
+    cam = np.einsum("nji,nj->ni", T[:, :3, :3], rel)  # R^T (c - t)
+    z = cam[:, 2]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = intrinsics.fx * cam[:, 0] / z + intrinsics.ppx
+        v = intrinsics.fy * cam[:, 1] / z + intrinsics.ppy
+        return ((z > 0) & (u >= -0.5 + margin_px) & (u <= intrinsics.width - 0.5 - margin_px)
+                & (v >= -0.5 + margin_px) & (v <= intrinsics.height - 0.5 - margin_px))
+
+
+def look_at_point(T_world_cam: np.ndarray) -> np.ndarray:
+    """The point closest (least squares) to the optical axes (camera +z) of the given poses."""
+    T = np.asarray(T_world_cam, np.float64)
+    T = T[np.all(np.isfinite(T.reshape(len(T), -1)), axis=1)]
+    if len(T) < 2:
+        raise ReconstructionError("need at least two posed frames to find where the cameras look")
+    origins, axes = T[:, :3, 3], T[:, :3, 2]
+    projector = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # I - a a^T per axis
+    A, b = projector.sum(axis=0), np.einsum("nij,nj->i", projector, origins)
+    if np.linalg.cond(A) > 1e8:
+        raise ReconstructionError("the optical axes are parallel: cannot find where the cameras look")
+    return np.linalg.solve(A, b)
+
+
+def split_views(candidate: np.ndarray, directions: np.ndarray, view_split_deg: float) -> np.ndarray:
+    """View id per frame (-1 for non-candidates): runs of consecutive candidates, split on direction drift."""
+    ids = np.full(candidate.shape[0], -1, np.int64)
+    cos_split = np.cos(np.radians(view_split_deg))
+    view, anchor = -1, None
+    for i in np.flatnonzero(candidate):
+        if anchor is None or i == 0 or not candidate[i - 1] or float(directions[i] @ directions[anchor]) < cos_split:
+            view, anchor = view + 1, i
+        ids[i] = view
+    return ids
+
+
+def spread(indices: np.ndarray, k: int) -> np.ndarray:
+    """Up to ``k`` of ``indices`` spread evenly from the first to the last (the middle one for k = 1)."""
+    n = indices.size
+    if n <= k:
+        return indices
+    if k == 1:
+        return indices[[n // 2]]
+    return indices[np.unique(np.rint(np.linspace(0, n - 1, k)).astype(np.int64))]
+
+
+def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(a @ b.T, -1.0, 1.0)))
+
+
+# -- selection ---------------------------------------------------------------------------------------
+def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joint_speed_rad_s: np.ndarray,
+                         centre_m: np.ndarray | None, settings: KeyframeSettings | None = None,
+                         intrinsics: Intrinsics | None = None) -> ArmKeyframes:
+    """Keyframes of one arm's frames (in time order): settled, in view, diverse, split (module docstring).
+
+    ``centre_m`` is the object (envelope) centre, or None to use where the settled cameras look.
+    Without ``intrinsics`` the in-view test is skipped.
+    """
+    settings = settings or KeyframeSettings()
+    T = np.asarray(T_world_cam, np.float64)
+    n = T.shape[0]
+    if T.shape != (n, 4, 4):
+        raise ReconstructionError(f"{arm}: poses must be (N, 4, 4), got {T.shape}")
+    posed = np.all(np.isfinite(T.reshape(n, 16)), axis=1)
+    settled = settled_mask(t_s, joint_speed_rad_s, settings) & posed
+    if centre_m is None:
+        centre = look_at_point(T[settled]) if settled.sum() >= 2 else None
+    else:
+        centre = np.asarray(centre_m, np.float64).reshape(3)
+    counts = {"frames": n, "posed": int(posed.sum()), "settled": int(settled.sum())}
+    if centre is None:
+        return _empty(arm, {**counts, "in_view": 0, "views_found": 0, "views": 0})
+    directions = np.zeros((n, 3))
+    directions[posed] = viewing_directions(T[posed], centre)
+    candidate = settled & np.all(np.isfinite(directions), axis=1)
+    if intrinsics is not None:
+        candidate[posed] &= centre_in_view(T[posed], centre, intrinsics, settings.view_margin_px)
+    counts["in_view"] = int(candidate.sum())
+    view_of = split_views(candidate, directions, settings.view_split_deg)
+    n_views = int(view_of.max()) + 1 if candidate.any() else 0
+    counts["views_found"] = n_views
+    if n_views == 0:
+        return _empty(arm, {**counts, "views": 0})
+
+    members = [spread(np.flatnonzero(view_of == v), settings.per_view) for v in range(n_views)]
+    taken = _diverse_views(members, view_of, directions, T[:, :3, 3] - centre, settings)
+    counts["views"] = len(taken)
+    indices = np.sort(np.concatenate([members[v] for v in taken]))
+    heldout = (np.arange(indices.size) % settings.heldout_every) == settings.heldout_offset
+    counts["keyframes"] = int(indices.size)
+    counts["heldout"] = int(heldout.sum())
+    return ArmKeyframes(arm=arm, indices=indices, view_ids=view_of[indices], heldout=heldout,
+                        directions=directions[indices], counts=counts)
+
+
+def _diverse_views(members: list[np.ndarray], view_of: np.ndarray, directions: np.ndarray,
+                   offsets: np.ndarray, settings: KeyframeSettings) -> list[int]:
+    """Views taken nearest first (then longest, then earliest) when far enough from those taken;
+    with ``max_views``, the most diverse of them by farthest-point sampling (the nearest view first)."""
+    n_views = len(members)
+    distance = np.array([np.linalg.norm(offsets[m], axis=1).mean() for m in members])
+    length = np.bincount(view_of[view_of >= 0], minlength=n_views)
+    order = sorted(range(n_views), key=lambda v: (round(float(distance[v]), 3), -int(length[v]), v))
+    taken: list[int] = []
+    chosen = np.empty((0, 3))
+    for v in order:
+        if taken and _angles_deg(directions[members[v]], chosen).min() < settings.min_separation_deg:
+            continue
+        taken.append(v)
+        chosen = np.vstack([chosen, directions[members[v]]])
+    if settings.max_views is None or len(taken) <= settings.max_views:
+        return taken
+    kept, rest = [taken[0]], taken[1:]
+    while len(kept) < settings.max_views:
+        kept_dirs = np.vstack([directions[members[v]] for v in kept])
+        seps = [float(_angles_deg(directions[members[v]], kept_dirs).min()) for v in rest]
+        kept.append(rest.pop(int(np.argmax(seps))))
+    return kept
+
+
+def _empty(arm: str, counts: dict[str, int]) -> ArmKeyframes:
+    return ArmKeyframes(arm, np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, bool), np.empty((0, 3)),
+                        {**counts, "keyframes": 0, "heldout": 0})
+
+
+def select_survey_keyframes(trajectories: Mapping[str, Any], centre_m: np.ndarray | None,
+                            settings: KeyframeSettings | None = None,
+                            intrinsics: Mapping[str, Intrinsics] | None = None) -> dict[str, ArmKeyframes]:
+    """Keyframes of every arm of a pose recovery (``SurveyPoses.trajectories``: CameraTrajectory by arm).
+
+    Frames are taken in timestamp order; ``intrinsics`` (depth stream, by arm) enable the in-view test.
+    """
+    out: dict[str, ArmKeyframes] = {}
+    for arm, traj in trajectories.items():
+        order = np.argsort(traj.timestamps_ms, kind="stable")
+        poses = traj.poses
+        picked = select_arm_keyframes(
+            arm, poses.t_s[order], poses.T_world_cam[order], poses.joint_speed_rad_s[order], centre_m, settings,
+            None if intrinsics is None else intrinsics.get(arm))
+        out[arm] = ArmKeyframes(arm, order[picked.indices], picked.view_ids, picked.heldout, picked.directions,
+                                picked.counts)
+    return out
+
+
+__all__ = [
+    "FUSE",
+    "HELDOUT",
+    "ArmKeyframes",
+    "KeyframeSettings",
+    "centre_in_view",
+    "look_at_point",
+    "select_arm_keyframes",
+    "select_survey_keyframes",
+    "settled_mask",
+    "split_views",
+    "spread",
+    "viewing_directions",
+]
