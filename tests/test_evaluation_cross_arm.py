@@ -48,3 +48,18 @@ def test_disjoint_clouds_have_no_overlap() -> None:
     assert result.a_to_b.n_co_observed == 0 and np.isnan(result.a_to_b.point_to_plane.median_m)
     with pytest.raises(EvaluationError, match="normals"):
         cross_arm_consistency(a, b, normals_a=np.zeros((3, 3)))
+
+
+def test_opposite_faces_of_a_thin_wall_are_not_paired() -> None:
+    """A wall 3 mm thick seen from outside by one arm and inside by the other is two surfaces."""
+    from darp.evaluation.cross_arm import cross_arm_consistency
+
+    g = np.stack(np.meshgrid(np.linspace(0, 0.05, 60), np.linspace(0, 0.05, 60)), -1).reshape(-1, 2)
+    outer = np.column_stack([g, np.zeros(len(g))])
+    inner = np.column_stack([g, np.full(len(g), 0.003)])
+    up = np.tile([0.0, 0.0, -1.0], (len(g), 1))
+    down = -up
+    paired = cross_arm_consistency(outer, inner, normals_a=up, normals_b=up, cell_m=0.005)
+    assert paired.a_to_b.point_to_plane.median_m == pytest.approx(0.003, abs=1e-4)
+    separate = cross_arm_consistency(outer, inner, normals_a=up, normals_b=down, cell_m=0.005)
+    assert separate.a_to_b.n_co_observed == 0 and separate.b_to_a.n_co_observed == 0

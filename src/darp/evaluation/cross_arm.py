@@ -27,6 +27,7 @@ from darp.reconstruction.voxel_stats import pack_keys, voxel_indices
 
 DEFAULT_CELL_M = 0.005
 DEFAULT_MAX_LATERAL_M = 0.002  # about the fused clouds' point spacing (1.5 mm voxels)
+DEFAULT_MIN_NORMAL_DOT = 0.5  # paired points' normals within 60 deg: the same side of the surface
 _NEIGHBOUR_OFFSETS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], np.int64)
 
 
@@ -83,9 +84,9 @@ class CrossArmResult:
         return {"cell_mm": self.cell_m * 1000.0, "directions": [self.a_to_b.to_dict(), self.b_to_a.to_dict()]}
 
 
-def _direction(name_a: str, points_a: np.ndarray, name_b: str, points_b: np.ndarray,
-               normals_b: np.ndarray | None, cell_m: float, min_points: int,
-               max_lateral_m: float) -> DirectionResult:
+def _direction(name_a: str, points_a: np.ndarray, normals_a: np.ndarray | None, name_b: str,
+               points_b: np.ndarray, normals_b: np.ndarray | None, cell_m: float, min_points: int,
+               max_lateral_m: float, min_normal_dot: float) -> DirectionResult:
     mask = co_observed(points_a, points_b, cell_m, min_points)
     query = np.asarray(points_a, np.float64)[mask]
     dist = plane = np.empty(0)
@@ -99,6 +100,12 @@ def _direction(name_a: str, points_a: np.ndarray, name_b: str, points_b: np.ndar
             # beyond the other arm's rim the nearest point lies beside, not below: not co-observed
             lateral = np.sqrt(np.maximum(dist * dist - plane * plane, 0.0))
             under = lateral <= max_lateral_m
+            if normals_a is not None:
+                # the two sides of a thin wall (a mug seen outside by one arm, inside by the other) are
+                # different surfaces: pair only points whose normals agree
+                agree = np.einsum("ij,ij->i", np.asarray(normals_a, np.float64)[mask],
+                                  np.asarray(normals_b, np.float64)[idx])
+                under &= agree >= min_normal_dot
             dist, plane, n_co = dist[under], plane[under], int(under.sum())
     return DirectionResult(name_a, name_b, len(points_a), n_co, distance_stats(dist), distance_stats(plane))
 
@@ -106,11 +113,14 @@ def _direction(name_a: str, points_a: np.ndarray, name_b: str, points_b: np.ndar
 def cross_arm_consistency(points_a: np.ndarray, points_b: np.ndarray, *, normals_a: np.ndarray | None = None,
                           normals_b: np.ndarray | None = None, names: tuple[str, str] = ("arm110", "arm111"),
                           cell_m: float = DEFAULT_CELL_M, min_points: int = 3,
-                          max_lateral_m: float = DEFAULT_MAX_LATERAL_M) -> CrossArmResult:
+                          max_lateral_m: float = DEFAULT_MAX_LATERAL_M,
+                          min_normal_dot: float = DEFAULT_MIN_NORMAL_DOT) -> CrossArmResult:
     """Median/p90 separation of the two arms' clouds in their co-observed region, both directions.
 
     With the target's normals, a point also needs its nearest target point within ``max_lateral_m``
     of the foot of its normal (so points beyond the other arm's rim do not count as overlap).
+    With both arms' normals, paired points must also face the same way (normal dot product at least
+    ``min_normal_dot``), so opposite faces of a thin wall are not taken for one surface.
     Without normals the point-to-plane statistics equal the point-to-point ones.
     """
     for pts, nrm, name in ((points_a, normals_a, names[0]), (points_b, normals_b, names[1])):
@@ -119,10 +129,12 @@ def cross_arm_consistency(points_a: np.ndarray, points_b: np.ndarray, *, normals
         if nrm is not None and np.asarray(nrm).shape != np.asarray(pts).shape:
             raise EvaluationError(f"{name}: normals must have the points' shape")
     return CrossArmResult(
-        a_to_b=_direction(names[0], points_a, names[1], points_b, normals_b, cell_m, min_points, max_lateral_m),
-        b_to_a=_direction(names[1], points_b, names[0], points_a, normals_a, cell_m, min_points, max_lateral_m),
+        a_to_b=_direction(names[0], points_a, normals_a, names[1], points_b, normals_b, cell_m, min_points,
+                          max_lateral_m, min_normal_dot),
+        b_to_a=_direction(names[1], points_b, normals_b, names[0], points_a, normals_a, cell_m, min_points,
+                          max_lateral_m, min_normal_dot),
         cell_m=cell_m,
     )
 
 
-__all__ = ["DEFAULT_CELL_M", "DEFAULT_MAX_LATERAL_M", "CrossArmResult", "DirectionResult", "co_observed", "cross_arm_consistency"]
+__all__ = ["DEFAULT_CELL_M", "DEFAULT_MAX_LATERAL_M", "DEFAULT_MIN_NORMAL_DOT", "CrossArmResult", "DirectionResult", "co_observed", "cross_arm_consistency"]
