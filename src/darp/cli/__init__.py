@@ -21,6 +21,7 @@ from darp.cli import twin as _twin  # noqa: F401,E402
 from darp.cli import calib as _calib  # noqa: F401,E402
 from darp.cli import collect as _collect  # noqa: F401,E402
 from darp.cli import process as _process  # noqa: F401,E402
+from darp.cli import demo as _demo  # noqa: F401,E402
 
 
 def main() -> None:
