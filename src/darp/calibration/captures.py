@@ -39,6 +39,7 @@ import numpy as np
 from darp.errors import CalibrationError, FormatError
 from darp.formats.atomic import atomic_path
 from darp.formats.calibration import CharucoBoardSpec
+from darp.formats.calibration import board_from_dict as parse_board
 from darp.formats.recording_types import Intrinsics
 from darp.formats.schema import (
     as_array,
@@ -134,20 +135,10 @@ def board_to_dict(board: CharucoBoardSpec) -> dict[str, Any]:
 
 
 def board_from_dict(value: Any, path: Path | None) -> CharucoBoardSpec:
-    data = as_dict(value, "board", path)
-    missing = [k for k in ("squares_x", "squares_y", "square_length_m", "marker_length_m", "dictionary")
-               if k not in data]
-    if missing:
-        raise FormatError(f"board: missing {', '.join(missing)}", path)
+    """The file format's board record, plus the checks detection needs (dictionary size, etc.)."""
     from darp.calibration.board import validate_board
 
-    spec = CharucoBoardSpec(
-        squares_x=as_int(data["squares_x"], "board.squares_x", path, minimum=3),
-        squares_y=as_int(data["squares_y"], "board.squares_y", path, minimum=3),
-        square_length_m=as_float(data["square_length_m"], "board.square_length_m", path, positive=True),
-        marker_length_m=as_float(data["marker_length_m"], "board.marker_length_m", path, positive=True),
-        dictionary=as_str(data["dictionary"], "board.dictionary", path),
-    )
+    spec = parse_board(value, path)
     try:
         validate_board(spec)
     except CalibrationError as err:

@@ -98,7 +98,8 @@ class Calibration:
         raise FormatError(f"no arm carries camera {serial!r} in calibration epoch {self.epoch!r}")
 
 
-def _board_from(value: Any, path: Path | None) -> CharucoBoardSpec:
+def board_from_dict(value: Any, path: Path | None = None) -> CharucoBoardSpec:
+    """Parse and validate a ChArUco board spec (the ``board`` record of calibration and capture files)."""
     board = as_dict(value, "board", path)
     missing = [k for k in ("squares_x", "squares_y", "square_length_m", "marker_length_m", "dictionary")
                if k not in board]
@@ -168,7 +169,7 @@ def calibration_from_dict(payload: dict[str, Any], path: str | Path | None = Non
         epoch=as_str(payload["epoch"], "epoch", path),
         date=date,
         arms={name: _arm_from(name, value, path) for name, value in arms.items()},
-        board=None if board is None else _board_from(board, path),
+        board=None if board is None else board_from_dict(board, path),
         world_frame=as_str(payload.get("world_frame", ""), "world_frame", path),
         report=as_dict(payload.get("report", {}), "report", path),
         schema_version=version,
