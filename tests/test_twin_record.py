@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from realsense_playback import play_back
 
+import darp
 from darp.errors import TwinError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
@@ -194,7 +195,9 @@ def test_identical_seeds_give_byte_identical_surveys(realistic: Path, tmp_path: 
               "from pathlib import Path; record(Path(sys.argv[1]), 'realistic', 2, 6, workers=True)")
     again = tmp_path / "cube"
     subprocess.run([sys.executable, "-c", script, str(again), str(Path(__file__).parent)], check=True,
-                   env={"PYTHONHASHSEED": "123", "PATH": "/usr/bin:/bin", "MUJOCO_GL": "egl"})
+                   env={"PYTHONHASHSEED": "123", "PATH": "/usr/bin:/bin", "MUJOCO_GL": "egl",
+                        # the fresh interpreter must import the same darp as this one
+                        "PYTHONPATH": str(Path(darp.__file__).resolve().parents[1])})
     assert files_digest(again) == files_digest(realistic)
     assert files_digest(again / "truth") == files_digest(realistic / "truth")
 
