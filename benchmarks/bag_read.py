@@ -1,16 +1,23 @@
 """Benchmark: darp's ROS1 .bag reader against pyrealsense2 playback on the same files.
 
 Writes (in a temporary folder) a 640x480 four-stream recording (depth z16, colour rgb8, infrared 1 and
-2 y8 at 30 fps, ~20 metadata entries per frame like a D435) with darp's writer, LZ4 and uncompressed,
-in two lengths. Content is random-ish but compressible: a textured, noisy object in front of a flat
-background, moving a pixel per frame (LZ4 shrinks it about 2.5x).
+2 y8 at 30 fps, ~20 metadata entries per frame like a D435) with darp's writer, LZ4 and uncompressed
+(768 KiB chunks, as librealsense's recorder), in two lengths. Content is random-ish but compressible: a
+textured, noisy object in front of a flat background, moving a pixel per frame (LZ4: about 2.7x).
 
-Each reader consumes every frame the way a user would: it copies the pixels once into its own buffer
-(``np.copyto``); darp hands out zero-copy views, pyrealsense2 frames are wrapped with ``np.asanyarray``.
-pyrealsense2 plays back non-real-time, per sensor, into a frame queue (every frame exactly once; the
-count is checked). Each configuration runs ``--repeats`` times, interleaved, and the best run is shown
-(other processes share this machine). Peak memory is the resident-set high-water mark of
-a subprocess that opens a file and iterates all its frames (VmHWM; file pages of the mapping count).
+Both readers hand frames to the same consumer, in one of two modes:
+
+- ``copy``: the consumer copies every pixel once into its own buffer (``np.copyto``): a consumer that
+  uses all the data. darp's frames are zero-copy views (into the file mapping or a decoded chunk), so
+  here darp pays for bringing the pixels in; pyrealsense2 has already copied them into its frames.
+- ``view``: the consumer reads one pixel per frame: the cost of the readers themselves.
+
+pyrealsense2 plays back non-real-time, per sensor, into a frame queue, with ``np.asanyarray`` on each
+frame's data; the frame numbers each reader delivers are checked: every frame exactly once, in order.
+Each configuration runs ``--repeats`` times, interleaved; the best wall time and the least CPU time
+(user + system of the whole process, all threads) are shown, with the load average, because this
+machine is shared. Peak memory is the resident-set high-water mark of a subprocess that opens a file and
+iterates all its frames (VmHWM; file pages of the mapping count).
 
     .venv/bin/python benchmarks/bag_read.py [--quick] [--framesets N] [--repeats R]
 """
@@ -25,10 +32,12 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from darp.formats.bag_lz4 import native
 from darp.formats.bag_reader import BagRecording
 from darp.formats.bag_writer import BagWriter
 from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
@@ -40,6 +49,7 @@ METADATA = ("Sensor Timestamp", "Actual Exposure", "Gain Level", "Auto Exposure"
             "Exposure Roi Left", "Exposure Roi Right", "Exposure Roi Top", "Exposure Roi Bottom",
             "Frame Emitter Mode", "Raw Frame Size", "Gpio Input Data")
 TARGETS = {"lz4": 4.0, "none": 15.0}  # darp / pyrealsense2, depth frames per second
+RS2 = "pyrealsense2 2.59 playback"
 
 
 # -- the recording --------------------------------------------------------------------------------
@@ -75,39 +85,65 @@ def write_recording(path: Path, compression: str, framesets: int, seed: int = 0)
 
 
 # -- the readers -------------------------------------------------------------------------------------
-def plain_read(path: Path) -> float:
-    """Seconds to read the whole file in 8 MiB blocks: the limit for any reader of this file."""
-    block = memoryview(bytearray(8 << 20))
-    start = time.perf_counter()
+class Run:
+    """One timed read: frames and pixel bytes delivered, wall and CPU seconds (whole process, all threads),
+    and the frame numbers delivered per stream (checked against the recording). The consumer's own
+    bookkeeping per frame is the same for both readers (a list append and a vDSO clock read)."""
+
+    def __init__(self) -> None:
+        self.frames = self.nbytes = 0
+        self.numbers: dict[str, list[int]] = {}
+        self._buffers: dict[str, np.ndarray] = {}
+        self._t0, self._c0 = time.perf_counter(), time.process_time()
+        self.wall_s = self.cpu_s = 0.0
+
+    def consume(self, key: str, number: int, data: np.ndarray, copy: bool) -> None:
+        """What the benchmark's consumer does with a frame: copy every pixel once, or read one pixel."""
+        if copy:
+            out = self._buffers.get(key)
+            if out is None:
+                out = self._buffers[key] = np.empty_like(data)
+            np.copyto(out, data)
+        else:
+            data.flat[-1]
+        self.numbers.setdefault(key, []).append(number)
+        self.frames, self.nbytes = self.frames + 1, self.nbytes + data.nbytes
+        self.wall_s = time.perf_counter() - self._t0
+
+    def finish(self, wall_to_now: bool = True) -> Run:
+        """Stop the clocks: wall time up to now (or to the last frame delivered), CPU time up to now."""
+        if wall_to_now:
+            self.wall_s = time.perf_counter() - self._t0
+        self.cpu_s = time.process_time() - self._c0
+        return self
+
+
+def plain_read(path: Path) -> Run:
+    """The whole file read in 8 MiB blocks: the limit for any reader of this file."""
+    run, block = Run(), memoryview(bytearray(8 << 20))
     with open(path, "rb", buffering=0) as handle:
         while handle.readinto(block):
             pass
-    return time.perf_counter() - start
+    return run.finish()
 
 
-def darp_read(path: Path, keys: tuple[str, ...], verify: bool = True) -> tuple[int, int, float]:
-    """(frames, pixel bytes, seconds) for darp: open, then iterate and copy every frame once."""
-    start = time.perf_counter()
-    buffers: dict[str, np.ndarray] = {}
-    frames = nbytes = 0
-    with BagRecording(path, verify_checksums=verify) as recording:
+def darp_read(path: Path, keys: tuple[str, ...], copy: bool, **options) -> Run:
+    """darp: open, then stream every frame of ``keys`` to the consumer."""
+    run = Run()
+    with BagRecording(path, **options) as recording:
         for frame in recording.iter_frames(keys):
-            out = buffers.get(frame.info.stream)
-            if out is None:
-                out = buffers[frame.info.stream] = np.empty_like(frame.data)
-            np.copyto(out, frame.data)
-            frames, nbytes = frames + 1, nbytes + frame.data.nbytes
-    return frames, nbytes, time.perf_counter() - start
+            run.consume(frame.info.stream, frame.info.frame_number, frame.data, copy)
+    return run.finish()
 
 
-def realsense_read(path: Path, keys: tuple[str, ...]) -> tuple[int, int, float]:
-    """(frames, pixel bytes, seconds) for pyrealsense2: load, play non-real-time, copy every frame once."""
+def realsense_read(path: Path, keys: tuple[str, ...], copy: bool) -> Run:
+    """pyrealsense2: load, play non-real-time per sensor into a frame queue, consume every frame."""
     import pyrealsense2 as rs
 
-    wanted = {"depth": (rs.stream.depth, 0), "color": (rs.stream.color, 0), "ir1": (rs.stream.infrared, 1),
-              "ir2": (rs.stream.infrared, 2)}
-    wanted = {wanted[k] for k in keys}
-    start = time.perf_counter()
+    names = {(rs.stream.depth, 0): "depth", (rs.stream.color, 0): "color", (rs.stream.infrared, 1): "ir1",
+             (rs.stream.infrared, 2): "ir2"}
+    wanted = {k for k, name in names.items() if name in keys}
+    run = Run()
     device = rs.context().load_device(str(path))
     player = device.as_playback()
     player.set_real_time(False)
@@ -121,26 +157,20 @@ def realsense_read(path: Path, keys: tuple[str, ...]) -> tuple[int, int, float]:
             sensor.start(queue)
             sensors.append(sensor)
     player.resume()
-    buffers: dict[tuple, np.ndarray] = {}
-    frames = nbytes = 0
-    last = start
     while True:
         ok, frame = queue.try_wait_for_frame(250)
         if not ok:
             if player.current_status() == rs.playback_status.stopped:
                 break
             continue
-        data = np.asanyarray(frame.get_data())
-        key = (frame.get_profile().stream_type(), frame.get_profile().stream_index())
-        out = buffers.get(key)
-        if out is None:
-            out = buffers[key] = np.empty_like(data)
-        np.copyto(out, data)
-        frames, nbytes, last = frames + 1, nbytes + data.nbytes, time.perf_counter()
+        profile = frame.get_profile()
+        key = names[profile.stream_type(), profile.stream_index()]
+        run.consume(key, frame.get_frame_number(), np.asanyarray(frame.get_data()), copy)
+    run.finish(wall_to_now=False)  # wall time up to the last frame delivered, not the end-of-file wait
     for sensor in sensors:
         sensor.stop()
         sensor.close()
-    return frames, nbytes, last - start
+    return run
 
 
 def darp_index(path: Path) -> tuple[float, float]:
@@ -153,11 +183,14 @@ def darp_index(path: Path) -> tuple[float, float]:
         return opened - start, time.perf_counter() - opened
 
 
-def best(runs: list[tuple[int, int, float]]) -> tuple[int, int, float]:
-    counts = {(frames, nbytes) for frames, nbytes, _ in runs}
-    if len(counts) != 1:
-        raise RuntimeError(f"runs disagree on the frames delivered: {counts}")
-    return min(runs, key=lambda run: run[2])
+def check(runs: list[Run], keys: tuple[str, ...], framesets: int, reader: str) -> None:
+    """Every frame of every stream read exactly once, in order (the writer numbers frame sets 0, 1, ...)."""
+    for run in runs:
+        for key in keys:
+            if run.numbers.get(key) != list(range(framesets)):
+                got = run.numbers.get(key, [])
+                raise RuntimeError(f"{reader}: stream {key} delivered {len(got)} frames, {len(set(got))} distinct, "
+                                   f"expected 0..{framesets - 1} once each")
 
 
 # -- peak memory in a subprocess ---------------------------------------------------------------------
@@ -172,13 +205,13 @@ def _peak_rss_mib() -> float:
 
 
 def probe(path: str) -> None:
-    """Subprocess entry: open and iterate every frame; print resident-set sizes in MiB as JSON."""
+    """Subprocess entry: open and iterate (copying) every frame; print resident-set sizes in MiB as JSON."""
     recording = BagRecording(path)
     after_open = _peak_rss_mib()
-    frames, _, _ = darp_read(Path(path), KEYS)
+    run = darp_read(Path(path), KEYS, copy=True)
     peak = _peak_rss_mib()
     recording.close()
-    print(json.dumps({"frames": frames, "after_open_mib": after_open, "peak_mib": peak}))
+    print(json.dumps({"frames": run.frames, "after_open_mib": after_open, "peak_mib": peak}))
 
 
 def peak_memory(path: Path) -> dict:
@@ -187,6 +220,11 @@ def peak_memory(path: Path) -> dict:
 
 
 # -- the report --------------------------------------------------------------------------------------
+def load() -> str:
+    one, five, fifteen = os.getloadavg()
+    return f"load average {one:.2f} {five:.2f} {fifteen:.2f} on {os.cpu_count()} CPUs"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="short recordings, one run each (a smoke test)")
@@ -198,7 +236,8 @@ def main() -> None:
         probe(args.probe)
         return
     framesets = args.framesets or (60 if args.quick else 240)
-    repeats = args.repeats or (1 if args.quick else 3)
+    repeats = args.repeats or (1 if args.quick else 5)
+    print(f"{load()}; LZ4 decoding: {'native (python-lz4 library via ctypes)' if native() else 'python-lz4 API'}")
     with tempfile.TemporaryDirectory(prefix="darp-bag-bench-") as tmp:
         files = {}
         t0 = time.perf_counter()
@@ -210,52 +249,70 @@ def main() -> None:
               f"short: {framesets} frame sets, long: {3 * framesets}")
         speed_table(files, framesets, repeats)
         memory_table(files, framesets)
+    print(f"\n{load()}")
+
+
+def _readers(compression: str, keys: tuple[str, ...], copy: bool, path: Path) -> dict[str, Callable[[], Run]]:
+    readers = {RS2: lambda: realsense_read(path, keys, copy), "darp": lambda: darp_read(path, keys, copy)}
+    if compression == "lz4":  # decode threads and checksums concern LZ4 chunks only
+        readers["darp, no decode threads"] = lambda: darp_read(path, keys, copy, decode_threads=0)
+        readers["darp, no LZ4 checksum"] = lambda: darp_read(path, keys, copy, verify_checksums=False)
+    return readers
 
 
 def speed_table(files: dict, framesets: int, repeats: int) -> None:
-    print(f"\nSPEED (short recordings; best of {repeats} runs; MB = 10^6 bytes)")
-    print("  frames/s: frames delivered per second, open included")
-    print("  payload MB/s: pixel bytes delivered and copied once by the consumer per second")
-    print("  file MB/s (plain read): the whole file read in 8 MiB blocks, the ceiling for any reader\n")
-    header = f"{'file':18s} {'streams':8s} {'reader':27s} {'frames':>6s} {'frames/s':>9s} {'payload MB/s':>13s} {'vs rs2':>7s}"
+    print(f"\nSPEED (short recordings; best of {repeats} interleaved runs; MB = 10^6 bytes; {load()})")
+    print("  frames/s: frames delivered per second of wall time, open included")
+    print("  CPU ms/frame: least CPU time (user + system, all threads of the process) per frame")
+    print("  payload MB/s: pixel bytes delivered per second of wall time")
+    print("  vs rs2: frames/s ratio to pyrealsense2 in the same mode (CPU: CPU-time ratio)\n")
+    header = (f"{'file':14s} {'streams':7s} {'mode':5s} {'reader':26s} {'frames':>6s} {'frames/s':>9s} "
+              f"{'CPU ms/fr':>9s} {'MB/s':>6s} {'vs rs2':>7s} {'CPU':>6s}")
     print(header)
     print("-" * len(header))
     summary = {}
     for compression in ("lz4", "none"):
         path = files[compression, framesets]
         size_mb = path.stat().st_size / 1e6
-        plain_s = min(plain_read(path) for _ in range(repeats))
+        plain = [plain_read(path) for _ in range(repeats)]
+        plain_s, plain_cpu = min(r.wall_s for r in plain), min(r.cpu_s for r in plain)
         name = f"{compression} {size_mb:.0f} MB"
-        print(f"{name:18s} {'-':8s} {'plain read (8 MiB blocks)':27s} {'':>6s} {'':>9s} {size_mb / plain_s:13.0f} "
-              f"{'':>7s}  <- file MB/s")
+        summary[compression, "plain"] = (size_mb / plain_s, size_mb / plain_cpu)
+        print(f"{name:14s} {'-':7s} {'-':5s} {'plain read, 8 MiB blocks':26s} {'':>6s} {'':>9s} "
+              f"{plain_cpu * 1e3:7.0f}ms {size_mb / plain_s:6.0f}   <- file MB/s (CPU: whole file)")
         for label, keys in (("depth", ("depth",)), ("all", KEYS)):
-            readers = {"pyrealsense2 2.59 playback": lambda k=keys, p=path: realsense_read(p, k),
-                       "darp": lambda k=keys, p=path: darp_read(p, k)}
-            if compression == "lz4":
-                readers["darp, no LZ4 checksum"] = lambda k=keys, p=path: darp_read(p, k, verify=False)
-            runs: dict[str, list] = {r: [] for r in readers}
-            for _ in range(repeats):  # interleaved, so that both readers see the same machine load
-                for reader, run in readers.items():
-                    runs[reader].append(run())
-            results = {reader: best(r) for reader, r in runs.items()}
-            rs_fps = results["pyrealsense2 2.59 playback"][0] / results["pyrealsense2 2.59 playback"][2]
-            for reader, (frames, nbytes, seconds) in results.items():
-                fps = frames / seconds
-                print(f"{name:18s} {label:8s} {reader:27s} {frames:6d} {fps:9.0f} {nbytes / seconds / 1e6:13.0f} "
-                      f"{fps / rs_fps:6.2f}x")
-                summary[compression, label, reader] = (fps, fps / rs_fps, nbytes / seconds / 1e6, size_mb / plain_s)
+            for mode in ("copy", "view"):
+                readers = _readers(compression, keys, mode == "copy", path)
+                runs: dict[str, list[Run]] = {r: [] for r in readers}
+                for _ in range(repeats):  # interleaved, so that every reader sees the same machine load
+                    for reader, read in readers.items():
+                        runs[reader].append(read())
+                for reader, reader_runs in runs.items():
+                    check(reader_runs, keys, framesets, reader)
+                rs_wall = min(r.wall_s for r in runs[RS2])
+                rs_cpu = min(r.cpu_s for r in runs[RS2])
+                for reader, reader_runs in runs.items():
+                    frames, nbytes = reader_runs[0].frames, reader_runs[0].nbytes
+                    wall, cpu = min(r.wall_s for r in reader_runs), min(r.cpu_s for r in reader_runs)
+                    print(f"{name:14s} {label:7s} {mode:5s} {reader:26s} {frames:6d} {frames / wall:9.0f} "
+                          f"{cpu / frames * 1e3:9.3f} {nbytes / wall / 1e6:6.0f} {rs_wall / wall:6.2f}x "
+                          f"{rs_cpu / cpu:5.2f}x")
+                    summary[compression, label, mode, reader] = (rs_wall / wall, nbytes / wall / 1e6, nbytes / cpu / 1e6)
+            print()
     for compression in ("lz4", "none"):
         opened, listed = min(darp_index(files[compression, framesets]) for _ in range(repeats))
-        print(f"darp {compression}: open (index + description) {opened * 1e3:.0f} ms; then timestamps of all "
-              f"{4 * framesets} frames (lazy frame table, one pass over the chunks) {listed * 1e3:.0f} ms")
-    print("\nTARGETS")
+        print(f"darp {compression}: open (index + description) {opened * 1e3:.1f} ms; then timestamps of all "
+              f"{4 * framesets} frames (frame table, one pass over the chunks) {listed * 1e3:.0f} ms")
+    print(f"\nTARGETS (darp with its defaults; {load()})")
     for compression, target in TARGETS.items():
-        _, ratio, _, _ = summary[compression, "depth", "darp"]
-        print(f"  {compression:4s} depth frames/s darp / pyrealsense2 = {ratio:.2f}x (target >= {target:g}x: "
-              f"{'met' if ratio >= target else 'missed'})")
-    _, _, payload, plain = summary["none", "all", "darp"]
-    print(f"  none all-stream payload MB/s / plain read MB/s = {payload / plain:.0%} (target >= 50%: "
-          f"{'met' if payload >= 0.5 * plain else 'missed'})")
+        for mode in ("copy", "view"):
+            ratio, _, _ = summary[compression, "depth", mode, "darp"]
+            print(f"  {compression:4s} depth frames/s darp / pyrealsense2, {mode} mode = {ratio:.2f}x "
+                  f"(target >= {target:g}x: {'met' if ratio >= target else 'missed'})")
+    _, payload, payload_cpu = summary["none", "all", "copy", "darp"]
+    plain, plain_cpu = summary["none", "plain"]
+    print(f"  none all-stream payload MB/s (copy mode) / plain read MB/s = {payload / plain:.1%} (target >= 50%: "
+          f"{'met' if payload >= 0.5 * plain else 'missed'}); per CPU second: {payload_cpu / plain_cpu:.1%}")
 
 
 def memory_table(files: dict, framesets: int) -> None:

@@ -2,12 +2,13 @@
 
 Opening maps the file and parses its index and the small static messages (device, streams,
 extrinsics, depth units); pixels are decoded on demand. Uncompressed chunks are read in place through
-``mmap`` (frames are zero-copy views), LZ4 chunks are decompressed one at a time, so iterating a
-recording uses memory that does not grow with its length. A bag without a usable index (an
-interrupted write, a cut copy) is read by scanning up to its last complete chunk and flagged
-``truncated``.
+``mmap`` (frames are zero-copy views); LZ4 chunks are decoded into pooled buffers, ahead of the consumer
+on worker threads while frames are streamed (:mod:`darp.formats.bag_chunks`), so iterating a recording
+uses memory that does not grow with its length. A frame's metadata dict is parsed only when it is read.
+A bag without a usable index (an interrupted write, a cut copy) is read by scanning up to its last
+complete chunk and flagged ``truncated``.
 
-Frame arrays are read-only views (into the file or a decompressed chunk); copy one to modify it.
+Frame arrays are read-only views (into the file or a decoded chunk); copy one to modify it.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from __future__ import annotations
 import mmap
 import os
 import struct
-from collections import OrderedDict
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,23 +24,21 @@ from typing import BinaryIO
 import numpy as np
 
 from darp.errors import RecordingError
-from darp.formats import ros_messages as rm
-from darp.formats.recording import Recording
-from darp.formats.recording_types import (
-    STREAM_KEYS,
-    DeviceInfo,
-    Frame,
-    FrameInfo,
-    Intrinsics,
-    MotionIntrinsics,
-    StreamProfile,
+from darp.formats.bag_chunks import ChunkStore
+from darp.formats.bag_description import describe
+from darp.formats.bag_frames import (
+    DEFAULT_DOMAIN,
+    BagFrame,
+    ImageDecoder,
+    header_stamp,
+    imu_sample,
+    message_span,
 )
-from darp.formats.rosbag1 import ENTRY_DTYPE, BagIndex, ByteSource, chunk_data, load_index
+from darp.formats.bag_walk import CorruptMessage, Visit, visit_one, walk
+from darp.formats.recording import Recording
+from darp.formats.recording_types import FrameInfo
+from darp.formats.rosbag1 import ByteSource, load_index
 
-_KEY_OF = {rs: key for key, rs in STREAM_KEYS.items()}
-_DEFAULT_DOMAIN = "Hardware Clock"  # what librealsense reports for a frame without metadata
-_U32 = struct.Struct("<I")
-_HEADER_START = struct.Struct("<III")  # std_msgs/Header: seq, stamp sec, stamp nsec
 _RELEASE_STEP = 8 << 20  # drop streamed file pages in steps of this many bytes
 _LOW_LEVEL = (struct.error, ValueError, KeyError, IndexError, UnicodeDecodeError)
 
@@ -51,32 +49,18 @@ def _advise(handle: BinaryIO, advice: str) -> None:
         os.posix_fadvise(handle.fileno(), 0, 0, getattr(os, advice))
 
 
+def _default_threads() -> int:
+    """LZ4 decoding workers: one per core, at most four (none on a single core). Decoding dominates an
+    LZ4 read, so a single worker would only overlap the consumer's (small) share."""
+    cores = os.cpu_count() or 1
+    return min(cores, 4) if cores >= 2 else 0
+
+
 @dataclass(frozen=True)
 class TopicInfo:
     topic: str
     msgtype: str
     count: int
-
-
-class _Chunks:
-    """Uncompressed chunk bytes by chunk number: views into the file, or a few cached LZ4 chunks."""
-
-    def __init__(self, view: memoryview, index: BagIndex, path: Path, verify: bool, capacity: int = 4) -> None:
-        self._view, self._chunks, self._path, self._verify, self._capacity = view, index.chunks, path, verify, capacity
-        self._cache: OrderedDict[int, bytes | memoryview] = OrderedDict()
-
-    def get(self, number: int) -> bytes | memoryview:
-        chunk = self._chunks[number]
-        if chunk.compression == "none":
-            return self._view[chunk.data_start:chunk.data_start + chunk.data_len]
-        data = self._cache.get(number)
-        if data is None:
-            data = self._cache[number] = chunk_data(self._view, chunk, self._path, self._verify)
-            if len(self._cache) > self._capacity:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(number)
-        return data
 
 
 class BagRecording(Recording):
@@ -85,14 +69,16 @@ class BagRecording(Recording):
     Extras beyond :class:`Recording`: ``truncated`` (no usable index: frames were recovered by scanning
     complete chunks; ``truncation_note`` says what was found), ``depth_scale_source`` (``option``,
     ``frame`` or ``default``), ``compressions`` (chunk compressions present), ``sensor_names`` and
-    :meth:`topics`. ``verify_checksums=False`` skips the LZ4 content checksum (about twice as fast on
-    LZ4 bags; damage inside literal runs then goes unnoticed).
+    :meth:`topics`. ``verify_checksums=False`` skips the LZ4 content checksum (librealsense checks it;
+    damage inside literal runs then goes unnoticed). ``decode_threads`` LZ4 chunks are decoded ahead on
+    that many worker threads while frames are streamed (default: one per core, at most 4; 0: none).
     """
 
-    def __init__(self, path: str | Path, *, verify_checksums: bool = True) -> None:
+    def __init__(self, path: str | Path, *, verify_checksums: bool = True, decode_threads: int | None = None) -> None:
         self.path = Path(path)
         self._view: memoryview | None = None
         self._mm: mmap.mmap | None = None
+        self._chunks: ChunkStore | None = None
         try:
             self._size = self.path.stat().st_size
         except OSError as err:
@@ -114,216 +100,138 @@ class BagRecording(Recording):
                 _advise(handle, "POSIX_FADV_RANDOM")  # the index is read in small scattered pieces
                 self._index = load_index(ByteSource(self._view, handle.fileno()), self.path)
                 _advise(handle, "POSIX_FADV_NORMAL")
-                self._chunks = _Chunks(self._view, self._index, self.path, verify_checksums)
-                self._load_description()
+                threads = _default_threads() if decode_threads is None else max(0, int(decode_threads))
+                self._chunks = ChunkStore(self._view, self._index.chunks, self.path, verify_checksums, threads)
+                self._describe()
             except BaseException as err:
                 self.close()
                 if isinstance(err, _LOW_LEVEL):
                     raise RecordingError(f"malformed recording: {err}", self.path) from err
                 raise
-        self._table: dict[str, dict[str, np.ndarray]] | None = None
+        self._tables: dict[str, dict[str, np.ndarray]] = {}
         self._infos: dict[str, list[FrameInfo]] = {}
+        self._decoders = {key: ImageDecoder() for key, profile in self.streams.items() if profile.is_image}
 
-    # -- opening --------------------------------------------------------------------------------
-    def _load_description(self) -> None:
-        self.truncated = self._index.truncated
-        self.truncation_note = self._index.note
+    def _describe(self) -> None:
+        self.truncated, self.truncation_note = self._index.truncated, self._index.note
         self.compressions = sorted({chunk.compression for chunk in self._index.chunks})
-        by_topic: dict[str, list[int]] = {}
-        for conn in self._index.connections.values():
-            by_topic.setdefault(conn.topic, []).append(conn.conn_id)
-        self._topics = {topic: self._merged(ids) for topic, ids in sorted(by_topic.items())}
-        self._types = {c.topic: c.msgtype for c in self._index.connections.values()}
-        if not self._index.chunks:
-            raise RecordingError(f"no complete chunk to read ({self.truncation_note or 'empty bag'})", self.path)
-        if rm.FILE_VERSION_TOPIC not in self._topics:
-            raise RecordingError("not a RealSense recording: the bag has no /file_version topic", self.path)
-        self.file_version = self._first(rm.FILE_VERSION_TOPIC, rm.decode_uint32)
-        info = {k: v for k, v in self._all(rm.DEVICE_INFO_TOPIC, rm.decode_key_value)}
-        self.device = DeviceInfo(info.get("Name", ""), info.get("Serial Number", ""),
-                                 info.get("Firmware Version", ""), info.get("Product Id", ""), info)
-        self.sensor_names: dict[int, str] = {}
-        depth_units: dict[int, float] = {}
-        found: dict[tuple[str, int], dict] = {}
-        for topic in self._topics:
-            if match := rm.SENSOR_INFO_TOPIC.match(topic):
-                names = dict(self._all(topic, rm.decode_key_value))
-                self.sensor_names[int(match[1])] = names.get("Name", "")
-            elif (match := rm.OPTION_VALUE_TOPIC.match(topic)) and match[2] in rm.DEPTH_UNITS_OPTIONS:
-                depth_units[int(match[1])] = self._first(topic, rm.decode_float32)
-            elif match := rm.STREAM_TOPIC.match(topic):
-                key = _KEY_OF.get((match[2], int(match[3])))
-                if key is not None:
-                    parts = found.setdefault((key, int(match[1])), {})
-                    parts["tf" if match[4].startswith("tf/") else match[4]] = topic
-        self._data: dict[str, np.ndarray] = {}
-        self._metadata_entries: dict[str, np.ndarray] = {}
-        self._tf: dict[str, tuple[str, np.ndarray]] = {}
-        streams = {}
-        for (key, sensor), parts in found.items():
-            if "info" not in parts:
-                continue
-            streams[key] = self._profile(key, sensor, parts)
-            kind = "image" if streams[key].is_image else "imu"
-            self._data[key] = self._topics.get(parts.get(f"{kind}/data", ""), np.empty(0, ENTRY_DTYPE))
-            self._metadata_entries[key] = self._topics.get(parts.get(f"{kind}/metadata", ""), np.empty(0, ENTRY_DTYPE))
-            if "tf" in parts:
-                self._tf[key] = (parts["tf"].rsplit("/", 1)[1], self._first(parts["tf"], rm.decode_transform))
-        order = list(STREAM_KEYS)
-        self.streams = {key: streams[key] for key in sorted(streams, key=order.index)}
-        self.depth_scale, self.depth_scale_source = self._depth_scale(depth_units)
+        description = describe(self._index, lambda e: self._message(int(e["chunk"]), int(e["offset"])), self.path)
+        self.file_version, self.device = description.file_version, description.device
+        self.sensor_names, self.streams = description.sensor_names, description.streams
+        self.depth_scale, self.depth_scale_source = description.depth_scale, description.depth_scale_source
+        self._topics, self._types, self._tf = description.topics, description.types, description.tf
+        self._data, self._metadata_entries = description.data, description.metadata
 
-    def _profile(self, key: str, sensor: int, parts: dict[str, str]) -> StreamProfile:
-        stream_type, index = STREAM_KEYS[key]
-        fps, encoding = self._first(parts["info"], rm.decode_stream_info)
-        fmt = rm.FORMAT_OF_ENCODING.get(encoding, encoding.lower())
-        intrinsics = motion = None
-        width = height = 0
-        if "info/camera_info" in parts:
-            ci = self._first(parts["info/camera_info"], rm.decode_camera_info)
-            coeffs = tuple(float(c) for c in (tuple(ci.D) + (0.0,) * 5)[:5])
-            width, height = ci.width, ci.height
-            intrinsics = Intrinsics(ci.width, ci.height, ci.K[0], ci.K[4], ci.K[2], ci.K[5], ci.model, coeffs)
-        if "imu_intrinsic" in parts:
-            data, noise, bias = self._first(parts["imu_intrinsic"], rm.decode_imu_intrinsic)
-            motion = MotionIntrinsics(tuple(data), tuple(noise), tuple(bias))
-        return StreamProfile(key, stream_type, index, sensor, fmt, fps, width, height, intrinsics, motion)
-
-    def _depth_scale(self, depth_units: dict[int, float]) -> tuple[float, str]:
-        depth = self.streams.get("depth")
-        if depth is not None and depth.sensor_index in depth_units:
-            return float(depth_units[depth.sensor_index]), "option"
-        if depth_units:
-            return float(next(iter(depth_units.values()))), "option"
-        if depth is not None and self._data["depth"].size:
-            buf, start, end = self._entry(self._data["depth"][0])
-            units = rm.decode_image_head(buf, start, end).depth_units
-            if units > 0:
-                return float(units), "frame"
-        return 0.001, "default"
-
-    def _merged(self, conn_ids: list[int]) -> np.ndarray:
-        arrays = [self._index.entries[c] for c in conn_ids if c in self._index.entries]
-        if not arrays:
-            return np.empty(0, ENTRY_DTYPE)
-        if len(arrays) == 1:
-            return arrays[0]
-        merged = np.concatenate(arrays)
-        return merged[np.lexsort((merged["offset"], merged["chunk"], merged["time"]))]
-
-    def _message(self, chunk: int, offset: int) -> tuple[bytes | memoryview, int, int]:
+    def _message(self, chunk: int, offset: int) -> tuple[memoryview, int, int]:
         """(chunk bytes, start, end) of the data of the message record at ``offset`` in chunk ``chunk``."""
-        if self._chunks is None:
+        if self._chunks is None or self._view is None:
             raise RecordingError("recording is closed", self.path)
         buf = self._chunks.get(chunk)
         try:
-            (header_len,) = _U32.unpack_from(buf, offset)
-            start = offset + 8 + header_len
-            (data_len,) = _U32.unpack_from(buf, start - 4)
-        except struct.error:
-            start, data_len = len(buf) + 1, 0
-        if start + data_len > len(buf):
+            start, end = message_span(buf, offset)
+        except (struct.error, ValueError):
             raise RecordingError(f"corrupt message record at offset {offset} of the chunk at byte offset "
-                                 f"{self._index.chunks[chunk].pos}", self.path)
-        return buf, start, start + data_len
-
-    def _entry(self, entry: np.void) -> tuple[bytes | memoryview, int, int]:
-        return self._message(int(entry["chunk"]), int(entry["offset"]))
-
-    def _first(self, topic: str, decode):
-        entries = self._topics.get(topic)
-        if entries is None or entries.size == 0:
-            raise RecordingError(f"topic {topic} has no message", self.path)
-        buf, start, _ = self._entry(entries[0])
-        return decode(buf, start)
-
-    def _all(self, topic: str, decode) -> list:
-        out = []
-        for entry in self._topics.get(topic, np.empty(0, ENTRY_DTYPE)):
-            buf, start, _ = self._entry(entry)
-            out.append(decode(buf, start))
-        return out
+                                 f"{self._index.chunks[chunk].pos}", self.path) from None
+        return buf, start, end
 
     # -- frames ---------------------------------------------------------------------------------
-    def _frame_metadata(self, key: str, time_ns: int, only: str | None = None) -> dict[str, str]:
-        """The KeyValue metadata of ``key``'s frame at bag time ``time_ns`` (up to key ``only``)."""
-        entries = self._metadata_entries[key]
-        times = entries["time"]
-        lo, hi = int(times.searchsorted(time_ns, "left")), int(times.searchsorted(time_ns, "right"))
-        metadata: dict[str, str] = {}
-        current, buf = -1, b""
-        for chunk, offset in zip(entries["chunk"][lo:hi].tolist(), entries["offset"][lo:hi].tolist()):
-            if chunk != current:
-                current, buf = chunk, self._chunks.get(chunk)
-            k, v = rm.decode_key_value_record(buf, offset)
-            metadata[k] = v
-            if k == only:
-                break
-        return metadata
+    def _walk(self, keys: list[str], positions: list[np.ndarray], file_order: bool = False) -> Iterator[Visit]:
+        """The chosen data messages (with their metadata) in recording order, or file order."""
+        self._check_open()
+        return walk(self._chunks, [self._data[k] for k in keys], positions,
+                    [self._metadata_entries[k] for k in keys], file_order, self._before_chunk)
 
-    def _frame(self, key: str, index: int, time_ns: int, chunk: int, offset: int) -> Frame:
+    def _before_chunk(self, chunk: int) -> None:
+        self._check_open()
+        self._release_before(self._index.chunks[chunk].data_start)
+
+    def _corrupt(self, key: str, position: int, chunk: int, err: Exception) -> RecordingError:
+        return RecordingError(f"corrupt {key} frame {position} in the chunk at byte offset "
+                              f"{self._index.chunks[chunk].pos}: {err}", self.path)
+
+    def _metadata_error(self, info: FrameInfo, err: Exception) -> RecordingError:
+        return RecordingError(f"corrupt metadata of {info.stream} frame {info.index}: {err}", self.path)
+
+    def _frame(self, key: str, visit: Visit) -> BagFrame:
         try:
-            metadata = self._frame_metadata(key, time_ns)
-            buf, start, end = self._message(chunk, offset)
-            if self.streams[key].is_image:
-                head = rm.decode_image_head(buf, start, end)
-                seq, stamp_ms, data = head.seq, head.timestamp_ms, rm.image_pixels(buf, head)
+            if key in self._decoders:
+                seq, stamp_ms, data = self._decoders[key].decode(visit.buf, visit.start, visit.end)
             else:
-                seq, stamp_ms, gyro, accel = rm.decode_imu(buf, start)
-                data = np.array(accel if key == "accel" else gyro, dtype=np.float32)
+                seq, stamp_ms, data = imu_sample(visit.buf, visit.start, key == "accel")
+            domain = visit.metadata.domain() if visit.metadata is not None else DEFAULT_DOMAIN
         except _LOW_LEVEL as err:
-            raise RecordingError(f"corrupt {key} frame {index} in the chunk at byte offset "
-                                 f"{self._index.chunks[chunk].pos}: {err}", self.path) from err
-        info = FrameInfo(key, index, seq, stamp_ms, metadata.get("timestamp_domain", _DEFAULT_DOMAIN), time_ns)
-        return Frame(info, data, metadata)
+            raise self._corrupt(key, visit.position, visit.chunk, err) from err
+        info = FrameInfo(key, visit.position, seq, stamp_ms, domain, visit.time_ns)
+        return BagFrame(info, data, None if visit.metadata is not None else {}, source=visit.metadata,
+                        on_error=self._metadata_error)
 
-    def _frame_table(self) -> dict[str, dict[str, np.ndarray]]:
-        """Frame number, timestamp and domain of every frame, read in one pass over the chunks (file order)."""
-        if self._table is not None:
-            return self._table
-        keys = list(self.streams)
-        columns: dict[str, tuple[list, list, list]] = {key: ([], [], []) for key in keys}
-        codes, positions, entries = self._selection(keys, [np.arange(self._data[k].size) for k in keys])
-        order = np.lexsort((entries["offset"], entries["chunk"]))
-        rows = (codes[order], positions[order], entries["time"][order], entries["chunk"][order], entries["offset"][order])
-        for code, position, time_ns, chunk, offset in zip(*(row.tolist() for row in rows)):
-            key = keys[code]
-            try:  # Image and Imu both start with a std_msgs/Header: seq, stamp
-                buf, start, _ = self._message(chunk, offset)
-                seq, sec, nsec = _HEADER_START.unpack_from(buf, start)
-                domain = self._frame_metadata(key, time_ns, only="timestamp_domain").get("timestamp_domain",
-                                                                                          _DEFAULT_DOMAIN)
-            except _LOW_LEVEL as err:
-                raise RecordingError(f"corrupt {key} frame {position} in the chunk at byte offset "
-                                     f"{self._index.chunks[chunk].pos}: {err}", self.path) from err
-            numbers, stamps, domains = columns[key]
-            numbers.append((position, seq))
-            stamps.append(rm.ms_from_stamp(sec, nsec))
-            domains.append(domain)
-        self._table = {}
-        for key, (numbers, stamps, domains) in columns.items():
-            order = np.argsort([p for p, _ in numbers], kind="stable")
-            self._table[key] = {"frame_number": np.array([n for _, n in numbers], np.int64)[order],
-                                "timestamp_ms": np.array(stamps, np.float64)[order],
-                                "domain": np.array(domains, object)[order]}
-        return self._table
+    def _bad_record(self, err: CorruptMessage) -> RecordingError:
+        return RecordingError(f"corrupt message record in the chunk at byte offset {self._index.chunks[err.chunk].pos}: "
+                              f"{err}", self.path)
 
-    def _selection(self, keys: list[str], positions: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(stream code, position in stream, index entry) of the chosen frames of several streams."""
-        codes = [np.full(p.size, code) for code, p in enumerate(positions)]
-        entries = [self._data[key][p] for key, p in zip(keys, positions)]
-        if not keys:
-            return np.empty(0, int), np.empty(0, int), np.empty(0, ENTRY_DTYPE)
-        return np.concatenate(codes), np.concatenate(positions), np.concatenate(entries)
+    def _stream(self, keys: list[str], positions: list[np.ndarray]) -> Iterator[BagFrame]:
+        visits = self._walk(keys, positions)
+        try:
+            for visit in visits:
+                if self._view is None:
+                    raise RecordingError("recording is closed", self.path)
+                yield self._frame(keys[visit.code], visit)
+        except CorruptMessage as err:
+            raise self._bad_record(err) from err
+        finally:
+            visits.close()
+            if self._chunks is not None:
+                self._chunks.cancel()
+
+    def _frame_table(self, keys: list[str]) -> dict[str, dict[str, np.ndarray]]:
+        """Frame number, timestamp and domain of every frame of ``keys``: one pass over their chunks in
+        file order, built on first use and kept. Other streams whose messages lie (nearly) all in those
+        chunks come along: their chunks are being read anyway."""
+        missing = [key for key in keys if key not in self._tables]
+        if missing:
+            chunks = self._chunk_numbers(missing)
+            for key in self.streams:
+                extra = np.setdiff1d(self._chunk_numbers([key]), chunks)
+                if key not in self._tables and key not in missing and extra.size <= max(2, chunks.size // 20):
+                    missing.append(key)
+                    chunks = np.union1d(chunks, extra)
+            sizes = [self._data[key].size for key in missing]
+            columns = [(np.zeros(n, np.int64), np.zeros(n, np.float64), np.full(n, DEFAULT_DOMAIN, object))
+                       for n in sizes]
+            visits = self._walk(missing, [np.arange(n) for n in sizes], file_order=True)
+            try:
+                for visit in visits:
+                    numbers, stamps, domains = columns[visit.code]
+                    try:
+                        numbers[visit.position], stamps[visit.position] = header_stamp(visit.buf, visit.start)
+                        if visit.metadata is not None:
+                            domains[visit.position] = visit.metadata.domain()
+                    except _LOW_LEVEL as err:
+                        raise self._corrupt(missing[visit.code], visit.position, visit.chunk, err) from err
+            except CorruptMessage as err:
+                raise self._bad_record(err) from err
+            finally:
+                visits.close()
+                if self._chunks is not None:
+                    self._chunks.cancel()
+            for key, (numbers, stamps, domains) in zip(missing, columns):
+                self._tables[key] = {"frame_number": numbers, "timestamp_ms": stamps, "domain": domains}
+        return self._tables
+
+    def _chunk_numbers(self, keys: list[str]) -> np.ndarray:
+        """The chunks holding the frames or metadata of streams ``keys``."""
+        return np.unique(np.concatenate([self._data[k]["chunk"] for k in keys] +
+                                        [self._metadata_entries[k]["chunk"] for k in keys]))
 
     # -- the Recording interface ----------------------------------------------------------------
     def frame_infos(self, stream: str) -> list[FrameInfo]:
         self.stream(stream)
         if stream not in self._infos:
-            row, times = self._frame_table()[stream], self._data[stream]["time"]
+            row, times = self._frame_table([stream])[stream], self._data[stream]["time"]
             self._infos[stream] = [
-                FrameInfo(stream, i, int(n), float(t), str(d), int(r))
-                for i, (n, t, d, r) in enumerate(zip(row["frame_number"], row["timestamp_ms"], row["domain"], times))
+                FrameInfo(stream, i, n, t, d, r) for i, (n, t, d, r) in enumerate(zip(
+                    row["frame_number"].tolist(), row["timestamp_ms"].tolist(), row["domain"].tolist(),
+                    times.tolist()))
             ]
         return list(self._infos[stream])
 
@@ -333,28 +241,41 @@ class BagRecording(Recording):
 
     def timestamps_ms(self, stream: str) -> np.ndarray:
         self.stream(stream)
-        return self._frame_table()[stream]["timestamp_ms"].copy()
+        return self._frame_table([stream])[stream]["timestamp_ms"].copy()
 
-    def read_frame(self, stream: str, index: int) -> Frame:
+    @property
+    def duration_s(self) -> float:
+        """Span of recording times (bag times) over all streams, in seconds: read from the index alone."""
+        times = [self._data[key]["time"] for key in self.streams if self._data[key].size]
+        if not times:
+            return 0.0
+        return (max(int(t.max()) for t in times) - min(int(t.min()) for t in times)) / 1e9
+
+    def read_frame(self, stream: str, index: int) -> BagFrame:
         self._check_open()
         self.stream(stream)
         count = self._data[stream].size
         if not 0 <= index < count:
             raise RecordingError(f"frame {index} of stream {stream!r} does not exist ({count} frames)", self.path)
-        entry = self._data[stream][index]
-        return self._frame(stream, int(index), int(entry["time"]), int(entry["chunk"]), int(entry["offset"]))
+        try:
+            visit = visit_one(self._chunks, self._data[stream], index, self._metadata_entries[stream])
+        except CorruptMessage as err:
+            raise self._bad_record(err) from err
+        return self._frame(stream, visit)
 
     def iter_frames(self, streams: Iterable[str] | None = None, start_ms: float | None = None,
-                    stop_ms: float | None = None) -> Iterator[Frame]:
+                    stop_ms: float | None = None) -> Iterator[BagFrame]:
         self._check_open()
         keys = list(self.streams) if streams is None else list(dict.fromkeys(streams))
         for key in keys:
             self.stream(key)
         chosen = []
+        if start_ms is not None or stop_ms is not None:
+            tables = self._frame_table(keys)
         for key in keys:
             positions = np.arange(self._data[key].size)
             if start_ms is not None or stop_ms is not None:
-                stamps = self._frame_table()[key]["timestamp_ms"]
+                stamps = tables[key]["timestamp_ms"]
                 keep = np.ones(stamps.size, bool)
                 if start_ms is not None:
                     keep &= stamps >= start_ms
@@ -362,18 +283,7 @@ class BagRecording(Recording):
                     keep &= stamps < stop_ms
                 positions = positions[keep]
             chosen.append(positions)
-        return self._stream(keys, *self._selection(keys, chosen))
-
-    def _stream(self, keys: list[str], codes: np.ndarray, positions: np.ndarray,
-                entries: np.ndarray) -> Iterator[Frame]:
-        starts = [chunk.data_start for chunk in self._index.chunks]
-        order = np.lexsort((entries["offset"], entries["chunk"], entries["time"]))
-        columns = (codes[order], positions[order], entries["time"][order], entries["chunk"][order],
-                   entries["offset"][order])
-        for code, position, time_ns, chunk, offset in zip(*(column.tolist() for column in columns)):
-            self._check_open()
-            self._release_before(starts[chunk])
-            yield self._frame(keys[code], position, time_ns, chunk, offset)
+        return self._stream(keys, chosen)
 
     def _release_before(self, offset: int) -> None:
         """Drop already-streamed file pages from this process (they stay in the page cache): keeps the
@@ -409,8 +319,11 @@ class BagRecording(Recording):
             raise RecordingError("recording is closed", self.path)
 
     def close(self) -> None:
-        """Release the mapping. Frames still holding views keep their pages alive until collected."""
-        self._chunks = None  # type: ignore[assignment]
+        """Stop the decoding workers and release the mapping. Frames still holding views keep their
+        pages alive until collected."""
+        if self._chunks is not None:
+            self._chunks.close()
+            self._chunks = None
         if self._view is not None:
             try:
                 self._view.release()
