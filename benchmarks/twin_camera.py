@@ -3,12 +3,16 @@
 
 Scene: a table with a box, a sphere, a dark cylinder and a ChArUco board, seen from 0.45 m. Stages:
 colour render, left render (light + exact depth), segmentation, right render, D4 noise model, IR pair,
-SGBM; then whole captures (ideal, realistic, realistic without segmentation) and the real-time factor
-of a two-camera rig at 30 fps. Peers: MuJoCo's CPU ray caster (mj_multiRay) for exact depth, the facts'
+SGBM; then whole captures (ideal, realistic, the rig's settings with and without dropout geoms, ...)
+with the real-time factor of a two-camera rig at 30 fps (wall, and CPU-bound on 2 free cores), and the
+CPU split by stage. Peers: MuJoCo's CPU ray caster (mj_multiRay) for exact depth, the facts'
 reference timings (MuJoCo RGB 5-9 ms, depth 4-7 ms; numpy D4 model 17 ms; SGBM 26 ms), and the
 33.3 ms frame period.
 
-    .venv/bin/python benchmarks/twin_camera.py [--repeats 30]
+Single-threaded by default (llvmpipe and OpenCV), as in a camera worker on a 2-core machine, so that
+CPU and wall times agree and each stage's CPU is its own; ``--threads 2`` measures the threaded mode.
+
+    .venv/bin/python benchmarks/twin_camera.py [--repeats 30] [--threads 1]
 """
 
 from __future__ import annotations
@@ -20,13 +24,14 @@ from collections.abc import Callable
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import cv2
 import numpy as np
 
 from darp.twin.board import CharucoBoardSpec, add_charuco_board
 from darp.twin.camera_spec import make_camera_spec
 from darp.twin.depth_model import DepthModel, DepthNoiseSettings
 from darp.twin.ir import IrModel, IrSettings
-from darp.twin.render import SceneRenderer, mujoco
+from darp.twin.render import SceneRenderer, geom_image_region, mujoco
 from darp.twin.sensor import TwinCamera, TwinCameraSettings
 from darp.twin.stereo import StereoMatcher, StereoSettings
 
@@ -47,7 +52,11 @@ def build_scene() -> tuple[mujoco.MjModel, mujoco.MjData]:
         type=geom.mjGEOM_SPHERE, size=[0.04, 0, 0], pos=[-0.1, 0.05, 0.04], rgba=[0.9, 0.2, 0.2, 1]
     )
     spec.worldbody.add_geom(
-        type=geom.mjGEOM_CYLINDER, size=[0.03, 0.06, 0], pos=[0, -0.12, 0.06], rgba=[0.1, 0.1, 0.1, 1]
+        name="dark_cylinder",
+        type=geom.mjGEOM_CYLINDER,
+        size=[0.03, 0.06, 0],
+        pos=[0, -0.12, 0.06],
+        rgba=[0.1, 0.1, 0.1, 1],
     )
     T_board = np.diag([1.0, -1.0, -1.0, 1.0])
     T_board[:3, 3] = [-0.2, -0.05, 0.001]
@@ -86,8 +95,16 @@ def timed_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float, floa
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="llvmpipe and OpenCV threads (1: as in a camera worker on 2 cores)",
+    )
     args = parser.parse_args()
     n = args.repeats
+    os.environ.setdefault("LP_NUM_THREADS", "0" if args.threads <= 1 else str(args.threads))  # before any GL
+    cv2.setNumThreads(0 if args.threads <= 1 else args.threads)
 
     model, data = build_scene()
     spec = make_camera_spec()
@@ -96,6 +113,7 @@ def main() -> None:
     T_right = T @ spec.T_depth_stream("ir2")
     renderer = SceneRenderer(model, 640, 480)
     renderer.update_scene(data)
+    dark = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "dark_cylinder")]
     left = renderer.render_view(T, spec.depth)
     right = renderer.render_view(T_right, spec.depth)
     depth_model = DepthModel(DepthNoiseSettings.realistic(), spec.depth.fx, spec.baseline_m, bank_seed=0)
@@ -143,6 +161,14 @@ def main() -> None:
         ),
         ("render segmentation", lambda: renderer.render_segmentation(T, spec.depth), "", None),
         (
+            "render ids, dark cylinder's region",
+            lambda: renderer.render_segmentation(
+                T, spec.depth, region=geom_image_region(model, data, dark, T, spec.depth)
+            ),
+            "full-frame id pass",
+            timed_ms(lambda: renderer.render_segmentation(T, spec.depth), max(3, n // 3))[0],
+        ),
+        (
             "render ids + depth (flat pass)",
             lambda: renderer.render_segmentation_and_depth(T, spec.depth),
             "",
@@ -160,7 +186,10 @@ def main() -> None:
         ("SGBM 96 disparities", lambda: sgbm96.depth(ir1, ir2), "facts: SGBM 96", 26.0),
     ]
     load = os.getloadavg()[0]
-    print(f"{os.cpu_count()} CPUs, 1-min load average {load:.2f} at start (timings scale with contention)")
+    print(
+        f"{os.cpu_count()} CPUs, 1-min load average {load:.2f} at start (timings scale with contention), "
+        f"{args.threads} thread(s) for llvmpipe and OpenCV"
+    )
     header = f"{'darp ms':>8s} {'p10 ms':>7s} {'cpu ms':>7s}   {'peer':22s} {'peer ms':>8s} {'ratio':>6s}"
     print(f"{'stage (640x480)':34s} {header}")
     for name, fn, peer, peer_ms in stages:
@@ -170,25 +199,42 @@ def main() -> None:
     renderer.close()
 
     print()
+    rig = TwinCameraSettings.from_profile("realistic", segmentation=False)  # what TwinRig records
     profiles = [
-        ("capture ideal", TwinCameraSettings.from_profile("ideal")),
-        ("capture realistic", TwinCameraSettings.from_profile("realistic")),
-        ("realistic, no segmentation", TwinCameraSettings.from_profile("realistic", segmentation=False)),
-        ("realistic, no IR", TwinCameraSettings.from_profile("realistic", render_ir=False)),
+        ("capture ideal", TwinCameraSettings.from_profile("ideal"), None),
+        ("capture realistic", TwinCameraSettings.from_profile("realistic"), None),
+        ("realistic, no segmentation", rig, None),
+        ("realistic, no seg., dark dropouts", rig, {dark[0]: 0.7}),
+        ("realistic, no IR", TwinCameraSettings.from_profile("realistic", render_ir=False), None),
         (
             "realistic, no IR, no segmentation",
             TwinCameraSettings.from_profile("realistic", render_ir=False, segmentation=False),
+            None,
         ),
-        ("SGBM mode", TwinCameraSettings.from_profile("realistic", depth_mode="sgbm", segmentation=False)),
+        (
+            "SGBM mode",
+            TwinCameraSettings.from_profile("realistic", depth_mode="sgbm", segmentation=False),
+            None,
+        ),
     ]
-    print(f"{'whole camera':34s} {header}  2-cam RTF @30 fps (median, p10)")
-    for name, settings in profiles:
-        with TwinCamera(model, spec, settings, seed=1) as cam:
+    print(
+        f"{'whole camera (no bag writing)':34s} {header}  2-cam RTF @30 fps: median, p10, 2 free cores (CPU)"
+    )
+    split = {}
+    for name, settings, dropouts in profiles:
+        with TwinCamera(model, spec, settings, seed=1, dropout_geoms=dropouts) as cam:
             ms, p10, cpu = timed_ms(lambda cam=cam: cam.capture(data, T), max(5, n // 2))
+            if dropouts:
+                split = {k: 1e3 * v / cam.frame_index for k, v in cam.stage_cpu_s.items()}
         print(
             f"{name:34s} {ms:8.2f} {p10:7.2f} {cpu:7.2f}   {'30 fps frame period':22s} {FRAME_BUDGET_MS:8.2f} "
-            f"{FRAME_BUDGET_MS / ms:5.2f}x  {FRAME_BUDGET_MS / (2 * ms):.2f}, {FRAME_BUDGET_MS / (2 * p10):.2f}"
+            f"{FRAME_BUDGET_MS / ms:5.2f}x  {FRAME_BUDGET_MS / (2 * ms):.2f}, {FRAME_BUDGET_MS / (2 * p10):.2f}, "
+            f"{FRAME_BUDGET_MS / cpu:.2f}"
         )
+    print(
+        "CPU ms per capture by stage (realistic, no seg., dark dropouts): "
+        + ", ".join(f"{k} {v:.2f}" for k, v in split.items())
+    )
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import BinaryIO, Self
 
+import lz4.frame
 import numpy as np
 
 from darp.errors import RecordingError
@@ -58,11 +59,15 @@ class BagWriter:
     def __init__(self, path: str | Path, device: DeviceInfo, streams: Sequence[StreamProfile], *,
                  depth_scale: float = 0.001, extrinsics: Mapping[str, np.ndarray] | None = None,
                  compression: str = "lz4", chunk_threshold: int = 768 * 1024, start_ms: float | None = None,
-                 sensor_names: Mapping[int, str] | None = None, overwrite: bool = False) -> None:
+                 sensor_names: Mapping[int, str] | None = None, overwrite: bool = False,
+                 lz4_acceleration: int = 1) -> None:
         self.path = Path(path)
         self.partial_path = self.path.with_name(self.path.name + ".partial")
         self._handle = None
         self._check_setup(streams, depth_scale, extrinsics or {}, compression, chunk_threshold)
+        if not (isinstance(lz4_acceleration, int | np.integer) and 1 <= lz4_acceleration <= 65537):
+            raise RecordingError(f"lz4_acceleration must be an integer in [1, 65537], not {lz4_acceleration!r}",
+                                 self.path)
         for target in (self.path, self.partial_path):
             if target.exists() and not overwrite:
                 raise RecordingError("already exists (pass overwrite=True to replace it)", target)
@@ -74,7 +79,7 @@ class BagWriter:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._handle = open(self.partial_path, "wb")  # noqa: SIM115 (closed in close/abort)
-            self._bag = _ChunkedBag(self._handle, compression, chunk_threshold)
+            self._bag = _ChunkedBag(self._handle, compression, chunk_threshold, int(lz4_acceleration))
             self._write_description(device, extrinsics or {}, sensor_names or {})
         except OSError as err:
             self._fail()
@@ -300,13 +305,23 @@ class BagWriter:
             self.abort()
 
 
+def _compress_lz4_fast(raw: bytes | bytearray, level: int) -> bytes:
+    """An LZ4 frame in LZ4's fast mode (``level`` < 0), with the frame options librealsense reads (as in
+    ``rosbag1.compress_lz4``: independent 4 MiB blocks, content checksum, no stored size)."""
+    return lz4.frame.compress(raw, block_size=lz4.frame.BLOCKSIZE_MAX4MB, block_linked=False,
+                              content_checksum=True, store_size=False, compression_level=level)
+
+
 class _ChunkedBag:
     """Writes messages into chunks, each followed by its index-data records, and the index on
     :meth:`finish`. Until then the bag header says ``index_pos = 0``: the file is recognisably unfinished
     and readable by scanning. Memory: one open chunk (``chunk_threshold`` plus one message)."""
 
-    def __init__(self, handle: BinaryIO, compression: str, chunk_threshold: int) -> None:
+    def __init__(self, handle: BinaryIO, compression: str, chunk_threshold: int, lz4_acceleration: int = 1) -> None:
         self._handle, self._compression, self._threshold = handle, compression, chunk_threshold
+        # LZ4 "fast" mode: acceleration a > 1 is LZ4 frame compression level -a (same frame format, any
+        # LZ4 decoder reads it; faster, slightly larger). 1 is the default level.
+        self._lz4_level = 0 if lz4_acceleration <= 1 else -int(lz4_acceleration)
         self._connections: list[tuple[str, rm.MessageType]] = []
         self._conn_ids: dict[str, int] = {}
         self._chunk = bytearray()
@@ -337,7 +352,12 @@ class _ChunkedBag:
         """Close the open chunk: write it and its index-data records."""
         if not self._chunk_index:
             return
-        data = bag.compress_lz4(self._chunk) if self._compression == "lz4" else self._chunk
+        if self._compression != "lz4":
+            data = self._chunk
+        elif self._lz4_level == 0:
+            data = bag.compress_lz4(self._chunk)
+        else:
+            data = _compress_lz4_fast(self._chunk, self._lz4_level)
         times = [t for items in self._chunk_index.values() for t, _ in items]
         self._chunk_infos.append((self._pos, min(times), max(times),
                                   {conn: len(items) for conn, items in self._chunk_index.items()}))

@@ -1,7 +1,7 @@
 """Render and record one twin camera in a subprocess, so that both cameras use both CPU cores.
 
-Rendering, the depth and IR models and bag compression take about 50-80 ms per 640x480 frame set,
-so one process records two 30 fps cameras at a fraction of real time. A :class:`CameraWorker` owns
+Rendering, the depth and IR models and bag compression take about 40-50 ms of CPU per 640x480 frame
+set, so one process records two 30 fps cameras at a fraction of real time. A :class:`CameraWorker` owns
 one camera's :class:`~darp.twin.sensor.TwinCamera` (same model, spec, settings and seed as the
 in-process one) and its :class:`~darp.formats.bag_writer.BagWriter`. The simulation stays in the
 main process; per frame tick it sends the joint positions of the whole scene, the camera's true pose,
@@ -10,7 +10,8 @@ renders and writes. Requests are pipelined (at most ``max_pending`` frames in fl
 handles them in order with the same noise stream as in-process rendering, so the files are
 byte-identical either way.
 
-The worker is started with the ``spawn`` method: a fresh interpreter, no inherited OpenGL state.
+The worker is started with the ``spawn`` method: a fresh interpreter, no inherited OpenGL state. It
+reports its CPU time per frame, per capture stage and per recording, and its memory high-water mark.
 """
 
 from __future__ import annotations
@@ -29,9 +30,35 @@ from darp.errors import RecordingError, TwinError
 READY_TIMEOUT_S = 120.0
 
 
-def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int, dropouts: dict[int, float]) -> None:
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _limit_threads(threads: int) -> None:
+    """Threads of llvmpipe's rasteriser and of OpenCV in this worker (before any GL context exists).
+
+    The workers themselves are the parallelism; with about one worker per core, threads inside a worker
+    can only spin or wait. On the twin's 2-core machine, run alone, the IR pair costs 8.7 ms of CPU
+    single-threaded against 11.7 ms with OpenCV's two threads, the depth model 4.8 against 6.7 ms, a
+    render 6.7-7.0 against 7.5-8.1 ms with llvmpipe's two threads (``LP_NUM_THREADS=0`` rasterises in
+    the calling thread); in a two-worker recording the difference was within the run-to-run noise.
+    An ``LP_NUM_THREADS`` already in the environment is kept.
+    """
+    import cv2
+
+    os.environ.setdefault("LP_NUM_THREADS", "0" if threads <= 1 else str(threads))
+    cv2.setNumThreads(0 if threads <= 1 else threads)
+
+
+def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int, dropouts: dict[int, float],
+                 threads: int) -> None:
     """Subprocess loop: build the camera, then serve open / frame / close requests in order."""
     try:
+        _limit_threads(threads)
         os.environ.setdefault("MUJOCO_GL", "egl")
         from darp.formats.bag_writer import BagWriter
         from darp.twin.render import mujoco
@@ -44,32 +71,36 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
         conn.send(("error", f"{type(err).__name__}: {err}", traceback.format_exc()))
         return
     writer = None
+    faults_at_open, cpu_at_open = 0, 0.0
     while True:
         message = conn.recv()
         kind = message[0]
         try:
             if kind == "open":
                 writer = BagWriter(*message[1], **message[2])
+                faults_at_open = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+                cpu_at_open = time.process_time()
             elif kind == "frame":
                 _, n, stamp_ms, qpos, T_world_cam, motion, keys = message
-                cpu0 = time.process_time()
-                t0 = time.perf_counter()
+                cpu0, t0 = time.process_time(), time.perf_counter()
                 for key, values, stamp, index in motion:
                     writer.write_motion(key, values, stamp, index)
-                t1 = time.perf_counter()
+                cpu1, t1 = time.process_time(), time.perf_counter()
                 data.qpos[:] = qpos
                 mujoco.mj_kinematics(model, data)
                 frames = camera.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3)
-                t2 = time.perf_counter()
+                cpu2, t2 = time.process_time(), time.perf_counter()
                 for key in keys:
                     writer.write_image(key, frames[key], stamp_ms, n)
-                t3 = time.perf_counter()
-                conn.send(("ok", n, t2 - t1, (t1 - t0) + (t3 - t2), time.process_time() - cpu0))
+                cpu3, t3 = time.process_time(), time.perf_counter()
+                conn.send(("ok", n, t2 - t1, (t1 - t0) + (t3 - t2), cpu3 - cpu0, (cpu1 - cpu0) + (cpu3 - cpu2)))
             elif kind in ("close", "abort"):
                 if writer is not None:
                     writer.close() if kind == "close" else writer.abort()
                 writer = None
-                conn.send(("closed", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0))
+                usage = resource.getrusage(resource.RUSAGE_SELF)
+                conn.send(("closed", usage.ru_maxrss / 1024.0, dict(camera.stage_cpu_s),
+                           usage.ru_minflt - faults_at_open, time.process_time() - cpu_at_open))
             elif kind == "quit":
                 camera.close()
                 conn.send(("bye",))
@@ -85,17 +116,25 @@ class CameraWorker:
     """One camera rendered and recorded in a subprocess (see the module docstring)."""
 
     def __init__(self, model: Any, spec: Any, cam_settings: Any, seed: int, dropouts: dict[int, float], *,
-                 max_pending: int = 4) -> None:
+                 max_pending: int = 4, threads: int | None = None) -> None:
+        """``threads``: rendering and OpenCV threads inside the worker (default: the available cores
+        shared by two workers; 1 on a 2-core machine)."""
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_worker_main, args=(child, model, spec, cam_settings, seed, dropouts),
+        threads = max(1, available_cores() // 2) if threads is None else max(1, int(threads))
+        self._proc = ctx.Process(target=_worker_main,
+                                 args=(child, model, spec, cam_settings, seed, dropouts, threads),
                                  daemon=True, name=f"darp-camera-{spec.serial}")
         self._proc.start()
         child.close()
         self.max_pending = max(1, int(max_pending))
         self.pending = 0
-        self.timings_s = {"capture": 0.0, "write": 0.0, "cpu": 0.0}  # cpu: the worker's CPU time, all threads
+        # capture/write: wall seconds; cpu: the worker's CPU seconds per frame (all threads), write_cpu: of writing
+        self.timings_s = {"capture": 0.0, "write": 0.0, "cpu": 0.0, "write_cpu": 0.0}
         self.peak_rss_mb = 0.0  # the worker's resident-set high-water mark, after a recording
+        self.stage_cpu_s: dict[str, float] = {}  # the camera's CPU seconds per capture stage (cumulative)
+        self.minor_faults = 0  # the worker's page faults during its last recording
+        self.recording_cpu_s = 0.0  # the worker's CPU seconds from opening to closing its last recording
         self._expect("ready", READY_TIMEOUT_S)
 
     def _expect(self, kind: str, timeout_s: float | None = None) -> tuple:
@@ -117,6 +156,7 @@ class CameraWorker:
         self.timings_s["capture"] += reply[2]
         self.timings_s["write"] += reply[3]
         self.timings_s["cpu"] += reply[4]
+        self.timings_s["write_cpu"] += reply[5]
 
     def open(self, *args: Any, **kwargs: Any) -> None:
         """Open the bag in the worker (arguments of :class:`BagWriter`)."""
@@ -141,7 +181,8 @@ class CameraWorker:
                 self.pending -= 1
                 first_error = first_error or err
         self._conn.send(("abort" if abort or first_error else "close",))
-        self.peak_rss_mb = self._expect("closed", READY_TIMEOUT_S)[1]
+        reply = self._expect("closed", READY_TIMEOUT_S)
+        _, self.peak_rss_mb, self.stage_cpu_s, self.minor_faults, self.recording_cpu_s = reply
         if first_error is not None and not abort:
             raise first_error
 

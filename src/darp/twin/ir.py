@@ -166,9 +166,9 @@ class IrModel:
             inv_z = np.zeros(depth_m.shape, np.float32)
             np.reciprocal(depth_m, out=inv_z, where=depth_m > 0)
             dots = self.pattern.lookup(inv_z, self.intr, projector_x_m)
-            if s.projector_shadows:
-                dots[self._projector_shadow(inv_z, projector_x_m)] = 0.0
-            weight = np.maximum(signal, np.float32(255.0 * s.reflectance_floor))  # reflectance proxy
+            if s.projector_shadows:  # no dots where the projector cannot see: multiply by "lit" (0 or 1)
+                np.multiply(dots, ~self._projector_shadow(inv_z, projector_x_m), out=dots)
+            weight = cv2.max(signal, float(np.float32(255.0 * s.reflectance_floor)))  # reflectance proxy
             weight *= inv_z
             weight *= inv_z  # irradiance falls off as 1 / z^2; zero where there is no surface
             dots *= weight
@@ -187,9 +187,7 @@ class IrModel:
     def _projector_shadow(self, inv_depth: np.ndarray, projector_x_m: float) -> np.ndarray:
         """Surface points hidden from the projector: stereo occlusion with the projector as second view."""
         d = inv_depth * np.float32(self.intr.fx * abs(projector_x_m))
-        if projector_x_m >= 0:
-            return occluded_from_right_scanline(d)
-        return occluded_from_right_scanline(d[:, ::-1])[:, ::-1]  # projector on the left: mirror the rows
+        return occluded_from_right_scanline(d, mirrored=projector_x_m < 0)  # projector on the left: mirrored
 
     def pair(
         self,

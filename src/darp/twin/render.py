@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Self
 
+import cv2
 import numpy as np
 
 from darp.errors import TwinError
@@ -35,6 +36,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # MUJOCO_GL must be set before the first import
 
 NO_GEOM = -1  # segmentation value of pixels that see no geom
+Region = tuple[int, int, int, int]  # image rectangle (u0, v0, u1, v1): columns u0..u1-1, rows v0..v1-1
 
 
 def _gl_context_class() -> Any:
@@ -79,6 +81,51 @@ def frustum_from_intrinsics(intr: Intrinsics, near_m: float) -> tuple[float, flo
     top = near_m * (intr.ppy + 0.5) / intr.fy
     bottom = -near_m * (intr.height - 0.5 - intr.ppy) / intr.fy
     return left, right, bottom, top
+
+
+def geom_image_region(
+    model: mujoco.MjModel,
+    data: mujoco.MjData,
+    geom_ids: np.ndarray,
+    T_world_cam: np.ndarray,
+    intr: Intrinsics,
+    *,
+    near_m: float = 0.01,
+    margin_px: int = 2,
+) -> Region | None:
+    """Image rectangle ``(u0, v0, u1, v1)`` (exclusive ends) that holds every pixel of the given geoms.
+
+    Projects the corners of each geom's bounding box (``model.geom_aabb`` at the pose in ``data``);
+    None when no box reaches into the image; the whole image when a box crosses the near plane.
+    Conservative: ``margin_px`` pixels are added around the projected corners.
+    """
+    ids = np.asarray(geom_ids, dtype=int).reshape(-1)
+    if ids.size == 0:
+        return None
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
+    aabb = model.geom_aabb[ids]  # (n, 6): centre and half-size in the geom frame
+    local = aabb[:, None, :3] + signs[None] * aabb[:, None, 3:]  # (n, 8, 3)
+    R = data.geom_xmat[ids].reshape(-1, 3, 3)
+    world = np.einsum("nij,nkj->nki", R, local) + data.geom_xpos[ids][:, None, :]
+    T = np.asarray(T_world_cam, dtype=float)
+    cam = (world - T[:3, 3]) @ T[:3, :3]  # (n, 8, 3) in the camera frame
+    z = cam[..., 2]
+    whole = (0, 0, intr.width, intr.height)
+    in_front = np.all(z > near_m, axis=1)
+    if np.any(~in_front & np.any(z > near_m, axis=1)):
+        return whole  # a box crosses the camera plane: its projection is unbounded
+    if not np.any(in_front):
+        return None
+    cam = cam[in_front]
+    u = intr.fx * cam[..., 0] / cam[..., 2] + intr.ppx
+    v = intr.fy * cam[..., 1] / cam[..., 2] + intr.ppy
+    u0 = max(0, int(np.floor(u.min())) - margin_px)
+    v0 = max(0, int(np.floor(v.min())) - margin_px)
+    u1 = min(intr.width, int(np.ceil(u.max())) + 1 + margin_px)
+    v1 = min(intr.height, int(np.ceil(v.max())) + 1 + margin_px)
+    if u0 >= u1 or v0 >= v1:
+        return None
+    return (u0, v0, u1, v1)
 
 
 class SceneRenderer:
@@ -143,6 +190,7 @@ class SceneRenderer:
         self._free_camera = mujoco.MjvCamera()
         mujoco.mjv_defaultFreeCamera(model, self._free_camera)
         self.shadows = shadows
+        self._buffers: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
     # -- scene state ----------------------------------------------------------------------------------
     def update_scene(self, data: mujoco.MjData) -> None:
@@ -178,14 +226,15 @@ class SceneRenderer:
         """Reversed-Z window depth (1 at near, 0 at far) -> z in metres; 0 where nothing was drawn.
 
         Window depth is ``n (f / z - 1) / (f - n)``; its inverse in float32 keeps a relative error
-        near 1e-7 (0.1 um at 1 m), as good as the float32 depth buffer itself.
+        near 1e-7 (0.1 um at 1 m), as good as the float32 depth buffer itself. ``raw`` is overwritten.
         """
         n, f = np.float32(self.near_m), np.float32(self.far_m)
-        denom = raw * (f - n)
-        denom += n
-        depth = np.divide(f * n, denom, dtype=np.float32)
-        depth[raw <= 0.0] = 0.0  # cleared to the far plane: no surface
-        return depth
+        empty = raw <= 0.0  # cleared to the far plane: no surface
+        np.multiply(raw, f - n, out=raw)
+        raw += n
+        np.divide(f * n, raw, out=raw)
+        raw[empty] = 0.0
+        return raw
 
     # -- rendering ------------------------------------------------------------------------------------
     def render_view(
@@ -195,20 +244,32 @@ class SceneRenderer:
         rgb_out, depth_out = self._render(T_world_cam, intrinsics, rgb, depth)
         return RenderOutput(rgb=rgb_out, depth_m=depth_out)
 
-    def render_segmentation(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-        """Geom id seen by each pixel (int32, ``NO_GEOM`` where none) for the current scene."""
-        return self.render_segmentation_and_depth(T_world_cam, intrinsics, depth=False)[0]
+    def render_segmentation(
+        self, T_world_cam: np.ndarray, intrinsics: Intrinsics, *, region: Region | None = None
+    ) -> np.ndarray:
+        """Geom id seen by each pixel (int32, ``NO_GEOM`` where none) for the current scene.
+
+        ``region`` ``(u0, v0, u1, v1)``: render only the pixels ``[v0:v1, u0:u1]`` (the others get
+        ``NO_GEOM``); the ids there are the same as in a full render (same projection, the viewport is
+        shifted by whole pixels) and the cost follows the region's area.
+        """
+        return self._segmentation(T_world_cam, intrinsics, depth=False, region=region)[0]
 
     def render_segmentation_and_depth(
         self, T_world_cam: np.ndarray, intrinsics: Intrinsics, *, depth: bool = True
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Geom ids and metric depth from one flat (unlit, untextured, so cheaper) id-colour pass."""
+        return self._segmentation(T_world_cam, intrinsics, depth=depth, region=None)
+
+    def _segmentation(
+        self, T_world_cam: np.ndarray, intrinsics: Intrinsics, *, depth: bool, region: Region | None
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         flags = self._scene.flags
         saved = (flags[mujoco.mjtRndFlag.mjRND_SEGMENT], flags[mujoco.mjtRndFlag.mjRND_IDCOLOR])
         flags[mujoco.mjtRndFlag.mjRND_SEGMENT] = 1
         flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = 1
         try:
-            colour, depth_m = self._render(T_world_cam, intrinsics, True, depth)
+            colour, depth_m = self._render(T_world_cam, intrinsics, True, depth, region)
         finally:
             flags[mujoco.mjtRndFlag.mjRND_SEGMENT], flags[mujoco.mjtRndFlag.mjRND_IDCOLOR] = saved
         assert colour is not None
@@ -226,23 +287,41 @@ class SceneRenderer:
             if g.objtype == geom_type and 0 <= g.segid < ngeom:
                 lookup[g.segid + 1] = g.objid
         code[code > ngeom] = 0
-        return lookup[code], depth_m
+        ids = lookup[code]
+        if region is None:
+            return ids, depth_m
+        u0, v0, u1, v1 = region
+        full = np.full((intrinsics.height, intrinsics.width), NO_GEOM, np.int32)
+        full[v0:v1, u0:u1] = ids
+        return full, None
 
     def _render(
-        self, T_world_cam: np.ndarray, intrinsics: Intrinsics, rgb: bool, depth: bool
+        self,
+        T_world_cam: np.ndarray,
+        intrinsics: Intrinsics,
+        rgb: bool,
+        depth: bool,
+        region: Region | None = None,
     ) -> tuple[np.ndarray | None, np.ndarray | None]:
         if self._con is None:
             raise TwinError("renderer used after close()")
         self._gl.make_current()
         rect = self._set_camera(T_world_cam, intrinsics)
-        mujoco.mjr_render(rect, self._scene, self._con)
         h, w = intrinsics.height, intrinsics.width
-        rgb_buf = np.empty((h, w, 3), np.uint8) if rgb else None
-        depth_buf = np.empty((h, w), np.float32) if depth else None
-        mujoco.mjr_readPixels(rgb_buf, depth_buf, rect, self._con)
-        # OpenGL rows run bottom-up; images run top-down.
-        rgb_out = np.ascontiguousarray(rgb_buf[::-1]) if rgb_buf is not None else None
-        depth_out = self._linear_depth(depth_buf[::-1]) if depth_buf is not None else None
+        if region is not None:  # shift the viewport so that the region's corner lands on pixel (0, 0)
+            u0, v0, u1, v1 = region
+            if not (0 <= u0 < u1 <= w and 0 <= v0 < v1 <= h):
+                raise TwinError(f"render region {region} is not inside the {w}x{h} image")
+            rect = mujoco.MjrRect(-u0, v1 - h, w, h)  # GL rows run bottom-up
+            h, w = v1 - v0, u1 - u0
+        mujoco.mjr_render(rect, self._scene, self._con)
+        rgb_buf, depth_buf = self._read_buffers(h, w)
+        mujoco.mjr_readPixels(
+            rgb_buf if rgb else None, depth_buf if depth else None, mujoco.MjrRect(0, 0, w, h), self._con
+        )
+        # OpenGL rows run bottom-up; images run top-down (cv2.flip makes a new top-down array).
+        rgb_out = cv2.flip(rgb_buf, 0) if rgb else None
+        depth_out = self._linear_depth(cv2.flip(depth_buf, 0)) if depth else None
         return rgb_out, depth_out
 
     def render(
@@ -257,6 +336,13 @@ class SceneRenderer:
         """Convenience: :meth:`update_scene` then :meth:`render_view`."""
         self.update_scene(data)
         return self.render_view(T_world_cam, intrinsics, rgb=rgb, depth=depth)
+
+    def _read_buffers(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+        """Read-back buffers for an ``h x w`` view, kept between renders (outputs are copies)."""
+        buffers = self._buffers.get((h, w))
+        if buffers is None:
+            buffers = self._buffers[(h, w)] = (np.empty((h, w, 3), np.uint8), np.empty((h, w), np.float32))
+        return buffers
 
     # -- lifetime -------------------------------------------------------------------------------------
     def close(self) -> None:

@@ -93,7 +93,7 @@ class TwinRig(RigBackend):
     # -- cameras ----------------------------------------------------------------------------------
     def _build_cameras(self, workers: bool) -> None:
         from darp.twin.camera_spec import UnitCalibration, draw_unit, make_camera_spec
-        from darp.twin.camera_worker import CameraWorker
+        from darp.twin.camera_worker import CameraWorker, available_cores
         from darp.twin.imu import ImuSettings, ImuSimulator
         from darp.twin.render import SceneRenderer
         from darp.twin.sensor import TwinCamera, TwinCameraSettings
@@ -111,7 +111,8 @@ class TwinRig(RigBackend):
                 spec = make_camera_spec(unit, serial=true_arm.serial, depth_resolution=size, color_resolution=size,
                                         fps=c.fps, color_fps=c.fps, accel_hz=c.accel_hz, gyro_hz=c.gyro_hz)
                 seed = int(s.rng(f"camera:{true_arm.serial}").integers(2**31))
-                worker = CameraWorker(model, spec, cam_settings, seed, dropouts) if workers else None
+                threads = max(1, available_cores() // len(self.true_rig.arms))
+                worker = CameraWorker(model, spec, cam_settings, seed, dropouts, threads=threads) if workers else None
                 record_cam = None if workers else TwinCamera(model, spec, cam_settings, seed=seed,
                                                              renderer=self._renderer, dropout_geoms=dropouts)
 

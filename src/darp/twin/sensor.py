@@ -4,12 +4,14 @@
 ``T_world_cam`` (OpenCV axes):
 
 - colour from the colour imager's pose ``T_world_cam @ T_depth_color`` with the colour intrinsics;
-- exact depth (and the view's light) from the left imager, geom segmentation from the same view;
+- exact depth (and the view's light) from the left imager, geom segmentation from the same view
+  (with segmentation off, only the image rectangle of the dropout geoms' bounding boxes, if any);
 - exact depth and light from the right imager (``baseline_m`` along +x), for occlusion and IR2;
 
 then applies the depth model (or SGBM on the IR pair) and the IR model. One render pass per view;
 ``SceneRenderer.update_scene`` runs once per capture. Pass one ``SceneRenderer`` to several cameras of
-the same model to share the GL context.
+the same model to share the GL context. ``TwinCamera.stage_cpu_s`` accumulates the CPU time of each
+stage (``CAPTURE_STAGES``).
 
 Frame set keys (what the recorder writes, in librealsense formats):
 ``color`` (H, W, 3) uint8 BGR8; ``depth`` (H, W) uint16 Z16 in ``spec.depth_unit_m``; ``ir1``,
@@ -20,6 +22,7 @@ depth pixel (-1 = none; None when segmentation is off), ``T_world_depth``, ``T_w
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Self
@@ -33,10 +36,11 @@ from darp.twin.depth_model import DepthModel, DepthNoiseSettings, depth_to_z16
 from darp.twin.imu import ImuSettings, ImuSimulator, PoseFunction
 from darp.twin.ir import IrModel, IrSettings
 from darp.twin.noise import NoiseBank
-from darp.twin.render import RenderOutput, SceneRenderer, mujoco
+from darp.twin.render import RenderOutput, SceneRenderer, geom_image_region, mujoco
 from darp.twin.stereo import StereoMatcher, StereoSettings
 
 PROFILES = ("ideal", "realistic")
+CAPTURE_STAGES = ("render", "ir", "depth_noise", "colour", "z16")
 DEPTH_MODES = ("model", "sgbm")
 
 
@@ -54,7 +58,7 @@ class TwinCameraSettings:
     stereo: StereoSettings = field(default_factory=StereoSettings)
     color_noise_dn: float = 1.0  # Gaussian colour sensor noise, 8-bit digital numbers
     render_ir: bool = True  # False skips both IR images (and the right view unless occlusion needs it)
-    segmentation: bool = True  # render truth geom ids (always done when dropout geoms are given)
+    segmentation: bool = True  # truth geom ids; when off, dropout geoms get ids only around their image
     imu: ImuSettings = field(default_factory=ImuSettings)
 
     def __post_init__(self) -> None:
@@ -127,6 +131,11 @@ class TwinCamera:
         self.settings = settings if settings is not None else TwinCameraSettings()
         self.seed = int(seed)
         self._dropout_lookup = self._build_dropout_lookup(dropout_geoms or {})  # validate before GL
+        self._dropout_geom_ids = (
+            np.flatnonzero(self._dropout_lookup[1:] > 0)
+            if self._dropout_lookup is not None
+            else np.zeros(0, int)
+        )
         need_w = max(spec.depth.width, spec.color.width)
         need_h = max(spec.depth.height, spec.color.height)
         if renderer is None:
@@ -163,6 +172,8 @@ class TwinCamera:
         self.T_depth_color = spec.T_depth_stream("color")
         self.T_depth_ir2 = spec.T_depth_stream("ir2")
         self.frame_index = 0
+        # CPU seconds (this process, all threads: llvmpipe's render threads included) per capture stage.
+        self.stage_cpu_s = dict.fromkeys(CAPTURE_STAGES, 0.0)
 
     def _build_dropout_lookup(self, dropout_geoms: Mapping[int | str, float]) -> np.ndarray | None:
         """Per-geom dropout probability indexed by geom id + 1 (index 0: no geom)."""
@@ -198,23 +209,36 @@ class TwinCamera:
         rng = np.random.default_rng([self.seed, self.frame_index])
         self.frame_index += 1
 
+        cpu = time.process_time
+        stage = self.stage_cpu_s
+        t0 = cpu()
         r = self.renderer
         r.update_scene(data)
         color_rgb = r.render_view(T_world_color, self.spec.color, depth=False).rgb
         need_seg = s.segmentation or self._dropout_lookup is not None
-        geom_id = None
+        geom_id = None  # full-image ids (segmentation on)
+        dropout_ids = None  # ids around the dropout geoms only (segmentation off)
         if s.render_ir:  # the IR image needs the lit view; ids need their own flat pass
             left = r.render_view(T_world_depth, self.spec.depth)
-            if need_seg:
+            if s.segmentation:
                 geom_id = r.render_segmentation(T_world_depth, self.spec.depth)
+            elif need_seg:  # only where a dropout geom can be: its bounding box's image
+                region = geom_image_region(
+                    self.model, data, self._dropout_geom_ids, T_world_depth, self.spec.depth
+                )
+                if region is not None:
+                    dropout_ids = r.render_segmentation(T_world_depth, self.spec.depth, region=region)
         elif need_seg:  # ids and depth from one flat pass
-            geom_id, left_depth = r.render_segmentation_and_depth(T_world_depth, self.spec.depth)
+            ids, left_depth = r.render_segmentation_and_depth(T_world_depth, self.spec.depth)
             left = RenderOutput(rgb=None, depth_m=left_depth)
+            geom_id, dropout_ids = (ids, None) if s.segmentation else (None, ids)
         else:
             left = r.render_view(T_world_depth, self.spec.depth, rgb=False)
         need_right = s.render_ir or (s.depth.occlusion and s.depth_mode == "model")
         right = r.render_view(T_world_ir2, self.spec.depth, rgb=s.render_ir) if need_right else None
         assert color_rgb is not None and left.depth_m is not None
+        t1 = cpu()
+        stage["render"] += t1 - t0
 
         ir1 = ir2 = None
         if s.render_ir:
@@ -225,28 +249,37 @@ class TwinCamera:
                 and right.depth_m is not None
             )
             ir1, ir2 = self.ir_model.pair(left.rgb, left.depth_m, right.rgb, right.depth_m, rng)
+        t2 = cpu()
+        stage["ir"] += t2 - t1
 
         if s.depth_mode == "sgbm":
             assert ir1 is not None and ir2 is not None and self._stereo is not None
             depth_m = self._stereo.depth(ir1, ir2)
         else:
             dropout = None
-            if self._dropout_lookup is not None and geom_id is not None:
-                dropout = self._dropout_lookup[geom_id + 1]
+            ids = geom_id if geom_id is not None else dropout_ids
+            if self._dropout_lookup is not None and ids is not None:
+                dropout = self._dropout_lookup[ids + 1]
             depth_m = self.depth_model.apply(
                 left.depth_m,
                 rng,
                 depth_right_m=right.depth_m if right is not None else None,
                 dropout_prob=dropout,
             )
+        t3 = cpu()
+        stage["depth_noise"] += t3 - t2
 
         color_bgr = cv2.cvtColor(color_rgb, cv2.COLOR_RGB2BGR)
         if self._color_noise is not None:  # integer noise, saturating add
             color_bgr = cv2.add(color_bgr, self._color_noise.draw(rng), dtype=cv2.CV_8U)
+        t4 = cpu()
+        stage["colour"] += t4 - t3
+        depth_z16 = depth_to_z16(depth_m, self.spec.depth_unit_m)
+        stage["z16"] += cpu() - t4
 
         return {
             "color": color_bgr,
-            "depth": depth_to_z16(depth_m, self.spec.depth_unit_m),
+            "depth": depth_z16,
             "ir1": ir1,
             "ir2": ir2,
             "timestamp_s": timestamp_s,
