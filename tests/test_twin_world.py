@@ -74,18 +74,29 @@ def test_true_rig_errors_have_the_set_magnitudes(rig) -> None:
     s = TwinSettings.from_profile("realistic", seed=8)
     true = draw_true_rig(rig, s)
     first, second = rig.arm_ids
-    np.testing.assert_array_equal(true.arms[first].T_world_base, rig.arms[first].T_world_base)
     for arm_id, arm in true.arms.items():
         assert np.all(np.abs(arm.joint_offsets_rad) <= np.deg2rad(s.joints.zero_bias_max_deg))
         assert np.max(np.abs(arm.joint_offsets_rad)) > np.deg2rad(0.1)
         T_err = np.linalg.inv(rig.arms[arm_id].T_flange_cam) @ arm.T_flange_cam
         assert np.linalg.norm(T_err[:3, 3]) * 1e3 == pytest.approx(s.mounts.hand_eye_translation_mm)
         assert np.degrees(rotation_error_rad(np.eye(3), T_err[:3, :3])) == pytest.approx(s.mounts.hand_eye_rotation_deg)
-    nominal, moved = rig.arms[second].T_world_base, true.arms[second].T_world_base
-    shift = moved[:3, 3] - nominal[:3, 3]
-    assert shift[2] == 0.0 and np.linalg.norm(shift) * 1e3 == pytest.approx(s.mounts.base_translation_mm)
+    # the second base is off its nominal place relative to the first by the set magnitudes
+    nominal = np.linalg.inv(rig.arms[first].T_world_base) @ rig.arms[second].T_world_base
+    moved = np.linalg.inv(true.arms[first].T_world_base) @ true.arms[second].T_world_base
+    shift = true.arms[first].T_world_base[:3, :3] @ (moved[:3, 3] - nominal[:3, 3])
+    assert abs(shift[2]) < 1e-12 and np.linalg.norm(shift) * 1e3 == pytest.approx(s.mounts.base_translation_mm)
     expected_deg = np.hypot(s.mounts.base_yaw_deg, s.mounts.base_tilt_deg)
     assert np.degrees(rotation_error_rad(nominal, moved)) == pytest.approx(expected_deg, rel=1e-3)
+    # and the truth is expressed in the world as the rig defines it (and a calibration realises it):
+    # origin midway between the true base origins, x from the first to the second, z = the table normal
+    o1, o2 = true.arms[first].T_world_base[:3, 3], true.arms[second].T_world_base[:3, 3]
+    np.testing.assert_allclose(0.5 * (o1 + o2), 0.0, atol=1e-12)
+    assert abs(o2[1]) < 1e-12 and abs(o2[2]) < 1e-12 and o2[0] > 0.6
+    np.testing.assert_allclose(true.arms[first].T_world_base[:3, 2], [0, 0, 1], atol=1e-12)  # first base upright
+    ideal = draw_true_rig(rig, TwinSettings.from_profile("ideal", seed=8))  # no base error: the nominal world
+    for arm_id in rig.arm_ids:
+        np.testing.assert_allclose(ideal.arms[arm_id].T_world_base, rig.arms[arm_id].T_world_base, atol=1e-12)
+    moved = true.arms[second].T_world_base
     again = draw_true_rig(rig, s)
     np.testing.assert_array_equal(again.arms[second].T_world_base, moved)
     other = draw_true_rig(rig, TwinSettings.from_profile("realistic", seed=9))

@@ -11,19 +11,18 @@ measured quantities:
   of its base, which stands on the table, so the midpoint lies on the table surface);
 - **x** = the direction from the first base origin to the second, made orthogonal to z; y = z x x.
 
-Why not "the first base is the world" (the twin's convention, where the first base is exactly at its
-nominal pose): joint 1's zero offset cannot be separated from the base yaw (:mod:`darp.calibration.refine`),
-so the first base's yaw is not measurable; the line between the base origins is, to a fraction of a
-millimetre. The twin's true calibration is brought to the same definition before comparing
-(:func:`canonical_world`), so errors against truth measure the calibration, not the convention.
+Why not "the first base is the world": joint 1's zero offset cannot be separated from the base yaw
+(:mod:`darp.calibration.refine`), so the first base's yaw is not measurable; the line between the base origins is, to a fraction of a
+millimetre. The twin draws its truth in the same definition (:func:`darp.twin.truth.draw_true_rig`), so
+errors against truth measure the calibration, not the convention.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from darp.errors import CalibrationError
-from darp.kinematics.transforms import invert_transform
+from darp.errors import CalibrationError, KinematicsError
+from darp.kinematics.transforms import invert_transform, world_from_base_origins
 
 WORLD_FRAME_TEXT = (
     "origin on the table surface midway between the base origins, x from arm110's base towards arm111's, "
@@ -34,19 +33,10 @@ WORLD_FRAME_TEXT = (
 
 def canonical_world(origin_a: np.ndarray, origin_b: np.ndarray, up: np.ndarray) -> np.ndarray:
     """``T_frame_world`` of the world defined by two base origins and the up direction (all in one frame)."""
-    a, b = np.asarray(origin_a, float), np.asarray(origin_b, float)
-    z = np.asarray(up, float)
-    if np.linalg.norm(z) < 1e-12:
-        raise CalibrationError("world frame: the up direction has zero length")
-    z = z / np.linalg.norm(z)
-    x = (b - a) - ((b - a) @ z) * z
-    if np.linalg.norm(x) < 1e-3:
-        raise CalibrationError("world frame: the two base origins are (nearly) on one vertical line")
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = 0.5 * (a + b)
-    return T
+    try:
+        return world_from_base_origins(origin_a, origin_b, up)
+    except KinematicsError as err:
+        raise CalibrationError(str(err)) from None
 
 
 def board_up(T_ref_board: np.ndarray, T_ref_base_first: np.ndarray | None = None) -> np.ndarray:

@@ -44,6 +44,7 @@ __all__ = [
     "transform_points",
     "transform_to_posture",
     "translation_error_m",
+    "world_from_base_origins",
 ]
 
 
@@ -299,3 +300,24 @@ def orthonormalize(R: ArrayLike) -> Array:
     D = np.ones(M.shape[:-2] + (3,))
     D[..., 2] = np.sign(np.linalg.det(U @ Vt))
     return (U * D[..., None, :]) @ Vt
+
+
+def world_from_base_origins(origin_a: ArrayLike, origin_b: ArrayLike, up: ArrayLike) -> Array:
+    """``T_frame_world`` of darp's world as defined by the two base origins and the up direction (all
+    given in one frame): origin midway between the base origins, z = ``up``, x from ``origin_a``
+    towards ``origin_b`` made orthogonal to z (docs/rig-and-poses.md). The calibration realises the
+    world this way from measured quantities, and the twin draws its truth in the same definition."""
+    a = _as_array(origin_a, (3,), "base origin")
+    b = _as_array(origin_b, (3,), "base origin")
+    z = _as_array(up, (3,), "up direction")
+    if np.linalg.norm(z) < 1e-12:
+        raise KinematicsError("world frame: the up direction has zero length")
+    z = z / np.linalg.norm(z)
+    x = (b - a) - ((b - a) @ z) * z
+    if np.linalg.norm(x) < 1e-3:
+        raise KinematicsError("world frame: the two base origins are (nearly) on one vertical line")
+    x = x / np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = 0.5 * (a + b)
+    return T

@@ -7,8 +7,12 @@ The true rig differs from the nominal rig file by the errors of :mod:`darp.twin.
   would find;
 - each camera mount ``T_flange_cam = T_flange_cam_nominal @ T_err`` (the error expressed in the
   camera frame: a translation of fixed length and a rotation of fixed angle, random directions);
-- the second arm's base ``T_world_base`` moved in the table plane, turned about the vertical and
-  tilted slightly about its own origin; the first base is exact (with the table it defines the world).
+- the second arm's base moved in the table plane, turned about the vertical and tilted slightly about
+  its own origin, relative to the first; then both bases are expressed in darp's world as the rig
+  defines it (origin midway between the two true base origins, x from the first towards the second, z
+  the table normal), which is also how a calibration realises the world from what it measures. Truth and
+  a calibration therefore share one world frame: errors against truth are the calibration's, with no
+  convention offset ("gauge") between them. With no base error the world is the nominal one.
 
 ``truth/`` (beside the survey files, never needed to read the survey)::
 
@@ -26,7 +30,7 @@ import datetime as dt
 import io
 import json
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +41,13 @@ from darp.formats.atomic import atomic_path, write_json_atomic, write_text_atomi
 from darp.formats.calibration import ArmCalibration, Calibration, read_calibration, write_calibration
 from darp.kinematics import z1
 from darp.kinematics.rig import WORLD_FRAME_TEXT, Rig
-from darp.kinematics.transforms import axis_angle_to_rotation, make_transform, rot_z
+from darp.kinematics.transforms import (
+    axis_angle_to_rotation,
+    invert_transform,
+    make_transform,
+    rot_z,
+    world_from_base_origins,
+)
 from darp.twin.settings import TwinSettings
 
 TRUTH_DIR = "truth"
@@ -132,7 +142,19 @@ def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
                                           T_world_base[:3, 3] + m.base_translation_mm * 1e-3
                                           * np.array([np.cos(phi), np.sin(phi), 0.0]))
         arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_flange_cam, dq)
-    return TrueRig(nominal=rig, arms=arms)
+    return TrueRig(nominal=rig, arms=_in_rig_world(arms))
+
+
+def _in_rig_world(arms: dict[str, TrueArm]) -> dict[str, TrueArm]:
+    """The arms with their bases re-expressed in the world defined by their true base origins and the
+    table normal (:func:`~darp.kinematics.transforms.world_from_base_origins`); a single arm is left as is."""
+    if len(arms) != 2:
+        return arms
+    first, second = arms.values()
+    T_nominal_world = world_from_base_origins(first.T_world_base[:3, 3], second.T_world_base[:3, 3],
+                                              np.array([0.0, 0.0, 1.0]))
+    T_world_nominal = invert_transform(T_nominal_world)
+    return {arm_id: replace(arm, T_world_base=T_world_nominal @ arm.T_world_base) for arm_id, arm in arms.items()}
 
 
 # -- per-frame camera poses -----------------------------------------------------------------------
