@@ -72,7 +72,7 @@ def truth_table(results: dict[str, Any]) -> str:
     objects = truth.get("objects") or {}
     if not objects:
         return ""
-    header = ["object", "accuracy median mm", "same, world gauge removed", "accuracy p90 mm",
+    header = ["object", "accuracy median mm", "same, world offset removed", "accuracy p90 mm",
               "complete <=2 mm %", "complete <=5 mm %", "F-score 2 mm %", "F-score 5 mm %"]
 
     def row(name: str, t: dict[str, Any]) -> list[str]:
@@ -87,6 +87,7 @@ def truth_table(results: dict[str, Any]) -> str:
     rows = [row(name, t) for name, t in objects.items()]
     if truth.get("aggregate"):
         rows.append(row("all", truth["aggregate"]))
-    note = ("\n(the calibration defines its own world frame from the board and the calibrated bases; 'world gauge\n"
-            " removed' expresses the cloud in the twin's nominal world frame before comparing)")
+    note = ("\n(truth and calibration define the world alike: midway between the bases, x base to base, z up;\n"
+            " 'world offset removed' first takes out one rigid offset of the whole world frame, fitted to the\n"
+            " keyframes' true camera centres: what remains is the reconstruction's own error)")
     return _table("Against ground truth (fused cloud vs the true object mesh; twin only)", header, rows) + note

@@ -149,10 +149,12 @@ def truth_blocks(summary: dict[str, Any], per: Sequence[dict[str, Any]]) -> list
     return [Block("h2", "Ground truth (digital twin)"),
             Block("p", "Fused cloud against the true object surface: accuracy (cloud → truth), completeness (seen "
                        "true surface → cloud) and F-score; the mesh's accuracy and F-score; how far the keyframes' "
-                       "poses were from the true camera poses. A calibration realises its own world frame (midway "
-                       "between the calibrated bases); the 'world gauge' is the rigid offset between it and the "
-                       "twin's world frame at the object (Kabsch fit of the keyframes' camera centres to the true "
-                       "ones), invisible to held-out and cross-arm measures; accuracy is given with and without it."),
+                       "poses were from the true camera poses. The twin draws its truth in the world as the rig defines "
+                       "it and a calibration realises it (midway between the bases, x base to base, z up), so "
+                       "accuracy includes the calibration's error in placing the world. The 'world gauge' is the "
+                       "part of it that is one rigid offset of the whole world frame at the object (Kabsch fit of "
+                       "the keyframes' camera centres to the true ones), invisible to held-out and cross-arm "
+                       "measures; accuracy is given with and without it."),
             Block("table", headers=headers, rows=tuple(rows))]
 
 
