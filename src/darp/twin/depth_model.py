@@ -152,7 +152,7 @@ def occluded_from_right_scanline(disparity_px: np.ndarray, *, mirrored: bool = F
     lands at or left of that column (the right-view ordering is broken by a nearer surface).
     ``mirrored``: the other camera is displaced along -x (the same rule on mirrored rows).
 
-    A pixel ``j`` right of ``i`` hides it only if ``j - i < d_j - d_i <= max(d)``, so each pixel is
+    A pixel ``j`` right of ``i`` hides it only if ``j - i <= d_j - d_i < max(d)``, so each pixel is
     compared with the windowed minimum over the next ``max(d) + 2`` columns: the same result as a
     scan of the whole row. Pixels without a surface (``d <= 0``) can never hide another one.
     """
@@ -165,7 +165,7 @@ def occluded_from_right_scanline(disparity_px: np.ndarray, *, mirrored: bool = F
     x_other = (cols[::-1] if mirrored else cols)[None, :] - d  # column in the other view (mirrored rows)
     d_max = float(np.fmax.reduce(d, axis=None))
     span = int(np.ceil(d_max)) + 2 if np.isfinite(d_max) else w  # inf: a surface at z ~ 0 hides all
-    hidden = np.greater(x_other, _window_min(x_other, span, leftward=mirrored))
+    hidden = np.greater_equal(x_other, _window_min(x_other, span, leftward=mirrored))  # at or left of it
     hidden &= surface
     return hidden
 
