@@ -307,7 +307,8 @@ class BagWriter:
 
 def _compress_lz4_fast(raw: bytes | bytearray, level: int) -> bytes:
     """An LZ4 frame in LZ4's fast mode (``level`` < 0), with the frame options librealsense reads (as in
-    ``rosbag1.compress_lz4``: independent blocks of at most 4 MiB (the LZ4 library shrinks the block size to the smallest that holds the chunk), content checksum, no stored size)."""
+    ``rosbag1.compress_lz4``: independent blocks of at most 4 MiB, which the LZ4 library shrinks to the
+    smallest size that holds the chunk; content checksum; no stored size)."""
     return lz4.frame.compress(raw, block_size=lz4.frame.BLOCKSIZE_MAX4MB, block_linked=False,
                               content_checksum=True, store_size=False, compression_level=level)
 
