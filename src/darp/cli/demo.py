@@ -48,7 +48,7 @@ def demo_command(
     captures: int = typer.Option(20, "--captures", help="Calibration captures per arm."),
     profile: str = typer.Option("realistic", "--profile", help="Twin error profile: ideal or realistic."),
 ) -> None:
-    """Run the whole system on the digital twin: calibrate, survey, process, report (about 10 minutes)."""
+    """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores)."""
     started = time.monotonic()
     names = [name.strip() for name in objects.split(",") if name.strip()]
     if not names:
