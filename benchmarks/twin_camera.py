@@ -27,7 +27,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import cv2
 import numpy as np
 
-from darp.twin.board import CharucoBoardSpec, add_charuco_board
+from darp.formats.calibration import CharucoBoardSpec
+from darp.twin.board import add_charuco_board
 from darp.twin.camera_spec import make_camera_spec
 from darp.twin.depth_model import DepthModel, DepthNoiseSettings
 from darp.twin.ir import IrModel, IrSettings
@@ -60,7 +61,9 @@ def build_scene() -> tuple[mujoco.MjModel, mujoco.MjData]:
     )
     T_board = np.diag([1.0, -1.0, -1.0, 1.0])
     T_board[:3, 3] = [-0.2, -0.05, 0.001]
-    add_charuco_board(spec, CharucoBoardSpec(px_per_square=128), T_parent_board=T_board)
+    board = CharucoBoardSpec(squares_x=7, squares_y=5, square_length_m=0.03, marker_length_m=0.022,
+                             dictionary="DICT_5X5_100")
+    add_charuco_board(spec, board, T_parent_board=T_board)  # default texture: 128 px per square, 32 px margin
     model = spec.compile()
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)

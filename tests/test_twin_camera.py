@@ -12,9 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
+from darp.calibration.board import corners_board_m, cv_board
 from darp.errors import ConfigError, TwinError
+from darp.formats.calibration import CharucoBoardSpec
 from darp.formats.recording_types import Intrinsics
-from darp.twin.board import CharucoBoardSpec, add_charuco_board
+from darp.twin.board import add_charuco_board
 from darp.twin.camera_spec import draw_unit, make_camera_spec, with_resolution
 from darp.twin.imu import ImuSettings, ImuSimulator, pose_function_from_samples
 from darp.twin.render import SceneRenderer, mujoco
@@ -152,7 +154,8 @@ def box_scene() -> tuple[mujoco.MjModel, mujoco.MjData]:
     return compile_spec(spec)
 
 
-BOARD = CharucoBoardSpec(squares_x=7, squares_y=5, square_m=0.03, marker_m=0.022, px_per_square=128)
+BOARD = CharucoBoardSpec(squares_x=7, squares_y=5, square_length_m=0.03, marker_length_m=0.022,
+                         dictionary="DICT_5X5_100")
 T_WORLD_BOARD = np.eye(4)
 T_WORLD_BOARD[:3, :3] = rot_x(180.0)  # printed side (-z of the board) faces world +z
 T_WORLD_BOARD[:3, 3] = [-0.105, 0.075, 0.002]  # board centre at the world origin
@@ -253,10 +256,10 @@ def test_charuco_corners_land_on_true_projections(board_scene, distance_m: float
     with TwinCamera(model, spec, TwinCameraSettings.from_profile("ideal"), seed=0) as cam:
         frames = cam.capture(data, T_world_depth)
     T_world_color = frames["truth"]["T_world_color"]
-    detector = cv2.aruco.CharucoDetector(BOARD.cv_board())
+    detector = cv2.aruco.CharucoDetector(cv_board(BOARD))
     corners, ids, _, _ = detector.detectBoard(cv2.cvtColor(frames["color"], cv2.COLOR_BGR2GRAY))
     assert ids is not None and len(ids) >= 20
-    P_world = BOARD.corners_board_m() @ T_WORLD_BOARD[:3, :3].T + T_WORLD_BOARD[:3, 3]
+    P_world = corners_board_m(BOARD) @ T_WORLD_BOARD[:3, :3].T + T_WORLD_BOARD[:3, 3]
     T_color_world = np.linalg.inv(T_world_color)
     P_cam = P_world @ T_color_world[:3, :3].T + T_color_world[:3, 3]
     K = spec.color.K

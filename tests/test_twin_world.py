@@ -280,20 +280,23 @@ def test_part_texture_row_zero_is_the_top_of_v(rig, true_rig) -> None:
 def test_board_lies_on_the_table_where_its_pose_says(rig, true_rig) -> None:
     import cv2
 
-    from darp.twin.board import CharucoBoardSpec
+    from darp.calibration.board import corners_board_m, cv_board
+    from darp.formats.calibration import CharucoBoardSpec
+    from darp.twin.board import BOARD_THICKNESS_M
     from darp.twin.render import SceneRenderer
 
-    board = CharucoBoardSpec()
-    T_world_board = make_transform(np.diag([1.0, -1.0, -1.0]), [-0.1, 0.08, board.thickness_m + 2e-4])
+    board = CharucoBoardSpec(squares_x=7, squares_y=5, square_length_m=0.03, marker_length_m=0.022,
+                             dictionary="DICT_5X5_100")
+    T_world_board = make_transform(np.diag([1.0, -1.0, -1.0]), [-0.1, 0.08, BOARD_THICKNESS_M + 2e-4])
     world = TwinWorld(rig, true_rig.arms, board=board, T_world_board=T_world_board, seed=2)
     intr = Intrinsics(640, 480, 600.0, 600.0, 319.5, 239.5)
     T_world_cam = look_at([0.0, -0.05, 0.45], [0.0, 0.0, 0.0], up=[0.0, 1.0, 0.0])
     with SceneRenderer(world.model, 640, 480) as renderer:
         view = renderer.render(world.data, T_world_cam, intr)
     grey = cv2.cvtColor(view.rgb, cv2.COLOR_RGB2GRAY)
-    corners, ids, _, _ = cv2.aruco.CharucoDetector(board.cv_board()).detectBoard(grey)
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(cv_board(board)).detectBoard(grey)
     assert ids is not None and len(ids) >= 10
-    pts_world = (T_world_board @ np.c_[board.corners_board_m(), np.ones(len(board.corners_board_m()))].T).T
+    pts_world = (T_world_board @ np.c_[corners_board_m(board), np.ones(len(corners_board_m(board)))].T).T
     pts_cam = (np.linalg.inv(T_world_cam) @ pts_world.T).T[:, :3]
     proj = pts_cam[:, :2] / pts_cam[:, 2:] * [intr.fx, intr.fy] + [intr.ppx, intr.ppy]
     err = np.linalg.norm(corners.reshape(-1, 2) - proj[ids.ravel()], axis=1)

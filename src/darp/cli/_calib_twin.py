@@ -12,7 +12,6 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -23,26 +22,6 @@ from darp.calibration.plan import CapturePlan, PlanSettings, default_board_pose,
 from darp.formats.atomic import write_json_atomic
 from darp.formats.calibration import CharucoBoardSpec, write_calibration
 from darp.kinematics.rig import Rig, load_rig
-
-BOARD_TEXTURE_PX_PER_SQUARE = 128  # a multiple of 64
-BOARD_TEXTURE_MARGIN_PX = 32
-
-
-def twin_board(board: CharucoBoardSpec) -> Any:
-    """The twin's board object for a calibration board spec.
-
-    The texture's width and height are multiples of 64 (128 px per square, a 32 px white margin), so
-    that every mipmap level MuJoCo's trilinear sampling uses has exactly half the texels of the one
-    above. With an odd level (e.g. 1366 -> 683 -> 341) the coarser levels are stretched by a fraction
-    of a texel, which moved corners by a few hundredths of a pixel depending on the viewing angle and
-    biased the base-to-base tilt by about 0.05 deg on the twin.
-    """
-    from darp.twin.board import CharucoBoardSpec as TwinBoard
-
-    px = BOARD_TEXTURE_PX_PER_SQUARE
-    return TwinBoard(squares_x=board.squares_x, squares_y=board.squares_y, square_m=board.square_length_m,
-                     marker_m=board.marker_length_m, dictionary=board.dictionary, px_per_square=px,
-                     margin_m=BOARD_TEXTURE_MARGIN_PX * board.square_length_m / px)
 
 
 def moved_rig(rig: Rig, mount_offsets: dict[str, np.ndarray]) -> Rig:
@@ -58,13 +37,13 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
                  mount_offsets: dict[str, np.ndarray] | None = None, overwrite: bool = False,
                  on_capture: Callable[[str, int], None] | None = None) -> CaptureSet:
     """Plan (unless given) and run calibration captures on the twin; returns the capture folder."""
+    from darp.twin.board import BOARD_THICKNESS_M
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
 
     nominal = rig or load_rig()
-    tb = twin_board(board)
     T_world_board = plan.T_world_board if plan is not None else default_board_pose(
-        nominal, board, thickness_m=tb.thickness_m + 2e-4)
+        nominal, board, thickness_m=BOARD_THICKNESS_M + 2e-4)
     if plan is None:
         plan = plan_captures(nominal, board, T_world_board, settings=PlanSettings(n_per_arm=n_per_arm),
                              seed=seed if plan_seed is None else plan_seed)
@@ -74,7 +53,7 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
     writer = CaptureWriter(out, board, source=f"twin:{profile}:seed{seed}", overwrite=overwrite,
                            notes={"profile": profile, "seed": seed, "plan_seed": plan.seed,
                                   "mount_offsets": {a: np.asarray(T).tolist() for a, T in (mount_offsets or {}).items()}})
-    with TwinRig(settings, rig=true_rig, board=tb, T_world_board=T_world_board) as twin:
+    with TwinRig(settings, rig=true_rig, board=board, T_world_board=T_world_board) as twin:
         park = {a: twin.park_q(a) for a in twin.arms}
         run_capture_plan(twin, plan, writer, park_q=park, settings=CaptureRunSettings(stream=stream, joint_reads=10),
                          on_capture=on_capture)
@@ -85,4 +64,4 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
     return writer.close()
 
 
-__all__ = ["capture_twin", "moved_rig", "twin_board"]
+__all__ = ["capture_twin", "moved_rig"]

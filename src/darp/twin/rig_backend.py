@@ -49,7 +49,7 @@ class TwinRig(RigBackend):
                  T_world_board: np.ndarray | None = None,
                  q_initial_rad: dict[str, np.ndarray] | None = None, camera_workers: bool = False) -> None:
         """``obj``: a :class:`darp.twin.objects.TwinObject` placed by ``placement`` (an ``ObjectPlacement``);
-        ``board``: a :class:`darp.twin.board.CharucoBoardSpec` lying on the table at ``T_world_board``;
+        ``board``: a :class:`darp.formats.calibration.CharucoBoardSpec` lying on the table at ``T_world_board``;
         ``q_initial_rad``: starting SDK angles per arm (default: the rig's park configurations);
         ``camera_workers``: render and record each camera in its own subprocess (same files, faster on
         several cores; a few seconds to start)."""

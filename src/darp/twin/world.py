@@ -34,6 +34,7 @@ import numpy as np
 import trimesh
 
 from darp.errors import TwinError
+from darp.formats.calibration import CharucoBoardSpec
 from darp.kinematics import z1
 from darp.kinematics.collision import LINK_CYLINDERS
 from darp.kinematics.transforms import make_transform
@@ -259,9 +260,13 @@ class TwinWorld:
     """The compiled scene plus its state: set true joint angles, query contacts and poses."""
 
     def __init__(self, rig: Any, true_arms: dict[str, Any], *, parts: Sequence[Any] = (),
-                 T_world_object: np.ndarray | None = None, board: Any | None = None,
+                 T_world_object: np.ndarray | None = None, board: CharucoBoardSpec | None = None,
                  T_world_board: np.ndarray | None = None, seed: int = 0) -> None:
-        """``true_arms``: arm id -> object with ``T_world_base`` and ``T_flange_cam`` (a :class:`TrueArm`)."""
+        """``true_arms``: arm id -> object with ``T_world_base`` and ``T_flange_cam`` (a :class:`TrueArm`).
+
+        ``board``: the calibration board record, drawn at ``T_world_board`` with the twin's default
+        texture (:data:`darp.twin.board.DEFAULT_TEXTURE`).
+        """
         self.rig = rig
         self.arm_ids = tuple(true_arms)
         if len(self.arm_ids) > len(ARM_BITS):
