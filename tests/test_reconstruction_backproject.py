@@ -18,6 +18,9 @@ from darp.reconstruction.backproject import (
     pixel_rays,
 )
 from darp.reconstruction.crop import EnvelopeCrop
+from darp.reconstruction.depth_edges import HOLE_SEARCH_PX, depth_normals, edge_holes
+from darp.twin.depth_model import DepthModel, DepthNoiseSettings
+from darp.twin.noise import correlated_normal
 
 INTR = Intrinsics(64, 48, 380.0, 384.0, 31.2, 22.7)  # a D435-like pixel footprint on a small image
 
@@ -91,16 +94,20 @@ def test_step_edge_and_flying_pixels_are_removed() -> None:
     assert np.count_nonzero(u == 20) == INTR.height - 4 and np.count_nonzero(u == 45) == INTR.height - 4
 
 
-def test_holes_erode_their_neighbours_only() -> None:
+def test_surface_holes_cost_only_the_hole_margin() -> None:
     depth = np.full((INTR.height, INTR.width), 450, np.uint16)
-    depth[20, 30] = 0
-    cloud = backproject(frame(depth), DepthFilterSettings(edge_margin_px=1))
-    v, u = np.divmod(cloud.pixels, INTR.width)
-    near = (np.abs(v - 20) <= 1) & (np.abs(u - 30) <= 1)
-    assert not near.any()
-    # the 3x3 around the hole, plus the four pixels whose normal stencil (+-2 px) reaches into it
+    depth[20, 30] = 0  # a one-pixel dropout inside a frontal plane
     border = DepthFilterSettings().normal_step_px
-    assert len(cloud) == (INTR.width - 2 * border) * (INTR.height - 2 * border) - 9 - 4
+    whole = (INTR.width - 2 * border) * (INTR.height - 2 * border)
+    # by default only the hole itself is lost: its neighbours' normals fall back to one-sided differences
+    default = backproject(frame(depth), DepthFilterSettings(edge_margin_px=1))
+    assert len(default) == whole - 1
+    np.testing.assert_allclose(default.normals, np.tile([0.0, 0.0, -1.0], (len(default), 1)), atol=1e-5)
+    # hole_margin_px = 1 drops the 3x3 around it, and nothing else
+    eroded = backproject(frame(depth), DepthFilterSettings(edge_margin_px=1, hole_margin_px=1))
+    v, u = np.divmod(eroded.pixels, INTR.width)
+    assert not np.any((np.abs(v - 20) <= 1) & (np.abs(u - 30) <= 1))
+    assert len(eroded) == whole - 9
 
 
 def test_grazing_surfaces_are_dropped_by_incidence() -> None:
@@ -168,6 +175,12 @@ def test_bad_inputs_are_refused() -> None:
         backproject(frame(depth, scale=0.0))
     with pytest.raises(ReconstructionError, match="depth range"):
         DepthFilterSettings(min_depth_m=1.0, max_depth_m=0.5)
+    with pytest.raises(ReconstructionError, match="hole_margin_px"):
+        DepthFilterSettings(hole_margin_px=-1)
+    with pytest.raises(ReconstructionError, match="stereo_baseline_m"):
+        DepthFilterSettings(stereo_baseline_m=-0.05)
+    with pytest.raises(ReconstructionError, match="stereo_baseline_m"):
+        DepthFilterSettings(stereo_baseline_m=0.0)
     assert camera_points(depth_to_metres(depth, 0.001), INTR).shape == (48, 64, 3)
 
 
@@ -183,3 +196,178 @@ def test_region_window_gives_the_same_points_as_cropping_afterwards() -> None:
     inside = crop.contains(full.points)
     assert 0 < len(cropped) < len(full)
     np.testing.assert_array_equal(np.sort(cropped.pixels), np.sort(full.pixels[inside]))
+
+
+@pytest.mark.parametrize("holes", [False, True])
+def test_region_window_matches_the_whole_frame_with_dropouts(holes: bool) -> None:
+    intr = small_intrinsics(160, 120, 190.0)  # a D435-like pixel footprint at this size
+    scene = Scene([sphere(0.05, (0.0, 0.0, 0.05), 60), table()])
+    crop = EnvelopeCrop((0.0, 0.0, 0.05), 0.05, 0.1, table_z_m=0.0)
+    T = look_at((0.3, 0.1, 0.25), (0.0, 0.0, 0.05))
+    depth, _ = scene.render(T, intr)
+    if holes:  # blob dropouts everywhere (sphere and table), some reaching the silhouette
+        depth = np.where(correlated_normal(depth.shape, 2.0, np.random.default_rng(4)) < -0.5, 0.0, depth)
+    f = frame(to_z16(depth), intr, T)
+    full = backproject(f)
+    cropped = backproject(f, region=crop)
+    inside = crop.contains(full.points)
+    assert 0 < len(cropped) < len(full)
+    np.testing.assert_array_equal(np.sort(cropped.pixels), np.sort(full.pixels[inside]))
+
+
+# -- holes inside surfaces vs holes at edges -------------------------------------------------------
+D4 = Intrinsics(160, 120, 380.0, 380.0, 79.5, 59.5)  # D435 pixel footprint (fx 380 px at 640x480)
+
+
+def blob_holes(shape: tuple[int, int], seed: int, fraction: float, keep_border_px: int) -> np.ndarray:
+    """Blob-shaped dropouts (a correlated field below its quantile) away from the image border."""
+    field = correlated_normal(shape, 1.5, np.random.default_rng(seed))
+    holes = field < np.quantile(field, fraction)
+    b = keep_border_px
+    holes[:b], holes[-b:], holes[:, :b], holes[:, -b:] = False, False, False, False
+    return holes
+
+
+def longest_run(mask: np.ndarray) -> int:
+    """The longest run of set pixels along any row."""
+    padded = np.zeros((mask.shape[0], mask.shape[1] + 2), np.int8)
+    padded[:, 1:-1] = mask
+    change = np.diff(padded, axis=1)
+    starts, ends = np.nonzero(change == 1), np.nonzero(change == -1)
+    return int((ends[1] - starts[1]).max(initial=0))
+
+
+@pytest.mark.parametrize("tilt_deg", [0.0, 35.0, 65.0])
+def test_plane_with_dropout_blobs_keeps_every_valid_pixel(tilt_deg: float) -> None:
+    t = np.radians(tilt_deg)
+    normal = np.array([np.sin(t) * 0.6, np.sin(t) * 0.8, -np.cos(t)])  # tilted along a diagonal
+    depth_m = plane_depth(D4, normal, -0.40 * np.cos(t)).astype(np.float32)
+    holes = blob_holes(depth_m.shape, 7, 0.3, keep_border_px=30)
+    assert holes[30:-30, 30:-30].mean() > 0.2
+    assert longest_run(holes) <= HOLE_SEARCH_PX and longest_run(holes.T) <= HOLE_SEARCH_PX  # else an edge
+    depth_m[holes] = 0.0
+    settings = DepthFilterSettings()
+    cloud = backproject(frame(depth_m, D4, scale=1.0), settings)
+    assert not edge_holes(depth_m, depth_m > 0, settings, D4.fx, D4.fy).any()
+    # judged around the blobs (farther out, the steepest plane's far corner reaches 0.8 m, where its
+    # diagonal neighbours differ by more than the discontinuity threshold: not this test's business)
+    area = np.zeros(depth_m.shape, bool)
+    area[25:-25, 25:-25] = True
+    v, u = np.divmod(cloud.pixels, D4.width)
+    kept = np.zeros(depth_m.shape, bool)
+    kept[v, u] = True
+    valid = area & ~holes
+    assert not np.any(kept & holes)
+    # nearly every valid pixel survives; the losses are pixels with a hole on both sides of both steps
+    assert np.count_nonzero(kept & valid) >= 0.995 * np.count_nonzero(valid)
+    np.testing.assert_allclose(cloud.points @ normal, -0.40 * np.cos(t), atol=2e-6)
+    np.testing.assert_allclose(cloud.normals, np.tile(normal, (len(cloud), 1)), atol=2e-4)
+    # the old rule (every hole is an edge) loses a large part of them
+    old = backproject(frame(depth_m, D4, scale=1.0), DepthFilterSettings(hole_margin_px=2))
+    kept_old = np.zeros(depth_m.shape, bool)
+    kept_old[np.divmod(old.pixels, D4.width)] = True
+    assert np.count_nonzero(kept_old & valid) < 0.7 * np.count_nonzero(valid)
+
+
+def box_scene() -> tuple[np.ndarray, np.ndarray]:
+    """A frontal foreground box (0.40 m) in front of a background plane (0.50 m), as D4 depth:
+    ``(measured depth, exact depth)``. The occlusion band on the box's left is as wide as the
+    disparity difference; the box is fattened by 2 px in every direction (eating into the band), and a
+    few fattened pixels carry flying values between foreground and background."""
+    z_fg, z_bg = 0.40, 0.50
+    exact = np.full((D4.height, D4.width), z_bg, np.float32)
+    r0, r1, c0, c1 = 30, 90, 60, 110
+    exact[r0:r1, c0:c1] = z_fg
+    measured = exact.copy()
+    band = round(D4.fx * 0.05 * (1 / z_fg - 1 / z_bg))  # 9.5 -> 10 px
+    measured[r0:r1, c0 - band:c0] = 0.0
+    measured[r0 - 2:r1 + 2, c0 - 2:c1 + 2] = z_fg  # edge fattening (foreground depth at background positions)
+    measured[40:45, c0 - 1] = 0.45  # flying pixels between foreground and background, next to the band
+    measured[60:63, c1 + 1] = 0.46
+    return measured, exact
+
+
+def test_occlusion_band_fattening_and_flying_pixels_are_still_removed() -> None:
+    measured, exact = box_scene()
+    settings = DepthFilterSettings()
+    cloud = backproject(frame(measured, D4, scale=1.0), settings)
+    v, u = np.divmod(cloud.pixels, D4.width)
+    # every kept point is where it should be: no fattened foreground at background positions, no flying pixel
+    np.testing.assert_allclose(cloud.points[:, 2], exact[v, u], atol=1e-6)
+    # the band is an edge hole; the box's interior and the background away from it are kept
+    holes = measured == 0
+    assert edge_holes(measured, ~holes, settings, D4.fx, D4.fy)[holes].all()
+    kept = np.zeros(measured.shape, bool)
+    kept[v, u] = True
+    assert kept[33:87, 63:107].all()
+    assert kept[5:25, 5:150].all() and kept[95:115, 5:150].all()
+
+
+def test_d4_model_with_a_dark_box_keeps_only_true_depth() -> None:
+    """The twin's D4 model (noise, occlusion band, fattening, flying pixels, blob dropouts on the box):
+    the kept points are within the noise of the exact depth, and far more of the box survives than
+    with a margin around every hole."""
+    _, exact = box_scene()
+    model = DepthModel(DepthNoiseSettings(), D4.fx, 0.05)
+    dark = np.zeros(exact.shape, np.float32)
+    dark[exact < 0.45] = 0.6  # the box is dark: 60 % dropout in ~2 px blobs
+    kept_new = kept_old = 0
+    for seed in range(4):
+        measured = model.apply(exact, np.random.default_rng(seed), dropout_prob=dark)
+        for settings in (DepthFilterSettings(), DepthFilterSettings(hole_margin_px=2)):
+            cloud = backproject(frame(measured, D4, scale=1.0), settings)
+            v, u = np.divmod(cloud.pixels, D4.width)
+            error = np.abs(cloud.points[:, 2] - exact[v, u])
+            assert error.max() < 0.004, f"seed {seed}: a point {error.max() * 1000:.1f} mm off the true surface"
+            on_box = np.count_nonzero(exact[v, u] < 0.45)
+            if settings.hole_margin_px == 0:
+                kept_new += on_box
+            else:
+                kept_old += on_box
+    assert kept_new > 2 * kept_old
+
+
+def test_hole_at_a_silhouette_is_an_edge() -> None:
+    exact = np.full((D4.height, D4.width), 0.50, np.float32)
+    exact[30:90, 60:110] = 0.40
+    measured = exact.copy()
+    measured[50:58, 104:116] = 0.0  # a dropout straddling the box's right silhouette
+    measured[20:35, 80:86] = 0.0  # ... and one straddling its top silhouette
+    measured[65:70, 80:84] = 0.0  # a dropout inside the box
+    settings = DepthFilterSettings()
+    valid = measured > 0
+    edges = edge_holes(measured, valid, settings, D4.fx, D4.fy)
+    assert edges[50:58, 104:116].all() and edges[20:35, 80:86].all()
+    assert not edges[65:70, 80:84].any()
+    cloud = backproject(frame(measured, D4, scale=1.0), settings)
+    kept = np.zeros(measured.shape, bool)
+    kept[np.divmod(cloud.pixels, D4.width)] = True
+    assert not kept[50:58, 102:104].any()  # the two box pixels left of the silhouette hole
+    assert not kept[35:37, 80:86].any()  # ... and below the top one
+    assert kept[63:72, 78:86][valid[63:72, 78:86]].all()  # the surface hole costs nothing
+    # against nothing (background beyond the depth range) the same holds
+    far = measured.copy()
+    far[exact > 0.45] = 3.0
+    cloud = backproject(frame(far, D4, scale=1.0), settings)
+    kept[:] = False
+    kept[np.divmod(cloud.pixels, D4.width)] = True
+    assert not kept[50:58, 102:104].any() and not kept[30:32, 60:110].any()
+    assert kept[63:72, 78:86][valid[63:72, 78:86]].all()
+
+
+def test_normals_fall_back_to_one_sided_differences_but_not_across_a_jump() -> None:
+    normal = np.array([0.3, -0.2, -0.93])
+    normal /= np.linalg.norm(normal)
+    depth_m = plane_depth(INTR, normal, -0.4).astype(np.float32)
+    depth_m[10, 22:24] = 0.0  # right of (10, 21): both steps are holes -> centre - left
+    depth_m[30, 19:21] = 0.0  # left of (30, 21): right - centre
+    depth_m[20, 21:23] = 0.0  # right of (20, 20) ...
+    depth_m[20, 18:20] += 0.03  # ... and a step on its left: no usable difference
+    points = camera_points(depth_m, INTR)
+    normals, ok = depth_normals(points, 2)
+    assert ok[10, 21] and ok[30, 21]
+    np.testing.assert_allclose(normals[10, 21], normal, atol=1e-4)
+    np.testing.assert_allclose(normals[30, 21], normal, atol=1e-4)
+    assert not ok[20, 20]
+    assert not ok[0:2].any() and not ok[:, -2:].any()  # the stencil would leave the image
+    assert ok[15, 30] and np.dot(normals[15, 30], points[15, 30]) < 0  # toward the camera

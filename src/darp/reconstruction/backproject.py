@@ -10,11 +10,13 @@ For one depth frame (raw Z16 values, the recording's depth scale, its intrinsics
    the work is done in the bounding window of those pixels, which is what makes a frame cheap.
 4. Local depth discontinuities are rejected: two 8-neighbours whose depths differ by more than
    ``discontinuity_abs_m + discontinuity_rel * z`` mark both pixels, and every pixel within
-   ``edge_margin_px`` of a marked or invalid pixel is dropped. This removes the flying pixels and the
-   fattened foreground that stereo depth leaves at silhouettes.
-5. Normals come from the depth image (cross product of central differences ``normal_step_px`` apart),
-   oriented toward the camera; points seen at more than ``max_incidence_deg`` from their normal are
-   dropped (grazing stereo depth is the least accurate).
+   ``edge_margin_px`` of a marked pixel, an edge hole (a hole at a silhouette or occlusion band, see
+   :mod:`darp.reconstruction.depth_edges`) or the image border is dropped. This removes the flying
+   pixels and the fattened foreground that stereo depth leaves at silhouettes. Holes inside a smooth
+   surface (material dropouts) only cost ``hole_margin_px`` (default 0).
+5. Normals come from the depth image (cross product of central differences ``normal_step_px`` apart,
+   one-sided where the stencil meets a hole), oriented toward the camera; points seen at more than
+   ``max_incidence_deg`` from their normal are dropped (grazing stereo depth is the least accurate).
 6. Points and normals are moved to the world frame with ``T_world_cam``; colours are looked up in a
    colour image aligned to the depth image when one is given.
 
@@ -28,11 +30,11 @@ import math
 from dataclasses import dataclass
 from typing import Protocol
 
-import cv2
 import numpy as np
 
 from darp.errors import ReconstructionError
 from darp.formats.recording_types import Intrinsics
+from darp.reconstruction.depth_edges import HOLE_SEARCH_PX, depth_normals, edge_free_mask, normals_at
 
 _UNDISTORT_ITERATIONS = 30
 _UNDISTORT_TOLERANCE = 1e-7  # normalised image units (about 4e-5 px at fx = 383)
@@ -46,7 +48,9 @@ class DepthFilterSettings:
     max_depth_m: float = 1.0  # the paper's standoffs are 0.34-0.52 m; farther is background
     discontinuity_abs_m: float = 0.002  # neighbour depth jump that marks an edge: abs + rel * z
     discontinuity_rel: float = 0.01  # 1 % of z: a plane up to ~80 deg from frontal stays smooth at 0.35 m
-    edge_margin_px: int = 2  # pixels dropped around an edge or a hole (D4 edge fattening is 1-2 px)
+    edge_margin_px: int = 2  # pixels dropped around an edge or edge hole (D4 edge fattening is 1-2 px)
+    hole_margin_px: int = 0  # pixels dropped around a hole inside a smooth surface (material dropouts)
+    stereo_baseline_m: float = 0.050  # D435 baseline: sets the occlusion-band test that finds edge holes
     normal_step_px: int = 2  # half-width of the central differences behind the normals
     max_incidence_deg: float = 80.0  # drop points seen this far from their normal or more
 
@@ -56,8 +60,10 @@ class DepthFilterSettings:
                 f"depth range [{self.min_depth_m}, {self.max_depth_m}] m is empty or negative")
         if self.discontinuity_abs_m < 0 or self.discontinuity_rel < 0:
             raise ReconstructionError("discontinuity thresholds must be >= 0")
-        if self.edge_margin_px < 0 or self.normal_step_px < 1:
-            raise ReconstructionError("edge_margin_px must be >= 0 and normal_step_px >= 1")
+        if self.edge_margin_px < 0 or self.hole_margin_px < 0 or self.normal_step_px < 1:
+            raise ReconstructionError("edge_margin_px and hole_margin_px must be >= 0 and normal_step_px >= 1")
+        if not (math.isfinite(self.stereo_baseline_m) and self.stereo_baseline_m > 0):
+            raise ReconstructionError(f"stereo_baseline_m must be > 0, got {self.stereo_baseline_m}")
         if not 0.0 < self.max_incidence_deg <= 90.0:
             raise ReconstructionError(f"max_incidence_deg must be in (0, 90], got {self.max_incidence_deg}")
 
@@ -217,52 +223,6 @@ def valid_depth_mask(depth_m: np.ndarray, settings: DepthFilterSettings) -> np.n
     return (depth_m >= max(settings.min_depth_m, 1e-9)) & (depth_m <= settings.max_depth_m)
 
 
-def edge_free_mask(depth_m: np.ndarray, valid: np.ndarray, settings: DepthFilterSettings) -> np.ndarray:
-    """Valid pixels with no depth discontinuity, hole or image border within ``edge_margin_px``.
-
-    A pixel is on a discontinuity when one of its valid 8-neighbours differs from it by more than
-    ``abs + rel * (the nearer of the two depths)``; that marks both pixels of the pair. The 3x3
-    maximum and minimum over valid neighbours (OpenCV dilate/erode) find every such pair at once.
-    """
-    abs_m, rel = np.float32(settings.discontinuity_abs_m), np.float32(settings.discontinuity_rel)
-    kernel3 = np.ones((3, 3), np.uint8)
-    z = np.where(valid, depth_m, np.float32(0.0)).astype(np.float32)
-    highest = cv2.dilate(z, kernel3)  # invalid pixels (0) never win the maximum
-    lowest = cv2.erode(np.where(valid, z, np.float32(np.inf)), kernel3)  # ... nor the minimum
-    jump = (highest - z > abs_m + rel * z) | (z - lowest > abs_m + rel * lowest)
-    bad = (~valid | jump).view(np.uint8)
-    m = settings.edge_margin_px
-    if m > 0:
-        kernel = np.ones((2 * m + 1, 2 * m + 1), np.uint8)
-        bad = cv2.dilate(bad, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
-    return bad == 0
-
-
-def depth_normals(points_cam: np.ndarray, step_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Unit normals of an organised camera-frame point image (H, W, 3) from central differences.
-
-    The differences are taken ``step_px`` pixels apart. Returns ``(normals (H, W, 3) float32 toward
-    the camera, ok (H, W) bool)``; ``ok`` is False where a stencil pixel lies outside the image or has
-    no depth (z = 0).
-    """
-    s = step_px
-    h, w = points_cam.shape[:2]
-    normals = np.zeros((h, w, 3), np.float32)
-    ok = np.zeros((h, w), bool)
-    if h <= 2 * s or w <= 2 * s:
-        return normals, ok
-    pts = points_cam
-    du = pts[s:-s, 2 * s:] - pts[s:-s, :-2 * s]  # right - left
-    dv = pts[2 * s:, s:-s] - pts[:-2 * s, s:-s]  # down - up
-    n = np.cross(dv, du)  # x right, y down: (down x right) points at the camera
-    length = np.sqrt(np.einsum("ijk,ijk->ij", n, n))
-    valid = pts[..., 2] > 0
-    ok[s:-s, s:-s] = (valid[s:-s, 2 * s:] & valid[s:-s, :-2 * s] & valid[2 * s:, s:-s] & valid[:-2 * s, s:-s]
-                      & (length > 0))
-    normals[s:-s, s:-s] = n / np.where(length > 0, length, 1.0)[..., None]
-    return normals, ok
-
-
 # -- the whole frame ------------------------------------------------------------------------------
 def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
                 region: Region | None = None) -> FrameCloud:
@@ -280,37 +240,41 @@ def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
     colour = None if frame.colour is None else np.asarray(frame.colour)
     if colour is not None and (colour.ndim != 3 or colour.shape[:2] != (h, w) or colour.shape[2] < 3):
         raise ReconstructionError(f"colour image {colour.shape} is not aligned to the {w}x{h} depth image")
-    # work only in the pixel window that can see the region (grown so every stencil stays inside)
-    pad = settings.edge_margin_px + settings.normal_step_px + 1
+    # candidates: valid pixels (of the window that can see the region) whose point lies in the region
     window = region_window(region, T, frame.intrinsics) if region is not None else None
-    r0, r1, c0, c1 = (0, h, 0, w) if window is None else (
-        max(window[0] - pad, 0), min(window[1] + pad, h), max(window[2] - pad, 0), min(window[3] + pad, w))
+    r0, r1, c0, c1 = (0, h, 0, w) if window is None else window
     depth_w = depth_to_metres(depth[r0:r1, c0:c1], frame.depth_scale)
-    valid_w = valid_depth_mask(depth_w, settings)
-    depth_w[~valid_w] = 0.0
-    rays_w = rays[r0:r1, c0:c1]
-    pts_w = np.stack([rays_w[..., 0] * depth_w, rays_w[..., 1] * depth_w, depth_w], axis=-1)
-    rows, cols = np.nonzero(valid_w)
+    rows, cols = np.nonzero(valid_depth_mask(depth_w, settings))
     if region is not None and rows.size:
-        inside = region.contains(transform_points(T, pts_w[rows, cols]))
+        z = depth_w[rows, cols]
+        ray = rays[rows + r0, cols + c0]
+        inside = region.contains(_to_world(T, ray[:, 0] * z, ray[:, 1] * z, z))
         rows, cols = rows[inside], cols[inside]
     if rows.size == 0:
         return _empty_cloud(T, frame.colour is not None)
 
-    # filters run in the candidates' own bounding box (grown by the stencils' reach)
-    a0, a1 = max(int(rows.min()) - pad, 0), min(int(rows.max()) + pad + 1, r1 - r0)
-    b0, b1 = max(int(cols.min()) - pad, 0), min(int(cols.max()) + pad + 1, c1 - c0)
-    r0, c0 = r0 + a0, c0 + b0
-    rows, cols = rows - a0, cols - b0
-    depth_w, valid_w, pts_w = depth_w[a0:a1, b0:b1], valid_w[a0:a1, b0:b1], pts_w[a0:a1, b0:b1]
-    keep = edge_free_mask(depth_w, valid_w, settings)[rows, cols]
+    # filters run in the candidates' bounding box, grown by the reach of the margins, stencils and
+    # hole scans (so that the result is the same as on the whole image)
+    pad = max(settings.edge_margin_px, settings.hole_margin_px) + max(settings.normal_step_px, HOLE_SEARCH_PX) + 1
+    rows, cols = rows + r0, cols + c0
+    r0, r1 = max(int(rows.min()) - pad, 0), min(int(rows.max()) + pad + 1, h)
+    c0, c1 = max(int(cols.min()) - pad, 0), min(int(cols.max()) + pad + 1, w)
+    rows, cols = rows - r0, cols - c0
+    depth_w = depth_to_metres(depth[r0:r1, c0:c1], frame.depth_scale)
+    valid_w = valid_depth_mask(depth_w, settings)
+    depth_w[~valid_w] = 0.0
+    intr = frame.intrinsics
+    keep = edge_free_mask(depth_w, valid_w, settings, intr.fx, intr.fy)[rows, cols]
     # image borders are holes too (the window's own border is an image border only where it touches one)
     border = settings.edge_margin_px
     keep &= (rows + r0 >= border) & (rows + r0 < h - border) & (cols + c0 >= border) & (cols + c0 < w - border)
     rows, cols = rows[keep], cols[keep]
 
-    normal_image, normal_ok = depth_normals(pts_w, settings.normal_step_px)
-    normals_cam, ok, pts_cam = normal_image[rows, cols], normal_ok[rows, cols], pts_w[rows, cols]
+    rays_w = rays[r0:r1, c0:c1]
+    pts_w = np.stack([rays_w[..., 0] * depth_w, rays_w[..., 1] * depth_w, depth_w], axis=-1)
+    normals_cam, ok = normals_at(pts_w, rows, cols, settings.normal_step_px,
+                                 settings.discontinuity_abs_m, settings.discontinuity_rel)
+    pts_cam = pts_w[rows, cols]
     cos_incidence = -np.einsum("ij,ij->i", normals_cam, pts_cam) / np.linalg.norm(pts_cam, axis=1)
     ok &= cos_incidence >= np.float32(math.cos(math.radians(settings.max_incidence_deg)))
     pts_cam, normals_cam = pts_cam[ok], normals_cam[ok]
