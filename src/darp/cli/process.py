@@ -14,6 +14,15 @@ def _warn(message: str) -> None:
     typer.echo(f"darp: warning: {message}", err=True)
 
 
+def _warn_estimated_envelope(survey: str, envelope: dict[str, Any] | None) -> None:
+    """One line when the envelope was estimated from the survey (manip_envelope.json had no geometry)."""
+    if envelope and envelope.get("source") == "estimated":
+        x, y, z = (1000 * v for v in envelope["center_m"])
+        _warn(f"{survey}: manip_envelope.json has no object centre/radius/height; used the envelope estimated from "
+              f"the survey: centre ({x:.0f}, {y:.0f}, {z:.0f}) mm, radius {1000 * envelope['radius_m']:.0f} mm, "
+              f"height {1000 * envelope['height_m']:.0f} mm")
+
+
 def _settings(path: Path | None) -> Any:
     from darp.reconstruction.process_settings import ProcessSettings, load_settings
 
@@ -98,6 +107,7 @@ def keyframes(
     for arm, c in summary["arms"].items():
         table.add_row(arm, *(str(c.get(k, 0)) for k in ("frames", "settled", "in_view", "views", "keyframes", "heldout")))
     Console().print(table)
+    _warn_estimated_envelope(job.survey.name, summary.get("envelope"))
     typer.echo(f"wrote {out}")
 
 
@@ -152,6 +162,8 @@ def process(
         table.add_row(r["survey"], r["pose_source"], str(r["keyframes"]["total"]), f"{r['clouds'].get('fused', 0):,}",
                       mm(h.get("median_mm")), mm(h.get("rmse_mm")), mm(h.get("within_10mm_pct")), mm(acc))
     Console().print(table)
+    for folder in done:
+        _warn_estimated_envelope(folder.name, read_results(folder).get("envelope"))
     typer.echo(f"wrote {summary_path}")
 
 

@@ -4,6 +4,7 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
 
     survey, object, pose_source ("calibration" | "truth"), calibration {epoch, path}
     composition     the release-composition row (radius, height, standoff, rows, duration, depth frames, size)
+    envelope        the object cylinder used: {source: "manip_envelope.json" | "estimated", center_m, radius_m, height_m}
     keyframes       {total, fuse, heldout, arms: {arm: {frames, posed, settled, in_view, views, keyframes, heldout}}}
     clouds          {arm110, arm111, fused}: points per cloud;  mesh {vertices, triangles, area_m2, radii_m}
     heldout         {object, keyframes, aggregate, arms}: count, median/mean/rmse/p90/max in mm, % within 5/10 mm
@@ -71,6 +72,7 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),
+        "envelope": keyframes.get("envelope"),
         "keyframes": {"total": keyframes.get("keyframes"), "fuse": keyframes.get("fuse"),
                       "heldout": keyframes.get("heldout"), "arms": keyframes.get("arms", {})},
         "clouds": summary.get("fusion", {}).get("points", {}),

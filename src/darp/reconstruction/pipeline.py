@@ -45,10 +45,12 @@ import numpy as np
 from darp.errors import FormatError, ReconstructionError
 from darp.formats.atomic import write_json_atomic
 from darp.formats.calibration import Calibration, calibration_to_dict
+from darp.formats.envelope import Envelope
 from darp.formats.recording import Recording
 from darp.formats.recording_types import IMAGE_STREAMS
 from darp.formats.survey import Survey
 from darp.reconstruction.crop import EnvelopeCrop
+from darp.reconstruction.envelope_estimate import envelope_record, estimate_survey_envelope
 from darp.reconstruction.fusion import VoxelFusion, write_voxel_cloud
 from darp.reconstruction.keyframe_io import (
     KeyframeIndex,
@@ -98,11 +100,29 @@ class SurveyJob:
 
     def crop(self) -> EnvelopeCrop:
         """The object-support region: the envelope cylinder with fusion's margins."""
-        envelope = self.survey.envelope()
-        if envelope is None or not envelope.has_geometry:
-            raise ReconstructionError("the survey has no envelope centre/radius/height (manip_envelope.json): "
-                                      "cannot crop the object", self.survey.path)
-        return self.settings.fusion.crop(envelope)
+        return self.settings.fusion.crop(self.envelope())
+
+    def envelope(self) -> Envelope:
+        """The survey's envelope; without centre/radius/height, one estimated from the survey's own
+        poses and depth (:mod:`darp.reconstruction.envelope_estimate`), once per run."""
+        if "envelope" not in self.memo:
+            envelope = self.survey.envelope()
+            if envelope is None or not envelope.has_geometry:
+                estimate = estimate_survey_envelope(
+                    self.poses(), self.recording, [self.calibration.arms[a].T_world_base[:2, 3] for a in self.arms],
+                    keyframe_settings=self.settings.keyframes, depth_settings=self.settings.fusion.depth,
+                    path=self.survey.path)
+                self.memo["envelope_record"] = estimate.to_dict()
+                envelope = estimate.envelope(envelope)
+            else:
+                self.memo["envelope_record"] = envelope_record(envelope)
+            self.memo["envelope"] = envelope
+        return self.memo["envelope"]
+
+    def envelope_record(self) -> dict[str, Any]:
+        """Where the envelope came from: ``{"source": "manip_envelope.json" | "estimated", "center_m", ...}``."""
+        self.envelope()
+        return self.memo["envelope_record"]
 
     def recording(self, arm: str) -> Recording:
         """``arm``'s recording, opened once per run (reading a bag's frame index decodes every chunk)."""
@@ -189,8 +209,8 @@ def stage_poses(job: SurveyJob) -> dict[str, Any]:
 def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
     """Select and export keyframes of both arms; writes ``keyframes/``."""
     poses = job.poses()
-    envelope = job.survey.envelope()
-    centre = np.asarray(envelope.center_m) if envelope is not None and envelope.center_m is not None else None
+    envelope = job.envelope()  # the survey's, or estimated from the survey when it has no geometry
+    centre = np.asarray(envelope.center_m)
     crop = job.crop()
     folder = job.keyframes_dir
     _clear_keyframes(folder, poses.trajectories)
@@ -215,16 +235,18 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
         raise ReconstructionError("no keyframe selected: no settled frame sees the object "
                                   "(check the envelope, the calibration and the keyframe settings)", job.survey.path)
     index = KeyframeIndex(folder=folder, survey=job.survey.name,
-                          object_name=envelope.object_name if envelope is not None else None,
+                          object_name=envelope.object_name,
                           pose_source="truth" if job.truth_poses else "calibration",
                           settings=job.settings.keyframes.to_dict(), arms=arms, keyframes=entries,
                           extra={"calibration_epoch": job.calibration.epoch,
-                                 "support_mask": {"center_m": list(crop.center_m), "radius_m": crop.radius_m,
+                                 "support_mask": {"source": job.envelope_record()["source"],
+                                                  "center_m": list(crop.center_m), "radius_m": crop.radius_m,
                                                   "height_m": crop.height_m, "table_z_m": crop.table_z_m,
                                                   "margin_m": crop.margin_m, "table_margin_m": crop.table_margin_m}})
     write_keyframe_index(index)
     n_held = sum(1 for e in entries if e.split != FUSE)
-    return {"arms": arms, "keyframes": len(entries), "fuse": len(entries) - n_held, "heldout": n_held}
+    return {"arms": arms, "keyframes": len(entries), "fuse": len(entries) - n_held, "heldout": n_held,
+            "envelope": job.envelope_record()}
 
 
 def _clear_keyframes(folder: Path, arms: Any) -> None:
