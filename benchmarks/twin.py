@@ -38,7 +38,8 @@ STAGES = ("render", "ir", "depth_noise", "colour", "z16", "write", "imu", "other
 MODES = {False: "one process", True: "2 camera workers"}
 
 
-def measure(seconds: float, width: int, height: int, fps: int, profile: str, workers: bool) -> dict:
+def measure(seconds: float, width: int, height: int, fps: int, profile: str, workers: bool,
+            compression: str | None = None) -> dict:
     """One recording of ``seconds`` simulated seconds in this process; its times, CPU and memory."""
     import numpy as np
 
@@ -47,6 +48,8 @@ def measure(seconds: float, width: int, height: int, fps: int, profile: str, wor
     from darp.twin.settings import TwinSettings
 
     settings = TwinSettings.from_profile(profile, seed=1).with_camera(width=width, height=height, fps=fps)
+    if compression is not None:
+        settings = settings.with_camera(compression=compression)
     load_start = os.getloadavg()[0]
     t_build = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp, TwinRig(settings, obj=make_object("mug"), camera_workers=workers,
@@ -93,7 +96,8 @@ def measure(seconds: float, width: int, height: int, fps: int, profile: str, wor
 def run_child(seconds: float, workers: bool, args: argparse.Namespace) -> dict:
     """:func:`measure` in a fresh interpreter (clean memory high-water marks)."""
     cmd = [sys.executable, __file__, "--child", str(seconds), "--resolution", args.resolution, "--fps",
-           str(args.fps), "--profile", args.profile] + (["--workers"] if workers else [])
+           str(args.fps), "--profile", args.profile] + (["--workers"] if workers else []) \
+        + (["--compression", args.compression] if args.compression else [])
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -122,12 +126,14 @@ def main() -> None:
     parser.add_argument("--fps", type=int, default=30)
     parser.add_argument("--profile", default="realistic", choices=("ideal", "realistic"))
     parser.add_argument("--repeats", type=int, default=2, help="long runs per mode (CPU: median run; RTF: best)")
+    parser.add_argument("--compression", choices=("lz4", "none"), default=None,
+                        help="bag chunk compression (default: the twin's setting)")
     parser.add_argument("--workers", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--child", type=float, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     width, height = (int(v) for v in args.resolution.lower().split("x"))
     if args.child is not None:
-        print(json.dumps(measure(args.child, width, height, args.fps, args.profile, args.workers)))
+        print(json.dumps(measure(args.child, width, height, args.fps, args.profile, args.workers, args.compression)))
         return
 
     print(f"twin recording, {args.profile} profile, {width}x{height} at {args.fps} fps, both cameras, all streams "
