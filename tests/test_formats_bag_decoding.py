@@ -16,6 +16,7 @@ from test_formats_bag import write_sample
 
 from darp.errors import RecordingError
 from darp.formats import bag_lz4
+from darp.formats import ros_messages as rm
 from darp.formats.bag_lz4 import ChunkBuffer, Lz4Error, decode_frame
 from darp.formats.bag_reader import BagRecording
 from darp.formats.recording_types import Frame
@@ -183,3 +184,141 @@ def test_fast_index_equals_a_scan_of_the_chunks(tmp_path: Path, compression: str
     assert indexed.entries.keys() == scanned.entries.keys()
     for conn, entries in indexed.entries.items():
         assert np.array_equal(entries, scanned.entries[conn])
+
+
+# -- the inline per-message loops (bag_stream) against the general path ----------------------------
+def _everything(recording: BagRecording) -> tuple[list, object]:
+    """What a reader hands out: every frame (info, pixels, metadata or its error) or the error that
+    stopped the stream, and every stream's frame table (or its error)."""
+    frames: list = []
+    try:
+        for frame in recording.iter_frames():
+            try:
+                metadata: object = frame.metadata
+            except RecordingError as err:
+                metadata = str(err)
+            frames.append((frame.info, frame.data.shape, str(frame.data.dtype), frame.data.tobytes(),
+                           frame.data.flags.writeable, metadata))
+    except RecordingError as err:
+        frames.append(str(err))
+    try:
+        tables: object = {key: recording.frame_infos(key) for key in recording.streams}
+    except RecordingError as err:
+        tables = str(err)
+    return frames, tables
+
+
+def _both_paths(path: Path, **options: object) -> tuple[tuple[list, object], tuple[list, object], int]:
+    """(outcome with the inline loops, outcome with every message the general way, frames made inline)."""
+    with BagRecording(path, **options) as inline:
+        general_calls = []
+        general = inline._frame
+        inline._frame = lambda key, visit: general_calls.append(key) or general(key, visit)
+        inline_outcome = _everything(inline)
+    with BagRecording(path, **options) as reference:
+        reference._inline = False
+        reference_outcome = _everything(reference)
+    made = sum(not isinstance(f, str) for f in inline_outcome[0]) - len(general_calls)
+    return inline_outcome, reference_outcome, made
+
+
+def _odd_metadata_bag(path: Path, compression: str) -> list[str]:
+    """A bag (written by rosbags) whose depth frames carry unusual metadata and layouts; returns the
+    timestamp domain librealsense gives each frame."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg(rm.STREAM_INFO.definition, "realsense_msgs/msg/StreamInfo"))
+    types = store.types
+    header, time = types["std_msgs/msg/Header"], types["builtin_interfaces/msg/Time"]
+    metadata = [  # per frame: its KeyValues in order, and the domain they give
+        ([("system_time", "1"), ("timestamp_domain", "System Time"), ("Frame Counter", "0")], "System Time"),
+        ([], "Hardware Clock"),  # no metadata at all
+        ([("Frame Counter", "2")], "Hardware Clock"),  # metadata without a domain
+        ([("timestamp_domain", "Global Time"), ("timestamp_domain", "System Time")], "Global Time"),  # 1st
+        ([("a", "1"), ("b", "2"), ("c", ""), ("d", "4"), ("timestamp_domain", "Zeit \u20ac")], "Zeit \u20ac"),
+        ([("timestamp_domain", "System Time")], "System Time"),  # an 8-row image: another layout
+        ([("timestamp_domain", "System Time")], "System Time"),  # padded rows (step 40)
+        ([("timestamp_domain", "Global Time")], "Global Time"),
+        ([("timestamp_domain", "Global Time")], "Global Time"),
+    ]
+    writer = Writer(path)
+    if compression == "lz4":
+        writer.set_compression(Writer.CompressionFormat.LZ4)
+    with writer:
+        def put(topic: str, name: str, message: object, time_ns: int = 1) -> None:
+            conn = next((c for c in writer.connections if c.topic == topic), None)
+            conn = conn or writer.add_connection(topic, name, typestore=store)
+            writer.write(conn, time_ns, store.serialize_ros1(message, name))
+
+        put("/file_version", "std_msgs/msg/UInt32", types["std_msgs/msg/UInt32"](data=3))
+        put("/device_0/sensor_0/Depth_0/info", "realsense_msgs/msg/StreamInfo",
+            types["realsense_msgs/msg/StreamInfo"](fps=30, encoding="mono16", is_recommended=True))
+        for i, (items, _) in enumerate(metadata):
+            rows, step = (8 if i == 5 else 12), (40 if i == 6 else 32)
+            pixels = (np.arange(rows * step, dtype=np.uint32) * (i + 3) % 251).astype(np.uint8)
+            message = types["sensor_msgs/msg/Image"](
+                header=header(seq=70 + i, stamp=time(sec=1700 + i, nanosec=123_456_789), frame_id="0"),
+                height=rows, width=16, encoding="mono16", is_bigendian=0, step=step, data=pixels)
+            time_ns = 1_000_000 * (i + 1)
+            put("/device_0/sensor_0/Depth_0/image/data", "sensor_msgs/msg/Image", message, time_ns)
+            for key, value in items:
+                put("/device_0/sensor_0/Depth_0/image/metadata", "diagnostic_msgs/msg/KeyValue",
+                    types["diagnostic_msgs/msg/KeyValue"](key=key, value=value), time_ns)
+    return [domain for _, domain in metadata]
+
+
+@pytest.mark.parametrize("compression", ["none", "lz4"])
+def test_inline_frames_read_unusual_metadata_and_layouts_exactly(tmp_path: Path, compression: str) -> None:
+    path = tmp_path / "odd.bag"
+    domains = _odd_metadata_bag(path, compression)
+    inline, general, made = _both_paths(path)
+    assert inline == general and made >= 4  # the rest took the general path, as they must
+    frames = inline[0]
+    assert [info.timestamp_domain for info, *_ in frames] == domains
+    assert [info.frame_number for info, *_ in frames] == list(range(70, 79))
+    assert frames[1][-1] == {}
+    assert frames[3][-1]["timestamp_domain"] == "System Time"  # the dict keeps the last
+    assert frames[5][1] == (8, 16) and frames[6][1] == (12, 16) and not any(f[4] for f in frames)
+
+
+@pytest.mark.parametrize(("compression", "threshold"),
+                         [("none", 20_000), ("none", 768 * 1024), ("lz4", 20_000)])
+def test_inline_frames_equal_the_general_path_on_damaged_files(tmp_path: Path, compression: str,
+                                                               threshold: int) -> None:
+    """Bytes flipped in record headers, image headers and metadata records (and at random): the inline
+    loops give the same frames, metadata, frame tables and errors as parsing every message the general
+    way (LZ4 chunks read without their checksum, so that damage reaches the messages)."""
+    sample = write_sample(tmp_path / "cam.bag", compression=compression, chunk_threshold=threshold,
+                          framesets=4)
+    original = sample.path.read_bytes()
+    options = {"verify_checksums": False}
+    intact, general, made = _both_paths(sample.path, **options)
+    images = ("depth", "ir1", "ir2", "color")  # all inline but each stream's first (its layout is learnt)
+    assert intact == general and made == sum(len(sample.frames[k]) - 1 for k in images)
+    if compression == "none":  # places in the messages themselves
+        with BagRecording(sample.path) as recording:
+            chunks = recording._index.chunks
+            tables = [t for key in ("depth", "color") for t in (recording._data[key],
+                                                                recording._metadata_entries[key])]
+            records = [chunks[int(e["chunk"])].data_start + int(e["offset"]) for t in tables for e in t[:3]]
+        places = [r + d for r in records for d in (0, 1, 3, 4, 40, 41, 42, 45, 47, 50, 54, 58, 62, 66, 70)]
+    else:  # LZ4 frames: their bytes decode to anything
+        places = []
+    rng = np.random.default_rng(11)
+    places += rng.integers(0, len(original), 30 if compression == "none" else 120).tolist()
+    target = tmp_path / "damaged.bag"
+    differ = 0
+    for place in places:
+        data = bytearray(original)
+        data[place] ^= 0x5A
+        target.write_bytes(bytes(data))
+        try:
+            inline, general, _ = _both_paths(target, **options)
+        except RecordingError as err:  # opening fails, the same way for both
+            assert str(target) in str(err)
+            continue
+        assert inline == general, place
+        differ += inline != intact
+    assert differ > len(places) // 3  # the damage did reach what is read

@@ -4,7 +4,8 @@ Uncompressed chunks are read in place: read-only views into the file mapping. LZ
 (:mod:`darp.formats.bag_lz4`) into pooled buffers, and the last few are cached. While frames are
 streamed the reader announces the chunks it will need next (:meth:`ChunkStore.prefetch`); they are
 decoded ahead on worker threads (the decoder releases the GIL), so decoding overlaps the consumer's own
-work and, with two workers, uses two cores.
+work and, with two workers, uses two cores. A chunk the consumer needs that no worker has started yet (the
+workers are busy or not scheduled) is decoded by the consumer itself rather than waited for.
 
 A pooled buffer is written again only when no frame, view or array can still read it (its reference
 count is back to the pool's own), so frames that a consumer keeps stay valid.
@@ -24,6 +25,9 @@ from darp.formats.bag_lz4 import ChunkBuffer, Lz4Error, decode_frame
 from darp.formats.rosbag1 import Chunk, check_compression
 
 _IDLE_BUFFERS = 6  # released buffers kept for reuse
+_FORKS = [0]  # forks of this process so far (seen in the child): cheaper to check than os.getpid() per chunk
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=lambda: _FORKS.__setitem__(0, _FORKS[0] + 1))
 
 
 class _Pool:
@@ -64,13 +68,14 @@ class ChunkStore:
         self._pool = _Pool()
         self._executor: ThreadPoolExecutor | None = None
         self._closed = False
-        self._pid = os.getpid()
+        self._forks = _FORKS[0]
+        self._decoding = any(chunk.compression != "none" for chunk in chunks)  # anything for the workers?
 
     def get(self, number: int) -> memoryview:
         """The uncompressed bytes of chunk ``number`` (read-only)."""
         if self._closed:
             raise RecordingError("recording is closed", self._path)
-        if self._pid != os.getpid():
+        if self._forks != _FORKS[0]:
             self._forked()
         chunk = self._chunks[number]
         if chunk.compression == "none":
@@ -80,7 +85,10 @@ class ChunkStore:
             self._cache.move_to_end(number)
             return cached[1]
         future = self._pending.pop(number, None)
-        decoded = future.result() if future is not None else self._decode(number)
+        if future is not None and not future.cancel():  # being decoded (or done): wait for it
+            decoded = future.result()
+        else:  # not announced, or no worker has started it yet: decoding it here is the quickest way
+            decoded = self._decode(number)
         self._cache[number] = decoded
         while len(self._cache) > self._cache_size:
             self._pool.give(self._cache.popitem(last=False)[1][0])
@@ -88,9 +96,9 @@ class ChunkStore:
 
     def prefetch(self, numbers: Iterable[int]) -> None:
         """Start decoding these LZ4 chunks (in this order) on the workers, a few at a time."""
-        if self._threads <= 0 or self._closed:
+        if self._threads <= 0 or self._closed or not self._decoding:
             return
-        if self._pid != os.getpid():
+        if self._forks != _FORKS[0]:
             self._forked()
         limit = 2 * self._threads
         for number in numbers:
@@ -105,7 +113,7 @@ class ChunkStore:
     def _forked(self) -> None:
         """In a child process (fork) the workers do not exist: forget them, their pending work and the
         pool's lock (a worker may have held it), and start afresh."""
-        self._pid, self._executor, self._pending, self._pool = os.getpid(), None, {}, _Pool()
+        self._forks, self._executor, self._pending, self._pool = _FORKS[0], None, {}, _Pool()
 
     def cancel(self) -> None:
         """Forget chunks announced but not fetched (a stream that was abandoned)."""

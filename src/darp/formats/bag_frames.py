@@ -9,6 +9,7 @@ parsed only when :attr:`BagFrame.metadata` is first read. Images of one stream s
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -20,7 +21,7 @@ DEFAULT_DOMAIN = "Hardware Clock"  # what librealsense reports for a frame witho
 _U32 = struct.Struct("<I")
 _TWO_U32 = struct.Struct("<II")
 _STAMP = struct.Struct("<III")  # std_msgs/Header: seq, stamp sec, stamp nsec
-_DOMAIN_KEY = b"timestamp_domain"
+DOMAIN_KEY = b"timestamp_domain"
 
 
 def message_span(buf: memoryview, offset: int) -> tuple[int, int]:
@@ -66,6 +67,11 @@ class ImageDecoder:
             self._layout = b""
         return head.seq, head.timestamp_ms, pixels
 
+    def layout(self) -> tuple[bytes, int, np.dtype, tuple[int, ...]] | None:
+        """(layout bytes, pixel bytes, dtype, shape) of the stream as last decoded, or None (none known):
+        what :mod:`darp.formats.bag_stream` compares a message with to view its pixels directly."""
+        return (self._layout, self._data_len, self._dtype, self._shape) if self._layout else None
+
 
 def imu_sample(buf: memoryview, start: int, accel: bool) -> tuple[int, float, np.ndarray]:
     """(frame number, timestamp ms, float32 xyz) of an Imu message: linear acceleration or angular velocity."""
@@ -103,17 +109,43 @@ class MetadataSource:
         for chunk, offset in zip(self.chunks, self.offsets):
             buf = buffers[chunk]
             key, value_start, value_end = key_value(buf, offset)
-            if key == _DOMAIN_KEY:
+            if key == DOMAIN_KEY:
                 return _text(buf, value_start, value_end)
         return DEFAULT_DOMAIN
 
-    def read(self) -> dict[str, str]:
-        metadata = {}
-        for chunk, offset in zip(self.chunks, self.offsets):
-            buf = self.buffers[chunk]
-            key, value_start, value_end = key_value(buf, offset)
-            metadata[str(key, "utf-8", "replace")] = _text(buf, value_start, value_end)
-        return metadata
+    def read(self, lo: int = 0, hi: int | None = None) -> dict[str, str]:
+        """The metadata dict of messages ``lo:hi`` (all by default)."""
+        buffers = self.buffers
+        return _metadata_dict((buffers[chunk], offset)
+                              for chunk, offset in zip(self.chunks[lo:hi], self.offsets[lo:hi]))
+
+
+class ChunkMetadata:
+    """A frame's metadata messages when they all lie in one chunk: the chunk's bytes (held, so that a pooled
+    buffer is not reused under the frame) and a list of record offsets of which the frame's are ``lo:hi``."""
+
+    __slots__ = ("buf", "offsets")
+
+    def __init__(self, buf: memoryview, offsets: list[int]) -> None:
+        self.buf, self.offsets = buf, offsets
+
+    def read(self, lo: int = 0, hi: int | None = None) -> dict[str, str]:
+        """The metadata dict of messages ``lo:hi``."""
+        buf = self.buf
+        return _metadata_dict((buf, offset) for offset in self.offsets[lo:hi])
+
+
+def _metadata_dict(records: Iterable[tuple[memoryview, int]]) -> dict[str, str]:
+    """Key -> value of KeyValue message records given as (chunk bytes, record offset); a repeated key keeps
+    its last value."""
+    metadata = {}
+    for buf, offset in records:
+        key, value_start, value_end = key_value(buf, offset)
+        metadata[str(key, "utf-8", "replace")] = _text(buf, value_start, value_end)
+    return metadata
+
+
+_new = object.__new__
 
 
 class BagFrame(Frame):
@@ -126,15 +158,25 @@ class BagFrame(Frame):
     def __init__(self, info: FrameInfo, data: np.ndarray, metadata: dict[str, str] | None = None, *,
                  source: MetadataSource | None = None, on_error: Any = None) -> None:
         self.info, self.data = info, data
-        self._metadata, self._source, self._on_error = metadata, source, on_error
+        self._metadata, self._source, self._on_error, self._lo, self._hi = metadata, source, on_error, 0, None
         if metadata is None and source is None:
             self._metadata = {}
+
+    @classmethod
+    def lazy(cls, info: FrameInfo, data: np.ndarray, source: Any, lo: int, hi: int | None,
+             on_error: Any) -> BagFrame:
+        """A frame whose metadata is ``source.read(lo, hi)``, parsed when first read (the streaming path's
+        constructor: one object per frame, no keyword handling)."""
+        frame = _new(cls)
+        frame.info, frame.data, frame._metadata, frame._source = info, data, None, source
+        frame._lo, frame._hi, frame._on_error = lo, hi, on_error
+        return frame
 
     @property  # type: ignore[override]
     def metadata(self) -> dict[str, str]:
         if self._metadata is None:
             try:
-                self._metadata = self._source.read()
+                self._metadata = self._source.read(self._lo, self._hi)
             except (struct.error, ValueError, KeyError, IndexError) as err:
                 if self._on_error is None:
                     raise

@@ -5,8 +5,10 @@ extrinsics, depth units); pixels are decoded on demand. Uncompressed chunks are 
 ``mmap`` (frames are zero-copy views); LZ4 chunks are decoded into pooled buffers, ahead of the consumer
 on worker threads while frames are streamed (:mod:`darp.formats.bag_chunks`), so iterating a recording
 uses memory that does not grow with its length. A frame's metadata dict is parsed only when it is read.
-A bag without a usable index (an interrupted write, a cut copy) is read by scanning up to its last
-complete chunk and flagged ``truncated``.
+Streaming takes each usual message inline (:mod:`darp.formats.bag_stream`: a few microseconds a frame)
+and anything unusual the general way (:meth:`BagRecording._frame`). A bag without a usable index (an
+interrupted write, a cut copy) is read by scanning up to its last complete chunk and flagged
+``truncated``.
 
 Frame arrays are read-only views (into the file or a decoded chunk); copy one to modify it.
 """
@@ -24,6 +26,7 @@ from typing import BinaryIO
 import numpy as np
 
 from darp.errors import RecordingError
+from darp.formats import bag_stream
 from darp.formats.bag_chunks import ChunkStore
 from darp.formats.bag_description import describe
 from darp.formats.bag_frames import (
@@ -34,7 +37,7 @@ from darp.formats.bag_frames import (
     imu_sample,
     message_span,
 )
-from darp.formats.bag_walk import CorruptMessage, Visit, visit_one, walk
+from darp.formats.bag_walk import CorruptMessage, Visit, Walk, visit_one
 from darp.formats.recording import Recording
 from darp.formats.recording_types import FrameInfo
 from darp.formats.rosbag1 import ByteSource, load_index
@@ -111,6 +114,7 @@ class BagRecording(Recording):
         self._tables: dict[str, dict[str, np.ndarray]] = {}
         self._infos: dict[str, list[FrameInfo]] = {}
         self._decoders = {key: ImageDecoder() for key, profile in self.streams.items() if profile.is_image}
+        self._inline = True  # usual messages parsed inline (bag_stream); False: all the general way
 
     def _describe(self) -> None:
         self.truncated, self.truncation_note = self._index.truncated, self._index.note
@@ -135,10 +139,10 @@ class BagRecording(Recording):
         return buf, start, end
 
     # -- frames ---------------------------------------------------------------------------------
-    def _walk(self, keys: list[str], positions: list[np.ndarray], file_order: bool = False) -> Iterator[Visit]:
+    def _walk(self, keys: list[str], positions: list[np.ndarray], file_order: bool = False) -> Walk:
         """The chosen data messages (with their metadata) in recording order, or file order."""
         self._check_open()
-        return walk(self._chunks, [self._data[k] for k in keys], positions,
+        return Walk(self._chunks, [self._data[k] for k in keys], positions,
                     [self._metadata_entries[k] for k in keys], file_order, self._before_chunk)
 
     def _before_chunk(self, chunk: int) -> None:
@@ -153,6 +157,8 @@ class BagRecording(Recording):
         return RecordingError(f"corrupt metadata of {info.stream} frame {info.index}: {err}", self.path)
 
     def _frame(self, key: str, visit: Visit) -> BagFrame:
+        """The general way to make a frame of a message (:mod:`darp.formats.bag_stream` takes the usual
+        ones inline)."""
         try:
             if key in self._decoders:
                 seq, stamp_ms, data = self._decoders[key].decode(visit.buf, visit.start, visit.end)
@@ -169,19 +175,39 @@ class BagRecording(Recording):
         return RecordingError(f"corrupt message record in the chunk at byte offset {self._index.chunks[err.chunk].pos}: "
                               f"{err}", self.path)
 
+    def _check_streaming(self) -> None:
+        if self._view is None:
+            raise RecordingError("recording is closed", self.path)
+
     def _stream(self, keys: list[str], positions: list[np.ndarray]) -> Iterator[BagFrame]:
-        visits = self._walk(keys, positions)
+        walk = self._walk(keys, positions)
+        if self._inline:
+            frames = bag_stream.frames(walk, keys, self._decoders, self._frame, self._check_streaming,
+                                       self._metadata_error)
+        else:
+            frames = (self._frame(keys[visit.code], visit)
+                      for visit in self._general_visits(walk, streaming=True))
         try:
-            for visit in visits:
-                if self._view is None:
-                    raise RecordingError("recording is closed", self.path)
-                yield self._frame(keys[visit.code], visit)
+            yield from frames
         except CorruptMessage as err:
             raise self._bad_record(err) from err
         finally:
-            visits.close()
+            frames.close()
             if self._chunks is not None:
                 self._chunks.cancel()
+
+    def _general_visits(self, walk: Walk, streaming: bool = False) -> Iterator[Visit]:
+        """Every message of ``walk`` parsed the general way (``_inline = False``: what the inline loops of
+        :mod:`darp.formats.bag_stream` are tested against)."""
+        current, buf = -1, memoryview(b"")
+        for block in walk.blocks():
+            for i, (chunk, step) in enumerate(zip(block.chunks, block.steps)):
+                if chunk != current:
+                    buf, current = walk.enter(chunk, step), chunk
+                visit = walk.visit(block, i, buf)
+                if streaming:
+                    self._check_streaming()
+                yield visit
 
     def _frame_table(self, keys: list[str]) -> dict[str, dict[str, np.ndarray]]:
         """Frame number, timestamp and domain of every frame of ``keys``: one pass over their chunks in
@@ -198,20 +224,26 @@ class BagRecording(Recording):
             sizes = [self._data[key].size for key in missing]
             columns = [(np.zeros(n, np.int64), np.zeros(n, np.float64), np.full(n, DEFAULT_DOMAIN, object))
                        for n in sizes]
-            visits = self._walk(missing, [np.arange(n) for n in sizes], file_order=True)
+
+            def general(visit: Visit) -> None:
+                numbers, stamps, domains = columns[visit.code]
+                try:
+                    numbers[visit.position], stamps[visit.position] = header_stamp(visit.buf, visit.start)
+                    if visit.metadata is not None:
+                        domains[visit.position] = visit.metadata.domain()
+                except _LOW_LEVEL as err:
+                    raise self._corrupt(missing[visit.code], visit.position, visit.chunk, err) from err
+
+            walk = self._walk(missing, [np.arange(n) for n in sizes], file_order=True)
             try:
-                for visit in visits:
-                    numbers, stamps, domains = columns[visit.code]
-                    try:
-                        numbers[visit.position], stamps[visit.position] = header_stamp(visit.buf, visit.start)
-                        if visit.metadata is not None:
-                            domains[visit.position] = visit.metadata.domain()
-                    except _LOW_LEVEL as err:
-                        raise self._corrupt(missing[visit.code], visit.position, visit.chunk, err) from err
+                if self._inline:
+                    bag_stream.table(walk, columns, general)
+                else:
+                    for visit in self._general_visits(walk):
+                        general(visit)
             except CorruptMessage as err:
                 raise self._bad_record(err) from err
             finally:
-                visits.close()
                 if self._chunks is not None:
                     self._chunks.cancel()
             for key, (numbers, stamps, domains) in zip(missing, columns):
