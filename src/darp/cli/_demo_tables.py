@@ -41,16 +41,16 @@ def calibration_table(calib_dir: Path, paper_heldout_mm: dict[str, float]) -> st
                      _fmt(he.get("translation_mm"), 3), _fmt(he.get("rotation_deg"), 3),
                      _fmt(arm_truth.get("max_identifiable_joint_offset_error_deg"), 3)])
     b2b = truth.get("base_to_base", {})
-    title = (f"Calibration (held-out 3-D corner error, k-fold; truth errors on the twin); base-to-base error "
-             f"{_fmt(b2b.get('translation_mm'), 3)} mm / {_fmt(b2b.get('rotation_deg'), 3)} deg")
-    return _table(title, ["arm", "held-out median mm", "paper mm", "hand-eye err mm", "hand-eye err deg",
-                          "joint-zero err deg"], rows)
+    title = (f"Calibration: held-out 3-D corner error (k-fold); twin: errors against truth\n"
+             f"(base-to-base error {_fmt(b2b.get('translation_mm'), 3)} mm / {_fmt(b2b.get('rotation_deg'), 3)} deg)")
+    return _table(title, ["arm", "held-out med. mm", "paper mm", "hand-eye mm", "hand-eye deg",
+                          "joint-zero deg"], rows)
 
 
 def heldout_table(results: dict[str, Any], paper_mm: dict[str, float], paper_within: dict[str, float]) -> str:
     """The paper's held-out table: per object, all objects, and the paper's row."""
     held = results.get("heldout") or {}
-    header = ["object", "keyframes", "points", "median mm", "RMSE mm", "p90 mm", "<=5 mm %", "<=10 mm %"]
+    header = ["object", "kf", "points", "median", "RMSE", "p90", "<=5mm %", "<=10mm %"]
 
     def row(name: str, keyframes: Any, stats: dict[str, Any]) -> list[str]:
         return [name, str(keyframes), f"{stats.get('count', 0):,}", _fmt(stats.get("median_mm")),
@@ -63,7 +63,8 @@ def heldout_table(results: dict[str, Any], paper_mm: dict[str, float], paper_wit
     rows.append(row("all (darp, twin)", agg.get("keyframes", 0), agg))
     rows.append(["paper (DARP, real)", "224", "1,563,466", _fmt(paper_mm["median"]), _fmt(paper_mm["rmse"]),
                  _fmt(paper_mm["p90"]), _fmt(paper_within["5 mm"]), _fmt(paper_within["10 mm"])])
-    return _table("Held-out RGB-D evaluation (point-to-mesh distance of keyframes not used in fusion)", header, rows)
+    return _table("Held-out RGB-D evaluation, mm (point-to-mesh, kf keyframes kept out of fusion)",
+                  header, rows)
 
 
 def truth_table(results: dict[str, Any]) -> str:
@@ -72,22 +73,19 @@ def truth_table(results: dict[str, Any]) -> str:
     objects = truth.get("objects") or {}
     if not objects:
         return ""
-    header = ["object", "accuracy median mm", "same, world offset removed", "accuracy p90 mm",
-              "complete <=2 mm %", "complete <=5 mm %", "F-score 2 mm %", "F-score 5 mm %"]
+    header = ["object", "acc. median", "acc. p90", "complete 2mm %", "5mm %", "F-score 2mm %", "5mm %"]
 
     def row(name: str, t: dict[str, Any]) -> list[str]:
         acc = (t.get("cloud") or t).get("accuracy", {})
         comp = (t.get("cloud") or t).get("completeness", {})
         fs = (t.get("cloud") or t).get("fscore_pct", {})
-        aligned = (t.get("world_gauge") or {}).get("accuracy_aligned", {})
-        return [name, _fmt(acc.get("median_mm"), 3), _fmt(aligned.get("median_mm"), 3), _fmt(acc.get("p90_mm"), 3),
+        return [name, _fmt(acc.get("median_mm"), 3), _fmt(acc.get("p90_mm"), 3),
                 _fmt(comp.get("within_2mm_pct")), _fmt(comp.get("within_5mm_pct")),
                 _fmt(fs.get("2mm")), _fmt(fs.get("5mm"))]
 
     rows = [row(name, t) for name, t in objects.items()]
     if truth.get("aggregate"):
         rows.append(row("all", truth["aggregate"]))
-    note = ("\n(truth and calibration define the world alike: midway between the bases, x base to base, z up;\n"
-            " 'world offset removed' first takes out one rigid offset of the whole world frame, fitted to the\n"
-            " keyframes' true camera centres: what remains is the reconstruction's own error)")
-    return _table("Against ground truth (fused cloud vs the true object mesh; twin only)", header, rows) + note
+    note = ("\n(truth and calibration define the world alike: midway between the bases,\n"
+            " x from base to base, z up; the report splits off one rigid world offset)")
+    return _table("Against ground truth, mm (fused cloud vs the true object mesh; twin only)", header, rows) + note
