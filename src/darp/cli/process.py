@@ -157,7 +157,7 @@ def process(
     # fits 80 columns: held-out point-to-mesh median / RMSE [mm] and % within 10 mm; truth: fused-cloud accuracy
     table = Table(title="held-out evaluation (mm) and clouds", box=box.SIMPLE_HEAD,
                   caption="kf: keyframes; truth: fused cloud to the true mesh, median (mm)")
-    table.add_column("survey", justify="left", no_wrap=True)
+    table.add_column("survey", justify="left", overflow="fold")
     for column in ("poses", "kf", "fused", "median", "RMSE", "<=10mm %", "truth"):
         table.add_column(column, justify="right", no_wrap=True)
     for folder in done:
