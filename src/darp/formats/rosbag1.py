@@ -41,6 +41,7 @@ from darp.formats.rosbag1_records import (  # noqa: F401 (re-exported: the recor
     record_op,
 )
 from darp.formats.rosbag1_scan import parse_chunk, scan  # noqa: F401
+from darp.formats.rosbag1_usual import run_sums, usual_index
 from darp.formats.rosbag1_write import (  # noqa: F401 (re-exported: the writer side of the format)
     BAG_HEADER_RECORD_LENGTH,
     MAGIC,
@@ -94,10 +95,38 @@ def load_index(source: ByteSource | memoryview, path: Path) -> BagIndex:
 def _indexed(src: ByteSource, path: Path, index_pos: int, conn_count: int, chunk_count: int) -> BagIndex:
     tail = src.read(index_pos, src.size - index_pos)  # the connection and chunk-info records
     connections, infos = _index_tail(tail, index_pos, conn_count + chunk_count)
+    pairs, pairs_per_chunk = _chunk_info_pairs(tail, infos)
+    usual = usual_index(src, [chunk_pos for chunk_pos, _, _ in infos], pairs, pairs_per_chunk)
+    if usual is not None:
+        chunks, rows, conn, numbers = usual
+        return BagIndex(connections, chunks, _entries_from_table(rows, conn, numbers))
+    return _indexed_general(src, path, connections, infos, pairs, pairs_per_chunk)
+
+
+def _chunk_info_pairs(tail: bytes, infos: list[tuple[int, int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """The (conn, count) pairs of the chunk infos ``(chunk position, data start, pair count)``, all in one
+    array (u32), and how many per chunk; read from the data start whatever the record's data length."""
+    starts = np.array([start for _, start, _ in infos], np.int64)
+    per_chunk = np.array([count for _, _, count in infos], np.int64)
+    past = np.flatnonzero(starts + 8 * per_chunk > len(tail))
+    if len(past):  # the first such chunk info raises struct's own error, as unpacking it would
+        struct.unpack_from(f"<{2 * infos[past[0]][2]}I", tail, infos[past[0]][1])
+    run = np.repeat(np.arange(len(infos)), per_chunk)
+    at = np.repeat(starts, per_chunk) + 8 * (np.arange(int(per_chunk.sum())) - (np.cumsum(per_chunk) - per_chunk)[run])
+    data = np.frombuffer(tail, np.uint8)
+    pairs = np.ascontiguousarray(data[at[:, None] + np.arange(8)]).view("<u4").reshape(-1, 2)
+    return pairs, per_chunk
+
+
+def _indexed_general(src: ByteSource, path: Path, connections: dict[int, Connection],
+                     infos: list[tuple[int, int, int]], pairs: np.ndarray, pairs_per_chunk: np.ndarray) -> BagIndex:
+    """Any layout: per chunk, parse its head and its index-data records one by one."""
+    guesses = [count * INDEX_HEAD.size + 12 * messages
+               for count, messages in zip(pairs_per_chunk.tolist(), run_sums(pairs[:, 1], pairs_per_chunk), strict=True)]
     rows: list[tuple[int, int, int, bytes]] = []  # (conn, chunk number, count, raw rows) per index-data record
     chunks: list[Chunk] = []
     ahead, ahead_pos = b"", 0  # bytes already read, from file offset ahead_pos: the next chunk's header
-    for number, (chunk_pos, conn_in_chunk, guess) in enumerate(infos):
+    for number, ((chunk_pos, _, conn_in_chunk), guess) in enumerate(zip(infos, guesses, strict=True)):
         skip = chunk_pos - ahead_pos
         head = ahead[skip:] if 0 <= skip and skip + _HEAD_HINT <= len(ahead) else src.read(chunk_pos, _HEAD_HINT)
         chunks.append(_chunk_at(src, head, chunk_pos, path))
@@ -123,24 +152,43 @@ def _indexed(src: ByteSource, path: Path, index_pos: int, conn_count: int, chunk
                     raise
                 want *= 4
         ahead, ahead_pos = region, index_start
-    return BagIndex(connections, chunks, _entries_from_rows(rows))
-
-
-def _entries_from_rows(rows: list[tuple[int, int, int, bytes]]) -> dict[int, np.ndarray]:
-    """Per connection, its index entries sorted by (time, chunk, offset), from raw index-data rows."""
     if not rows:
-        return {}
+        return BagIndex(connections, chunks, {})
     conns, numbers, counts, raw = zip(*rows)
     table = np.frombuffer(b"".join(raw), "<u4").reshape(-1, 3)
-    conn = np.repeat(np.array(conns, np.int64), counts)
+    return BagIndex(connections, chunks, _entries_from_table(table, np.repeat(np.array(conns, np.int64), counts),
+                                                             np.repeat(np.array(numbers, np.int32), counts)))
+
+
+def _entries_from_table(table: np.ndarray, conn: np.ndarray, numbers: np.ndarray) -> dict[int, np.ndarray]:
+    """Per connection, its index entries sorted by (time, chunk, offset), from index-data rows (u32 sec,
+    nsec, offset) with each row's connection and chunk number."""
+    if not len(table):
+        return {}
+    conn = conn.astype(np.int64, copy=False)
     merged = np.empty(len(table), ENTRY_DTYPE)
     merged["time"] = table[:, 0].astype(np.int64) * 1_000_000_000 + table[:, 1]
-    merged["chunk"] = np.repeat(np.array(numbers, np.int32), counts)
+    merged["chunk"] = numbers
     merged["offset"] = table[:, 2]
-    order = np.lexsort((merged["offset"], merged["chunk"], merged["time"], conn))
+    # usually each connection's rows already come in (time, chunk, offset) order: a stable sort by
+    # connection alone then gives the full order (checked); otherwise sort by all four keys
+    order = np.argsort(conn.astype(np.uint16) if conn.max() < 1 << 16 else conn, kind="stable")
     conn, merged = conn[order], merged[order]
+    if not _in_order(conn, merged):
+        order = np.lexsort((merged["offset"], merged["chunk"], merged["time"], conn))
+        conn, merged = conn[order], merged[order]
     cuts = [0, *(np.flatnonzero(np.diff(conn)) + 1).tolist(), len(conn)]
     return {int(conn[a]): merged[a:b] for a, b in itertools.pairwise(cuts) if b > a}
+
+
+def _in_order(conn: np.ndarray, entries: np.ndarray) -> bool:
+    """Whether rows sorted by connection are, within each connection, in (time, chunk, offset) order."""
+    time, chunk, offset = entries["time"], entries["chunk"], entries["offset"]
+    later = (conn[1:] != conn[:-1]) | (time[1:] > time[:-1])
+    tie = time[1:] == time[:-1]
+    later |= tie & (chunk[1:] > chunk[:-1])
+    later |= tie & (chunk[1:] == chunk[:-1]) & (offset[1:] >= offset[:-1])
+    return bool(later.all())
 
 
 # The usual header layouts (fields in name order), each recognised with one struct unpack.
@@ -153,7 +201,8 @@ _HEAD_HINT = 128  # bytes read for a chunk record header
 
 
 def _index_tail(tail: bytes, index_pos: int, records: int) -> tuple[dict[int, Connection], list[tuple[int, int, int]]]:
-    """Connections and, per chunk in file order, (position, connections in it, size of its index data)."""
+    """Connections and, per chunk in file order, (position, start of its chunk info's data in ``tail``,
+    connections in it)."""
     connections: dict[int, Connection] = {}
     infos = []
     pos, end = 0, len(tail)
@@ -178,11 +227,7 @@ def _index_tail(tail: bytes, index_pos: int, records: int) -> tuple[dict[int, Co
         pos = start + length
     if pos > end:
         raise Incomplete
-    out = []
-    for chunk_pos, start, count in sorted(infos):
-        messages = sum(struct.unpack_from(f"<{2 * count}I", tail, start)[1::2])
-        out.append((chunk_pos, count, count * INDEX_HEAD.size + 12 * messages))
-    return connections, out
+    return connections, sorted(infos)
 
 
 def _chunk_at(src: ByteSource, head: bytes, pos: int, path: Path) -> Chunk:
