@@ -22,6 +22,7 @@ from darp.cli import calib as _calib  # noqa: F401,E402
 from darp.cli import collect as _collect  # noqa: F401,E402
 from darp.cli import process as _process  # noqa: F401,E402
 from darp.cli import demo as _demo  # noqa: F401,E402
+from darp.cli import hardware as _hardware  # noqa: F401,E402
 
 
 def main() -> None:

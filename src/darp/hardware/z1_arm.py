@@ -363,8 +363,41 @@ class Z1Arm(ArmBackend):
         return q.copy()
 
 
+@dataclass(frozen=True)
+class ArmProbe:
+    """One read of an arm's controller without commanding it: FSM state, joints (SDK angles), limits."""
+
+    state: str
+    q_rad: np.ndarray
+    qd_rad_s: np.ndarray
+    lower_rad: np.ndarray  # darp's limits tightened by the SDK model's, as Z1Arm enforces them
+    upper_rad: np.ndarray
+
+
+def probe_arm(arm_id: str, connection: Z1Connection | None = None, *, timeout_s: float = 3.0,
+              sdk: ModuleType | None = None) -> ArmProbe:
+    """Read one arm's joint state and stop: SDK loop on, wait for the controller, read, loop off.
+
+    Read-only (for pre-flight checks): never requests an FSM state, never starts tracking, never sends a
+    joint command. Errors are :meth:`Z1Arm.connect`'s (no answer, binding cannot reach the ports).
+    """
+    reader = Z1Arm(arm_id, connection, sdk=sdk)
+    sdk = sdk if sdk is not None else sdk_loader.load_unitree_sdk()
+    arm = make_arm_interface(sdk, reader.connection, arm_id)
+    arm.loopOn()
+    try:
+        state = reader._wait_for_controller(arm, sdk.ArmFSMState, timeout_s)
+        reader._adopt_sdk_limits(arm)
+        q = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
+        qd = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+    finally:
+        arm.loopOff()
+    lower, upper = reader.joint_limits
+    return ArmProbe(_name(state), q, qd, lower, upper)
+
+
 def _name(state) -> str:
     return getattr(state, "name", None) or str(state)
 
 
-__all__ = ["CONTROL_HZ", "MotionLimits", "Z1Arm", "Z1Connection", "make_arm_interface"]
+__all__ = ["CONTROL_HZ", "ArmProbe", "MotionLimits", "Z1Arm", "Z1Connection", "make_arm_interface", "probe_arm"]
