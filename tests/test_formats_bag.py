@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pyrealsense2 as rs
 import pytest
+from rosbags_writing import message_putter, realsense_typestore
 from scipy.spatial.transform import Rotation
 
 from darp.formats import ros_messages as rm
@@ -367,23 +368,14 @@ def test_reads_2018_style_bag_written_by_rosbags(tmp_path: Path) -> None:
     """file_version 3, 'Depth Units' option with a space, frame_id "0" images without trailer, written by
     an independent writer (rosbags) with its own record layout."""
     from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    for msgtype in (rm.STREAM_INFO, rm.IMU_INTRINSIC):
-        store.register(get_types_from_msg(msgtype.definition, msgtype.name.replace("/", "/msg/")))
+    store = realsense_typestore()
     types = store.types
     path = tmp_path / "old.bag"
     depth = [np.arange(12 * 16, dtype=np.uint16).reshape(12, 16) * (i + 1) for i in range(3)]
     writer = Writer(path)
     writer.set_compression(Writer.CompressionFormat.LZ4)
     with writer:
-
-        def put(topic: str, name: str, message: object, time_ns: int = 1) -> None:
-            conn = next((c for c in writer.connections if c.topic == topic), None)
-            conn = conn or writer.add_connection(topic, name, typestore=store)
-            writer.write(conn, time_ns, store.serialize_ros1(message, name))
-
+        put = message_putter(writer, store)
         put("/file_version", "std_msgs/msg/UInt32", types["std_msgs/msg/UInt32"](data=3))
         put("/device_0/info", "diagnostic_msgs/msg/KeyValue", types["diagnostic_msgs/msg/KeyValue"](key="Name", value="Intel RealSense D415"))
         put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32", types["std_msgs/msg/Float32"](data=0.0001))

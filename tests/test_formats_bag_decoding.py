@@ -12,11 +12,11 @@ from pathlib import Path
 import lz4.frame
 import numpy as np
 import pytest
+from rosbags_writing import message_putter, realsense_typestore
 from test_formats_bag import write_sample
 
 from darp.errors import RecordingError
 from darp.formats import bag_lz4
-from darp.formats import ros_messages as rm
 from darp.formats.bag_lz4 import ChunkBuffer, Lz4Error, decode_frame
 from darp.formats.bag_reader import BagRecording
 from darp.formats.recording_types import Frame
@@ -226,10 +226,7 @@ def _odd_metadata_bag(path: Path, compression: str) -> list[str]:
     """A bag (written by rosbags) whose depth frames carry unusual metadata and layouts; returns the
     timestamp domain librealsense gives each frame."""
     from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    store = get_typestore(Stores.ROS1_NOETIC)
-    store.register(get_types_from_msg(rm.STREAM_INFO.definition, "realsense_msgs/msg/StreamInfo"))
+    store = realsense_typestore()
     types = store.types
     header, time = types["std_msgs/msg/Header"], types["builtin_interfaces/msg/Time"]
     metadata = [  # per frame: its KeyValues in order, and the domain they give
@@ -247,10 +244,7 @@ def _odd_metadata_bag(path: Path, compression: str) -> list[str]:
     if compression == "lz4":
         writer.set_compression(Writer.CompressionFormat.LZ4)
     with writer:
-        def put(topic: str, name: str, message: object, time_ns: int = 1) -> None:
-            conn = next((c for c in writer.connections if c.topic == topic), None)
-            conn = conn or writer.add_connection(topic, name, typestore=store)
-            writer.write(conn, time_ns, store.serialize_ros1(message, name))
+        put = message_putter(writer, store)
 
         put("/file_version", "std_msgs/msg/UInt32", types["std_msgs/msg/UInt32"](data=3))
         put("/device_0/sensor_0/Depth_0/info", "realsense_msgs/msg/StreamInfo",
