@@ -24,7 +24,7 @@ import numpy as np
 
 from darp.errors import DarpError
 from darp.hardware import sdk as sdk_loader
-from darp.hardware.realsense_camera import CameraSettings
+from darp.hardware.realsense_camera import CameraSettings, device_info, find_device, video_streams
 from darp.hardware.settings import HardwareSettings, load_hardware_settings
 from darp.hardware.z1_arm import ArmProbe, probe_arm
 from darp.kinematics.rig import Rig, default_rig_path, load_rig
@@ -34,7 +34,7 @@ PARK_TOLERANCE_RAD = 0.05
 USB2_BUDGET_MB_S = 35.0  # what a USB 2 link sustains in practice (480 Mbit/s raw, less after protocol)
 # bytes per pixel on the wire: depth Z16, IR Y8, colour (the camera sends YUYV; the SDK converts to BGR8)
 WIRE_BYTES = {"depth": 2, "ir1": 1, "ir2": 1, "color": 2}
-INFO_KEYS = {"name": "name", "serial": "serial_number", "firmware": "firmware_version", "usb": "usb_type_descriptor"}
+INFO_KEYS = {"name": "name", "serial": "serial_number", "firmware": "firmware_version", "usb": "usb_type_descriptor"}  # field -> camera_info
 
 
 @dataclass(frozen=True)
@@ -94,28 +94,15 @@ def list_cameras(rs: ModuleType) -> list[CameraDevice]:
     """The RealSense devices connected now, as pyrealsense2's context lists them (nothing is started)."""
     out = []
     for dev in rs.context().query_devices():
-        info = {key: str(dev.get_info(getattr(rs.camera_info, name))) if dev.supports(getattr(rs.camera_info, name))
-                else "" for key, name in INFO_KEYS.items()}
-        out.append(CameraDevice(**info))
+        info = device_info(rs, dev)
+        out.append(CameraDevice(**{field: str(info.get(key, "")) for field, key in INFO_KEYS.items()}))
     return out
 
 
-def _find_device(rs: ModuleType, serial: str):
-    for dev in rs.context().query_devices():
-        if dev.get_info(rs.camera_info.serial_number) == serial:
-            return dev
-    return None
-
-
 def required_profiles(rs: ModuleType, s: CameraSettings) -> dict[str, tuple]:
-    """What ``RealSenseCamera`` will request: label -> (stream, index, format, width, height, fps)."""
-    wanted = {"depth z16": (rs.stream.depth, 0, rs.format.z16, s.width, s.height, s.fps)}
-    if s.infrared:
-        wanted["IR1 y8"] = (rs.stream.infrared, 1, rs.format.y8, s.width, s.height, s.fps)
-        wanted["IR2 y8"] = (rs.stream.infrared, 2, rs.format.y8, s.width, s.height, s.fps)
-    if s.color:
-        wanted["colour bgr8"] = (rs.stream.color, 0, rs.format.bgr8, s.width, s.height, s.fps)
-    return wanted
+    """What ``RealSenseCamera`` will request, as the device lists its profiles: label -> (stream, index,
+    format, width, height, fps), index 0 for the single-stream sensors (depth, colour)."""
+    return {label: (stream, max(index, 0), *rest) for label, (stream, index, *rest) in video_streams(rs, s).items()}
 
 
 def _offered(rs: ModuleType, dev) -> tuple[set[tuple], dict[str, list[int]]]:
@@ -156,7 +143,7 @@ def _check_camera(report: CheckReport, rs: ModuleType, arm_id: str, serial: str,
                   found: dict[str, CameraDevice]) -> None:
     name = f"{arm_id} camera"
     cam = found.get(serial)
-    dev = _find_device(rs, serial) if cam is not None else None
+    dev = find_device(rs, rs.context(), serial)[0] if cam is not None else None
     if dev is None:
         others = ", ".join(sorted(found)) or "none"
         report.add(name, FAIL, f"{serial} is not connected (cameras found: {others}); check the USB 3 cable and "

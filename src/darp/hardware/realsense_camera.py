@@ -80,6 +80,39 @@ class CameraSettings:
                 raise ConfigError(f"cameras.{name}: must be positive, got {getattr(self, name)!r}")
 
 
+DEVICE_INFO_KEYS = ("name", "serial_number", "firmware_version", "usb_type_descriptor")
+
+
+def video_streams(rs: ModuleType, s: CameraSettings) -> dict[str, tuple]:
+    """The video streams darp records with settings ``s``: ``label -> (stream, index, format, width,
+    height, fps)``; index -1 is "the sensor's only one" (depth, colour), as ``config.enable_stream`` takes it.
+    One list for recording and for ``darp hardware check``, so the check asks for what a survey will."""
+    wanted = {"depth z16": (rs.stream.depth, -1, rs.format.z16, s.width, s.height, s.fps)}
+    if s.infrared:
+        wanted["IR1 y8"] = (rs.stream.infrared, 1, rs.format.y8, s.width, s.height, s.fps)
+        wanted["IR2 y8"] = (rs.stream.infrared, 2, rs.format.y8, s.width, s.height, s.fps)
+    if s.color:
+        wanted["colour bgr8"] = (rs.stream.color, -1, rs.format.bgr8, s.width, s.height, s.fps)
+    return wanted
+
+
+def device_info(rs: ModuleType, dev) -> dict[str, str]:
+    """The device's ``DEVICE_INFO_KEYS`` that it reports (camera_info name -> value)."""
+    return {key: dev.get_info(getattr(rs.camera_info, key)) for key in DEVICE_INFO_KEYS
+            if dev.supports(getattr(rs.camera_info, key))}
+
+
+def find_device(rs: ModuleType, ctx, serial: str) -> tuple[object | None, list[str]]:
+    """``(the connected device with this serial or None, the serials of every connected device)``."""
+    serials = []
+    for dev in ctx.query_devices():
+        found = dev.get_info(rs.camera_info.serial_number)
+        if found == serial:
+            return dev, serials
+        serials.append(found)
+    return None, serials
+
+
 def _intrinsics(rs_intr) -> Intrinsics:
     model = DISTORTION_NAMES.get(str(rs_intr.model).split(".")[-1], str(rs_intr.model))
     coeffs = tuple(float(c) for c in list(rs_intr.coeffs)[:5])
@@ -235,13 +268,9 @@ class RealSenseCamera(CameraBackend):
         rs = self._module()
         if self._ctx is None:
             self._ctx = rs.context()
-        devices = list(self._ctx.query_devices())
-        serials = []
-        for dev in devices:
-            serial = dev.get_info(rs.camera_info.serial_number)
-            if serial == self.serial:
-                return dev
-            serials.append(serial)
+        dev, serials = find_device(rs, self._ctx, self.serial)
+        if dev is not None:
+            return dev
         found = ", ".join(serials) if serials else "none"
         raise HardwareError(f"{self._label()} is not connected (cameras found: {found}): check the USB 3 cable and "
                             f"the udev rules (docs/hardware.md)")
@@ -268,12 +297,8 @@ class RealSenseCamera(CameraBackend):
         rs, s = self._module(), self.settings
         cfg = rs.config()
         cfg.enable_device(self.serial)
-        cfg.enable_stream(rs.stream.depth, s.width, s.height, rs.format.z16, s.fps)
-        if s.infrared:
-            for index in (1, 2):
-                cfg.enable_stream(rs.stream.infrared, index, s.width, s.height, rs.format.y8, s.fps)
-        if s.color:
-            cfg.enable_stream(rs.stream.color, s.width, s.height, rs.format.bgr8, s.fps)
+        for stream, index, fmt, width, height, fps in video_streams(rs, s).values():
+            cfg.enable_stream(stream, index, width, height, fmt, fps)
         if imu is not None:
             cfg.enable_stream(rs.stream.accel, rs.format.motion_xyz32f, imu[0])
             cfg.enable_stream(rs.stream.gyro, rs.format.motion_xyz32f, imu[1])
@@ -284,9 +309,7 @@ class RealSenseCamera(CameraBackend):
     def _start(self, record_to: Path | None) -> None:
         rs = self._module()
         dev = self._find_device()
-        self.device_info = {key: dev.get_info(getattr(rs.camera_info, key)) for key in
-                            ("name", "serial_number", "firmware_version", "usb_type_descriptor")
-                            if dev.supports(getattr(rs.camera_info, key))}
+        self.device_info = device_info(rs, dev)
         if self.device_info.get("usb_type_descriptor", "3").startswith("2"):
             log.warning("%s is on USB %s: all streams at %dx%d@%d need USB 3", self._label(),
                         self.device_info["usb_type_descriptor"], self.settings.width, self.settings.height,
@@ -395,4 +418,4 @@ class RealSenseCamera(CameraBackend):
                 log.warning("%s: stopping the pipeline: %s", self._label(), err)
 
 
-__all__ = ["CameraSettings", "RealSenseCamera"]
+__all__ = ["DEVICE_INFO_KEYS", "CameraSettings", "RealSenseCamera", "device_info", "find_device", "video_streams"]
