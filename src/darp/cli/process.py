@@ -160,16 +160,16 @@ def process(
     table.add_column("survey", justify="left", overflow="fold")
     for column in ("poses", "kf", "fused", "median", "RMSE", "<=10mm %", "truth"):
         table.add_column(column, justify="right", no_wrap=True)
-    for folder in done:
-        r = read_results(folder)
+    results = [read_results(folder) for folder in done]
+    for r in results:
         h = r["heldout"]["aggregate"]
         acc = ((r.get("truth") or {}).get("cloud") or {}).get("accuracy", {}).get("median_mm")
         source = {"calibration": "calib"}.get(r["pose_source"], r["pose_source"])
         table.add_row(r["survey"], source, str(r["keyframes"]["total"]), f"{r['clouds'].get('fused', 0):,}",
                       mm(h.get("median_mm")), mm(h.get("rmse_mm")), mm(h.get("within_10mm_pct")), mm(acc))
     Console().print(table)
-    for folder in done:
-        _warn_estimated_envelope(folder.name, read_results(folder).get("envelope"))
+    for folder, r in zip(done, results, strict=True):
+        _warn_estimated_envelope(folder.name, r.get("envelope"))
     typer.echo(f"wrote {summary_path}")
 
 

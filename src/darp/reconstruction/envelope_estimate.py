@@ -55,12 +55,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from darp.acquisition.estimate import min_enclosing_circle
 from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
 from darp.formats.recording import Recording
@@ -262,8 +262,8 @@ def object_cluster(stats: VoxelStats, table_z_m: float, look_at_m: np.ndarray, n
 def fit_cylinder(points_m: np.ndarray, table_z_m: float) -> tuple[np.ndarray, float, float]:
     """``(centre_xy, radius, height)``: the smallest vertical cylinder standing on the table that holds the points."""
     p = np.asarray(points_m, np.float64)
-    (cx, cy), radius = cv2.minEnclosingCircle(p[:, :2].astype(np.float32))
-    return np.array([cx, cy], np.float64), float(radius), float(p[:, 2].max()) - table_z_m
+    centre_xy, radius = min_enclosing_circle(p[:, :2])  # the one localisation uses: exact, float64
+    return centre_xy, float(radius), float(p[:, 2].max()) - table_z_m
 
 
 # -- the whole estimate -------------------------------------------------------------------------------------
