@@ -24,14 +24,15 @@ if TYPE_CHECKING:
 RIGID_TOLERANCE = 1e-6  # accepted |R^T R - I| and |det R - 1| for a matrix given in a rig file
 
 
-def read_yaml_mapping(path: Path) -> dict[str, Any]:
-    """Parse a YAML file whose top level is a mapping; every failure is a ConfigError naming ``path``."""
+def read_yaml_mapping(path: Path, *, empty_ok: bool = False) -> dict[str, Any]:
+    """Parse a YAML (or JSON) file whose top level is a mapping; every failure is a ConfigError naming
+    ``path``. ``empty_ok``: an empty file is an empty mapping (a settings file that changes nothing)."""
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError("no such file", path) from None
     except IsADirectoryError:
-        raise ConfigError("is a folder, not a rig file", path) from None
+        raise ConfigError("is a folder, not a file", path) from None
     except UnicodeDecodeError as err:
         raise ConfigError(f"not UTF-8 text (byte {err.start})", path) from err
     try:
@@ -41,6 +42,8 @@ def read_yaml_mapping(path: Path) -> dict[str, Any]:
         where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
         problem = getattr(err, "problem", None) or str(err).splitlines()[0]
         raise ConfigError(f"invalid YAML{where}: {problem}", path) from None
+    if data is None and empty_ok:
+        return {}
     if not isinstance(data, dict):
         kind = "empty" if data is None else type(data).__name__
         raise ConfigError(f"top level must be a mapping, got {kind}", path)

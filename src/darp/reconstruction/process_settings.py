@@ -20,9 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from darp.errors import ConfigError, DarpError
+from darp.kinematics.rig_yaml import read_yaml_mapping
 from darp.reconstruction.backproject import DepthFilterSettings
 from darp.reconstruction.fusion import FusionSettings
 from darp.reconstruction.keyframes import KeyframeSettings
@@ -102,14 +101,7 @@ def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
 def load_settings(path: str | Path) -> ProcessSettings:
     """Read a settings file (YAML or JSON, any subset of the groups)."""
     path = Path(path)
-    try:
-        values = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except FileNotFoundError:
-        raise ConfigError("no such settings file", path) from None
-    except (yaml.YAMLError, UnicodeDecodeError) as err:
-        raise ConfigError(f"not valid YAML/JSON: {str(err).splitlines()[0]}", path) from None
-    if not isinstance(values, Mapping):
-        raise ConfigError("a settings file must hold a mapping of groups", path)
+    values = read_yaml_mapping(path, empty_ok=True)  # JSON is YAML too
     try:
         return settings_from_dict(values)
     except ConfigError as err:

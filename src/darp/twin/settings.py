@@ -35,6 +35,7 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.kinematics.rig_yaml import read_yaml_mapping
 
 SCHEMA = "darp-twin-settings/1"
 PROFILES = ("ideal", "realistic")
@@ -240,14 +241,7 @@ class TwinSettings:
     def load(cls, path: str | Path) -> TwinSettings:
         """Read settings YAML; every problem is a ConfigError naming the file."""
         path = Path(path)
-        try:
-            data = yaml.safe_load(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise ConfigError("no such file", path) from None
-        except (yaml.YAMLError, UnicodeDecodeError) as err:
-            raise ConfigError(f"invalid YAML: {str(err).splitlines()[0]}", path) from None
-        if not isinstance(data, dict):
-            raise ConfigError("top level must be a mapping", path)
+        data = read_yaml_mapping(path)
         try:
             return cls.from_dict(data)
         except ConfigError as err:
