@@ -51,11 +51,11 @@ PAPER_DURATION_S = {"red_bull": 118.6, "dumbbell": 110.6, "controller": 103.6, "
 
 def run_one(job: dict[str, Any]) -> dict[str, Any]:
     """One survey in a fresh twin (runs in a worker process)."""
-    from darp.acquisition.localise import min_enclosing_circle
     from darp.acquisition.survey import run_survey
     from darp.acquisition.viewpoints import tour_cost
+    from darp.geometry import min_enclosing_circle
     from darp.kinematics.rig import load_rig
-    from darp.twin.objects import RectRegion, make_object, random_placement, to_world
+    from darp.twin.objects.model import RectRegion, make_object, random_placement, to_world
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
 
@@ -183,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--keep", action="store_true", help="keep the survey folders")
     p.add_argument("--json", type=Path, default=None, help="write every row as JSON here")
     args = p.parse_args(argv)
-    from darp.twin.objects import OBJECT_NAMES
+    from darp.twin.objects.model import OBJECT_NAMES
 
     names = list(OBJECT_NAMES) if args.objects == "all" else args.objects.split(",")
     w, h = (int(v) for v in args.resolution.lower().split("x"))

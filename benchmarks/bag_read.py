@@ -39,10 +39,10 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.formats.bag_lz4 import native
-from darp.formats.bag_reader import BagRecording
-from darp.formats.bag_writer import BagWriter
-from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
+from darp.formats.realsense.bag.reader import BagRecording
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.rosbag1.lz4 import native
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 
 W, H = 640, 480
 KEYS = ("depth", "color", "ir1", "ir2")

@@ -73,7 +73,7 @@ def record(path: Path, frames: int, compress: bool) -> None:
 
 
 def time_darp(path: Path) -> tuple[int, float]:
-    from darp.formats.recording import open_recording
+    from darp.formats.realsense.recording import open_recording
 
     start = time.perf_counter()
     with open_recording(path) as recording:

@@ -32,7 +32,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 def make_survey(folder: Path, seconds: float, fps: int, width: int, height: int) -> Path:
     """Record (once) a twin survey of about ``seconds``: waypoints are added until the plan is that long."""
     from darp.kinematics.rig import load_rig
-    from darp.twin.objects import ObjectPlacement, make_object
+    from darp.twin.objects.model import ObjectPlacement, make_object
     from darp.twin.record import expected_duration_s, record_survey
     from darp.twin.settings import TwinSettings
     from darp.twin.waypoints import WaypointPlan, orbit_waypoints
@@ -97,9 +97,9 @@ class MemorySampler:
 
 def child(survey: str, out: str) -> None:
     """Process one survey (run in a subprocess) and print a JSON line with the timings."""
-    from darp.evaluation.results import PROCESS_STAGES
     from darp.formats.survey import open_survey
-    from darp.reconstruction.pipeline import SurveyJob, process_survey
+    from darp.processing.pipeline import SurveyJob, process_survey
+    from darp.processing.results import PROCESS_STAGES
     from darp.twin.truth import read_truth
 
     truth = read_truth(survey)

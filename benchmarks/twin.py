@@ -43,7 +43,7 @@ def measure(seconds: float, width: int, height: int, fps: int, profile: str, wor
     """One recording of ``seconds`` simulated seconds in this process; its times, CPU and memory."""
     import numpy as np
 
-    from darp.twin.objects import ObjectPlacement, make_object
+    from darp.twin.objects.model import ObjectPlacement, make_object
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
 

@@ -28,13 +28,13 @@ import cv2
 import numpy as np
 
 from darp.formats.calibration import CharucoBoardSpec
-from darp.twin.board import add_charuco_board
-from darp.twin.camera_spec import make_camera_spec
-from darp.twin.depth_model import DepthModel, DepthNoiseSettings
-from darp.twin.ir import IrModel, IrSettings
-from darp.twin.render import SceneRenderer, geom_image_region, mujoco
-from darp.twin.sensor import TwinCamera, TwinCameraSettings
-from darp.twin.stereo import StereoMatcher, StereoSettings
+from darp.twin.camera.depth_model import DepthModel, DepthNoiseSettings
+from darp.twin.camera.ir import IrModel, IrSettings
+from darp.twin.camera.render import SceneRenderer, geom_image_region, mujoco
+from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings
+from darp.twin.camera.spec import make_camera_spec
+from darp.twin.camera.stereo import StereoMatcher, StereoSettings
+from darp.twin.objects.board import add_charuco_board
 
 FRAME_BUDGET_MS = 1000.0 / 30.0
 

@@ -19,7 +19,7 @@ from darp.calibration.board import DEFAULT_BOARD, board_image, board_size_m, cor
 from darp.calibration.captures import CaptureRecord, CaptureWriter
 from darp.calibration.detect import Detection, board_pose_pnp
 from darp.calibration.plan import default_board_pose
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.ik import solve_look_at
 from darp.kinematics.rig import Rig, load_rig
 from darp.kinematics.transforms import axis_angle_to_rotation, invert_transform, make_transform

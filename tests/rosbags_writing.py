@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from darp.formats import ros_messages as rm
+from darp.formats.realsense import ros_messages as rm
 
 
 def realsense_typestore() -> Any:

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import open3d as o3d
 
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 
 D435_INTRINSICS = Intrinsics(640, 480, 383.0, 383.0, 319.5, 239.5)
 

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from darp.acquisition.backend import ArmBackend, CameraBackend, Clock, JointState, LiveFrameSet, RigBackend
+from darp.backend import ArmBackend, CameraBackend, Clock, JointState, LiveFrameSet, RigBackend
 from darp.formats.arm_poses import ArmPoseWriter
-from darp.formats.bag_writer import BagWriter
-from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 from darp.kinematics.rig import Rig, load_rig
 
 INTRINSICS = Intrinsics(width=160, height=120, fx=110.0, fy=110.0, ppx=79.5, ppy=59.5)

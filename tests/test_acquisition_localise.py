@@ -10,9 +10,9 @@ from darp.acquisition.estimate import (
     LocaliseSettings,
     estimate_from_depth,
     fit_table_plane,
-    min_enclosing_circle,
 )
 from darp.acquisition.localise import search_targets
+from darp.geometry import min_enclosing_circle
 from darp.kinematics import transforms as tf
 from darp.kinematics.rig import load_rig
 

@@ -14,7 +14,7 @@ from darp.acquisition.survey import SurveySettings, run_survey
 from darp.errors import AcquisitionError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
-from darp.formats.recording import open_recording
+from darp.formats.realsense.recording import open_recording
 
 OBJECT = Cylinder(0.05, 0.08, 0.05, 0.10)
 

@@ -13,14 +13,14 @@ import pytest
 
 pytest.importorskip("mujoco")
 
-from darp.acquisition.backend import JointState
-from darp.acquisition.localise import min_enclosing_circle
 from darp.acquisition.survey import run_survey
+from darp.backend import JointState
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
-from darp.formats.recording import open_recording
+from darp.formats.realsense.recording import open_recording
+from darp.geometry import min_enclosing_circle
 from darp.kinematics.rig import load_rig
-from darp.twin.objects import ObjectPlacement, RectRegion, make_object, random_placement, to_world
+from darp.twin.objects.model import ObjectPlacement, RectRegion, make_object, random_placement, to_world
 from darp.twin.rig_backend import TwinRig
 from darp.twin.settings import TwinSettings
 

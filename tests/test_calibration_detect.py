@@ -12,7 +12,7 @@ from darp.calibration.captures import CaptureRecord
 from darp.calibration.detect import CharucoCornerDetector, DetectionSettings
 from darp.calibration.geometry import undistort_pixels
 from darp.errors import CalibrationError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.transforms import look_at, pose_error
 
 T_WORLD_BOARD = np.eye(4)

@@ -92,7 +92,7 @@ W, H = 32, 24
 
 
 def _profiles() -> list:
-    from darp.formats.recording_types import Intrinsics, StreamProfile
+    from darp.formats.realsense.types import Intrinsics, StreamProfile
 
     intr = Intrinsics(W, H, 30.0, 30.0, (W - 1) / 2, (H - 1) / 2)
     return [
@@ -103,8 +103,8 @@ def _profiles() -> list:
 
 
 def _bag(path: Path, serial: str, start_ms: float, n_depth: int) -> None:
-    from darp.formats.bag_writer import BagWriter
-    from darp.formats.recording_types import DeviceInfo
+    from darp.formats.realsense.bag.writer import BagWriter
+    from darp.formats.realsense.types import DeviceInfo
 
     device = DeviceInfo(name="Intel RealSense D435", serial=serial)
     with BagWriter(path, device, _profiles()) as writer:

@@ -15,10 +15,10 @@ import pytest
 
 from darp.cli._app import run
 from darp.formats.arm_poses import ArmPoseWriter
-from darp.formats.bag_writer import BagWriter
 from darp.formats.calibration import Calibration, write_calibration
 from darp.formats.envelope import Envelope, write_envelope
-from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 from darp.kinematics import z1
 from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import make_transform, rot_x, rot_z

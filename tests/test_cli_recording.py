@@ -16,8 +16,8 @@ import pytest
 import darp.cli.recording as cli_recording
 from darp.cli._app import run
 from darp.errors import RecordingError
-from darp.formats.recording import open_recording
-from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
+from darp.formats.realsense.recording import open_recording
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
 DB3 = FIXTURES / "rs259_png.db3"
@@ -116,7 +116,7 @@ def test_export_npy_selection_and_every(tmp_path):
 
 
 def test_export_rgb8_bag_writes_true_colours_and_names_repeated_counters_by_index(tmp_path):
-    from darp.formats.bag_writer import BagWriter
+    from darp.formats.realsense.bag.writer import BagWriter
 
     intr = Intrinsics(width=8, height=6, fx=5.0, fy=5.0, ppx=3.5, ppy=2.5)
     streams = [StreamProfile(key="depth", stream_type="Depth", index=0, sensor_index=0, format="z16", fps=30,

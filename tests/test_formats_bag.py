@@ -11,11 +11,11 @@ import pytest
 from rosbags_writing import message_putter, realsense_typestore
 from scipy.spatial.transform import Rotation
 
-from darp.formats import ros_messages as rm
-from darp.formats.bag_reader import BagRecording
-from darp.formats.bag_writer import BagWriter
-from darp.formats.recording import open_recording
-from darp.formats.recording_types import DeviceInfo, Intrinsics, MotionIntrinsics, StreamProfile
+from darp.formats.realsense import ros_messages as rm
+from darp.formats.realsense.bag.reader import BagRecording
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.recording import open_recording
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, MotionIntrinsics, StreamProfile
 
 DEVICE = DeviceInfo("Intel RealSense D435I", "348522076490", "5.13.0.50", "0B3A",
                     {"Product Line": "D400", "Usb Type Descriptor": "3.2"})
@@ -424,7 +424,7 @@ def test_streaming_drops_file_pages_without_harming_held_frames(tmp_path: Path, 
                                                                 compression: str) -> None:
     """iter_frames releases the file pages it has streamed past (flat memory); frames still held keep
     reading correct pixels (their pages fault back in from the page cache)."""
-    from darp.formats import bag_reader
+    from darp.formats.realsense.bag import reader as bag_reader
 
     monkeypatch.setattr(bag_reader, "_RELEASE_STEP", 4096)
     sample = write_sample(tmp_path / "cam.bag", compression=compression, chunk_threshold=20_000)

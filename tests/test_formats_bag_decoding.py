@@ -16,11 +16,11 @@ from rosbags_writing import message_putter, realsense_typestore
 from test_formats_bag import write_sample
 
 from darp.errors import RecordingError
-from darp.formats import bag_lz4
-from darp.formats.bag_lz4 import ChunkBuffer, Lz4Error, decode_frame
-from darp.formats.bag_reader import BagRecording
-from darp.formats.recording_types import Frame
-from darp.formats.rosbag1 import MAGIC, ByteSource, load_index, read_record
+from darp.formats.realsense.bag.reader import BagRecording
+from darp.formats.realsense.rosbag1 import lz4 as bag_lz4
+from darp.formats.realsense.rosbag1.index import MAGIC, ByteSource, load_index, read_record
+from darp.formats.realsense.rosbag1.lz4 import ChunkBuffer, Lz4Error, decode_frame
+from darp.formats.realsense.types import Frame
 
 
 def _payload(seed: int = 0, size: int = 300_000) -> bytes:
@@ -75,7 +75,7 @@ def test_lz4_damage_is_detected_when_verifying(monkeypatch: pytest.MonkeyPatch, 
 def test_pooled_buffers_are_reused_only_when_no_frame_views_them(tmp_path: Path,
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     """Frames kept by the consumer stay intact while the reader recycles buffers for later chunks."""
-    from darp.formats import bag_chunks
+    from darp.formats.realsense.bag import chunks as bag_chunks
 
     allocated = []
     monkeypatch.setattr(bag_chunks, "ChunkBuffer", lambda size: allocated.append(size) or ChunkBuffer(size))

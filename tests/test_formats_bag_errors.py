@@ -10,11 +10,11 @@ import pytest
 from test_formats_bag import DEVICE, profiles, write_sample
 
 from darp.errors import DarpError, RecordingError
-from darp.formats.bag_reader import BagRecording
-from darp.formats.bag_writer import BagWriter
-from darp.formats.recording import open_recording
-from darp.formats.recording_types import StreamProfile
-from darp.formats.rosbag1 import MAGIC, load_index, read_record
+from darp.formats.realsense.bag.reader import BagRecording
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.recording import open_recording
+from darp.formats.realsense.rosbag1.index import MAGIC, load_index, read_record
+from darp.formats.realsense.types import StreamProfile
 
 CHUNKED = 20_000  # small chunks: about one frame set each at 64x48
 

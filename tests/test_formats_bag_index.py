@@ -1,4 +1,4 @@
-"""The ROS1 bag index's fast path (darp.formats.rosbag1_usual) against the general per-record path on
+"""The ROS1 bag index's fast path (darp.formats.realsense.rosbag1.usual) against the general per-record path on
 the same bytes: identical BagIndex contents, or the identical error, on genuine librealsense bags, darp's
 own (LZ4 and uncompressed, many chunks) and damaged copies; and against rosbags' reader as an outside oracle."""
 
@@ -13,8 +13,8 @@ from rosbags.rosbag1 import Reader
 from test_formats_bag import write_sample
 
 from darp.errors import RecordingError
-from darp.formats import rosbag1
-from darp.formats.rosbag1 import MAGIC, ByteSource, load_index, read_record
+from darp.formats.realsense.rosbag1 import index as rosbag1
+from darp.formats.realsense.rosbag1.index import MAGIC, ByteSource, load_index, read_record
 
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
 GENUINE = sorted(FIXTURES.glob("*.bag"))

@@ -18,8 +18,8 @@ import pytest
 from realsense_playback import play_back
 
 from darp.errors import RecordingError
-from darp.formats.db3_reader import Db3Recording, parse_key_values
-from darp.formats.recording import open_recording
+from darp.formats.realsense.db3.reader import Db3Recording, parse_key_values
+from darp.formats.realsense.recording import open_recording
 
 rs = pytest.importorskip("pyrealsense2")
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from darp.errors import RecordingError
-from darp.formats.recording import open_recording
+from darp.formats.realsense.recording import open_recording
 
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
 GENUINE = sorted(FIXTURES.glob("rs25*.*"))

@@ -155,8 +155,8 @@ def test_find_survey_folders_expands_parents(tmp_path: Path) -> None:
 def _real_bag(path: Path, serial: str, n_depth: int) -> None:
     import numpy as np
 
-    from darp.formats.bag_writer import BagWriter
-    from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
+    from darp.formats.realsense.bag.writer import BagWriter
+    from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 
     intr = Intrinsics(16, 12, 15.0, 15.0, 7.5, 5.5)
     with BagWriter(path, DeviceInfo("Intel RealSense D435", serial),

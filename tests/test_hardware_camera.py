@@ -15,7 +15,7 @@ import pytest
 from fakes.fixtures import fake_rs  # noqa: F401 (pytest fixtures)
 
 from darp.errors import HardwareError
-from darp.formats.recording import open_recording
+from darp.formats.realsense.recording import open_recording
 from darp.hardware.realsense_camera import CameraSettings, RealSenseCamera
 
 SERIAL = "348522076490"

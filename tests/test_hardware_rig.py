@@ -9,10 +9,10 @@ import pytest
 import yaml
 from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
-from darp.acquisition.backend import ArmBackend, JointState
+from darp.backend import ArmBackend, JointState
 from darp.errors import ConfigError, FormatError, HardwareError
 from darp.formats.arm_poses import read_arm_poses
-from darp.formats.recording import open_recording
+from darp.formats.realsense.recording import open_recording
 from darp.hardware.joint_logger import JointLogger
 from darp.hardware.rig import HardwareRig
 from darp.kinematics.rig import default_rig_path, load_rig

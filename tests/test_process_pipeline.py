@@ -10,18 +10,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from darp.evaluation.results import PROCESS_STAGES, aggregate_results, read_results
 from darp.formats.survey import open_survey
+from darp.formats.truth import read_camera_poses
 from darp.kinematics.rig import load_rig
+from darp.processing.pipeline import SurveyJob, process_survey, read_stage_state
+from darp.processing.results import PROCESS_STAGES, aggregate_results, read_results
+from darp.processing.settings import ProcessSettings
 from darp.reconstruction.backproject import world_points
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
 from darp.reconstruction.keyframe_io import iter_keyframes, read_keyframe_index
-from darp.reconstruction.pipeline import SurveyJob, process_survey, read_stage_state
-from darp.reconstruction.process_settings import ProcessSettings
-from darp.twin.objects import ObjectPlacement, make_object
+from darp.twin.objects.model import ObjectPlacement, make_object
 from darp.twin.record import record_survey
 from darp.twin.settings import TwinSettings
-from darp.twin.truth import read_camera_poses, read_truth
+from darp.twin.truth import read_truth
 from darp.twin.waypoints import WaypointPlan, orbit_waypoints
 
 pytestmark = pytest.mark.slow

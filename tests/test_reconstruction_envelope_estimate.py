@@ -20,6 +20,7 @@ from darp.cli._app import run
 from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
 from darp.formats.survey import open_survey
+from darp.processing.pipeline import SurveyJob
 from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.envelope_estimate import (
     EnvelopeEstimate,
@@ -31,7 +32,6 @@ from darp.reconstruction.envelope_estimate import (
     still_view_poses,
 )
 from darp.reconstruction.keyframes import look_at_point
-from darp.reconstruction.pipeline import SurveyJob
 from darp.reconstruction.voxel_stats import frame_stats, merge_stats
 from darp.twin.truth import read_truth
 
@@ -208,7 +208,7 @@ def survey_state(folder: Path) -> dict[str, tuple[int, int]]:
 def record_empty_survey(folder: Path) -> Path:
     """One view per arm of a table with nothing above it (a 1.6 mm thin square: the cube at scale 0.1)."""
     from darp.kinematics.rig import load_rig
-    from darp.twin.objects import ObjectPlacement, make_object
+    from darp.twin.objects.model import ObjectPlacement, make_object
     from darp.twin.record import record_survey
     from darp.twin.settings import TwinSettings
     from darp.twin.waypoints import WaypointPlan, orbit_waypoints

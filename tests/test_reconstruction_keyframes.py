@@ -12,7 +12,7 @@ import pytest
 from synthetic_depth import look_at, small_intrinsics
 
 from darp.errors import FormatError, ReconstructionError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.camera_poses import POSED, CameraPoses
 from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb, project_points
 from darp.reconstruction.keyframe_io import (

@@ -15,8 +15,8 @@ import pytest
 from darp.calibration.board import DEFAULT_BOARD
 from darp.errors import CalibrationError, TwinError
 from darp.formats.calibration import CharucoBoardSpec
-from darp.twin.board import BOARD_THICKNESS_M, BoardTexture, add_charuco_board
-from darp.twin.render import mujoco
+from darp.twin.camera.render import mujoco
+from darp.twin.objects.board import BOARD_THICKNESS_M, BoardTexture, add_charuco_board
 
 BOARD_7X5 = CharucoBoardSpec(squares_x=7, squares_y=5, square_length_m=0.03, marker_length_m=0.022,
                              dictionary="DICT_5X5_100")

@@ -15,12 +15,12 @@ import pytest
 from darp.calibration.board import corners_board_m, cv_board
 from darp.errors import ConfigError, TwinError
 from darp.formats.calibration import CharucoBoardSpec
-from darp.formats.recording_types import Intrinsics
-from darp.twin.board import add_charuco_board
-from darp.twin.camera_spec import draw_unit, make_camera_spec, with_resolution
-from darp.twin.imu import ImuSettings, ImuSimulator, pose_function_from_samples
-from darp.twin.render import SceneRenderer, mujoco
-from darp.twin.sensor import TwinCamera, TwinCameraSettings, dark_geom_dropouts
+from darp.formats.realsense.types import Intrinsics
+from darp.twin.camera.imu import ImuSettings, ImuSimulator, pose_function_from_samples
+from darp.twin.camera.render import SceneRenderer, mujoco
+from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings, dark_geom_dropouts
+from darp.twin.camera.spec import draw_unit, make_camera_spec, with_resolution
+from darp.twin.objects.board import add_charuco_board
 
 SUBPIXEL = 0.08
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from darp.errors import TwinError
-from darp.twin.depth_model import (
+from darp.twin.camera.depth_model import (
     DepthModel,
     DepthNoiseSettings,
     depth_to_z16,

@@ -24,13 +24,13 @@ from realsense_playback import play_back
 from scipy.spatial.transform import Rotation
 
 from darp.errors import RecordingError, TwinError
-from darp.formats.bag_reader import BagRecording
-from darp.formats.bag_writer import BagWriter
-from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
-from darp.twin.camera_spec import make_camera_spec
-from darp.twin.depth_model import _window_min, occluded_from_right_scanline
-from darp.twin.render import NO_GEOM, SceneRenderer, geom_image_region, mujoco
-from darp.twin.sensor import TwinCamera, TwinCameraSettings
+from darp.formats.realsense.bag.reader import BagRecording
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
+from darp.twin.camera.depth_model import _window_min, occluded_from_right_scanline
+from darp.twin.camera.render import NO_GEOM, SceneRenderer, geom_image_region, mujoco
+from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings
+from darp.twin.camera.spec import make_camera_spec
 
 
 # ======================================================================================================

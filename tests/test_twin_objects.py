@@ -17,8 +17,7 @@ import trimesh
 from scipy.spatial import Delaunay
 
 from darp.errors import DarpError, TwinError
-from darp.twin.object_plot import render
-from darp.twin.objects import (
+from darp.twin.objects.model import (
     OBJECT_NAMES,
     PAPER_ENVELOPE_CM,
     DiscRegion,
@@ -33,6 +32,7 @@ from darp.twin.objects import (
     save_truth_mesh,
     to_world,
 )
+from darp.twin.objects.plot import render
 
 PAPER_NAMES = [n for n in OBJECT_NAMES if PAPER_ENVELOPE_CM[n] is not None]
 _CACHE: dict[str, object] = {}

@@ -16,13 +16,13 @@ import darp
 from darp.errors import TwinError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
-from darp.formats.recording import open_recording
+from darp.formats.realsense.recording import open_recording
 from darp.formats.survey import open_survey
 from darp.kinematics.camera_poses import camera_poses
 from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import pose_error
-from darp.twin.camera_spec import UnitCalibration, make_camera_spec
-from darp.twin.objects import ObjectPlacement, make_object
+from darp.twin.camera.spec import UnitCalibration, make_camera_spec
+from darp.twin.objects.model import ObjectPlacement, make_object
 from darp.twin.record import record_survey
 from darp.twin.rig_backend import TwinRig
 from darp.twin.settings import TwinSettings

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from darp.errors import ConfigError, KinematicsError, TwinError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics import z1
 from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import look_at, make_transform, rotation_error_rad
@@ -233,7 +233,7 @@ def test_contacts_table_other_arm_and_none_at_park(rig, world) -> None:
 
 
 def test_object_geoms_flags_and_contacts(rig, true_rig) -> None:
-    from darp.twin.object_shapes import ObjectPart
+    from darp.twin.objects.shapes import ObjectPart
 
     box = trimesh.creation.box((0.06, 0.06, 0.06))
     box.apply_translation([0.0, 0.0, 0.03])
@@ -257,8 +257,8 @@ def test_object_geoms_flags_and_contacts(rig, true_rig) -> None:
 
 
 def test_part_texture_row_zero_is_the_top_of_v(rig, true_rig) -> None:
-    from darp.twin.object_shapes import ObjectPart
-    from darp.twin.render import SceneRenderer
+    from darp.twin.camera.render import SceneRenderer
+    from darp.twin.objects.shapes import ObjectPart
 
     texture = np.full((64, 64, 3), 255, np.uint8)
     texture[:8] = (255, 0, 0)  # image row 0 is v = 1 (ObjectPart convention): the quad's +y edge
@@ -282,8 +282,8 @@ def test_board_lies_on_the_table_where_its_pose_says(rig, true_rig) -> None:
 
     from darp.calibration.board import corners_board_m, cv_board
     from darp.formats.calibration import CharucoBoardSpec
-    from darp.twin.board import BOARD_THICKNESS_M
-    from darp.twin.render import SceneRenderer
+    from darp.twin.camera.render import SceneRenderer
+    from darp.twin.objects.board import BOARD_THICKNESS_M
 
     board = CharucoBoardSpec(squares_x=7, squares_y=5, square_length_m=0.03, marker_length_m=0.022,
                              dictionary="DICT_5X5_100")

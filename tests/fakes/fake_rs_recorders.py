@@ -1,7 +1,7 @@
 """What the fake pyrealsense2 records with: the container the real SDK version would write.
 
 - pyrealsense2 <= 2.57 semantics: a ROS1 ``.bag`` in librealsense's layout, written by darp's own
-  :class:`~darp.formats.bag_writer.BagWriter` (itself checked against pyrealsense2 playback elsewhere).
+  :class:`~darp.formats.realsense.bag.writer.BagWriter` (itself checked against pyrealsense2 playback elsewhere).
 - pyrealsense2 >= 2.58 semantics: a genuine ROS2 ``.db3`` written by the *real* librealsense recorder
   (``rs.recorder`` over an ``rs.software_device`` that replays the fake camera's frames), so the file is
   exactly what the SDK writes.
@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.formats.bag_writer import BagWriter
-from darp.formats.recording_types import DeviceInfo, Intrinsics, StreamProfile
+from darp.formats.realsense.bag.writer import BagWriter
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 
 # darp stream key -> (librealsense stream name, index, sensor index, format, bytes per pixel)
 STREAMS = {"depth": ("Depth", 0, 0, "z16", 2), "ir1": ("Infrared", 1, 0, "y8", 1), "ir2": ("Infrared", 2, 0, "y8", 1),

@@ -27,7 +27,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from darp.acquisition.backend import Clock
+from darp.backend import Clock
 from darp.errors import AcquisitionError
 from darp.formats.atomic import write_json_atomic, write_text_atomic
 from darp.formats.schema import to_jsonable

@@ -35,10 +35,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
-from scipy.spatial import ConvexHull, QhullError
 
 from darp.errors import AcquisitionError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
+from darp.geometry import min_enclosing_circle
 from darp.kinematics.rig import Rig, Workspace
 
 Array = NDArray[np.float64]
@@ -158,52 +158,6 @@ def fit_table_plane(points: Array, table_z: float, band_m: float) -> tuple[Array
     return coef, len(sel)
 
 
-def min_enclosing_circle(points_xy: Array) -> tuple[Array, float]:
-    """Smallest circle enclosing 2-D points: (centre (2,), radius). Welzl's incremental algorithm on
-    the convex hull's vertices, in a fixed order (deterministic)."""
-    P = np.asarray(points_xy, dtype=np.float64)
-    if len(P) == 0:
-        raise AcquisitionError("no points to enclose")
-    if len(P) > 3:
-        try:
-            P = P[ConvexHull(P).vertices]
-        except QhullError:  # collinear or coincident: all points are on a line
-            pass
-    P = P[np.random.default_rng(0).permutation(len(P))]
-
-    def circle2(a: Array, b: Array) -> tuple[Array, float]:
-        c = 0.5 * (a + b)
-        return c, float(np.linalg.norm(a - c))
-
-    def circle3(a: Array, b: Array, c: Array) -> tuple[Array, float]:
-        d = 2.0 * (a[0] * (b[1] - c[1]) + b[0] * (c[1] - a[1]) + c[0] * (a[1] - b[1]))
-        if abs(d) < 1e-15:  # collinear: the widest pair
-            pairs = [circle2(a, b), circle2(a, c), circle2(b, c)]
-            return max(pairs, key=lambda p: p[1])
-        sa, sb, sc = a @ a, b @ b, c @ c
-        ux = (sa * (b[1] - c[1]) + sb * (c[1] - a[1]) + sc * (a[1] - b[1])) / d
-        uy = (sa * (c[0] - b[0]) + sb * (a[0] - c[0]) + sc * (b[0] - a[0])) / d
-        centre = np.array([ux, uy])
-        return centre, float(np.linalg.norm(a - centre))
-
-    def inside(c: Array, r: float, p: Array) -> bool:
-        return float(np.linalg.norm(p - c)) <= r + 1e-12
-
-    c, r = P[0].copy(), 0.0
-    for i in range(1, len(P)):
-        if inside(c, r, P[i]):
-            continue
-        c, r = P[i].copy(), 0.0
-        for j in range(i):
-            if inside(c, r, P[j]):
-                continue
-            c, r = circle2(P[i], P[j])
-            for k in range(j):
-                if not inside(c, r, P[k]):
-                    c, r = circle3(P[i], P[j], P[k])
-    return c, r
-
-
 def _largest_blob(xy: Array, lo: Array, hi: Array, cell_m: float, min_cell_points: int) -> Array:
     """Indices of the points in the largest 8-connected blob of occupied grid cells (by points)."""
     shape = np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
@@ -318,4 +272,4 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
 
 
 __all__ = ["REJECTION_REASONS", "LocaliseSettings", "ObjectEstimate", "Observation", "backproject",
-           "estimate_from_depth", "fit_table_plane", "in_workspace_xy", "min_enclosing_circle"]
+           "estimate_from_depth", "fit_table_plane", "in_workspace_xy"]

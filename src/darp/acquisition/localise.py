@@ -21,14 +21,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from darp.acquisition.backend import LiveFrameSet, RigBackend
 from darp.acquisition.estimate import (
     REJECTION_REASONS,
     LocaliseSettings,
     ObjectEstimate,
     Observation,
     estimate_from_depth,
-    min_enclosing_circle,
 )
 from darp.acquisition.motion_check import (
     ArmCollisionModel,
@@ -40,8 +38,9 @@ from darp.acquisition.motion_check import (
     workspace_obstacle,
 )
 from darp.acquisition.viewpoints import Candidate, ViewpointPlanner, ViewpointSettings, standoff_for_radius
+from darp.backend import LiveFrameSet, RigBackend
 from darp.formats.calibration import Calibration
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.rig import Rig
 
 Array = NDArray[np.float64]
@@ -256,5 +255,5 @@ class Localiser:
 
 __all__ = [  # the estimator's names are re-exported: localise is the stage's entry point
     "HINT_REASONS", "REJECTION_REASONS", "LocalisationResult", "LocaliseSettings", "Localiser", "ObjectEstimate",
-    "Observation", "capture_view", "estimate_from_depth", "min_enclosing_circle", "search_targets",
+    "Observation", "capture_view", "estimate_from_depth", "search_targets",
 ]

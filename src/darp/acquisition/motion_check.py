@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from darp.acquisition.backend import RigBackend
+from darp.backend import RigBackend
 from darp.errors import AcquisitionError
 from darp.formats.calibration import Calibration
 from darp.kinematics import collision, z1

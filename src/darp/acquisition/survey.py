@@ -1,6 +1,6 @@
 """The autonomous object survey: localise, confirm, plan, record, verify, write the episode.
 
-One procedure drives the twin and real hardware through :class:`~darp.acquisition.backend.RigBackend`:
+One procedure drives the twin and real hardware through :class:`~darp.backend.RigBackend`:
 
 1. park both arms;
 2. **localise** with the searching arm (the other parked) and **confirm** with the other arm looking
@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from darp.acquisition.backend import RigBackend
 from darp.acquisition.confirm import ConfirmSettings, Decision, decide
 from darp.acquisition.episode import Episode
 from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSettings, ObjectEstimate
@@ -51,6 +50,7 @@ from darp.acquisition.viewpoints import (
     min_depth_from_intrinsics,
     standoff_for_radius,
 )
+from darp.backend import RigBackend
 from darp.errors import AcquisitionError
 from darp.formats.calibration import Calibration
 from darp.formats.envelope import ENVELOPE_FILE, Envelope, write_envelope

@@ -31,7 +31,7 @@ from darp.acquisition.viewpoints import envelope_points
 from darp.errors import DarpError
 from darp.formats.arm_poses import ArmPoseLog
 from darp.formats.calibration import Calibration
-from darp.formats.recording import Recording
+from darp.formats.realsense.recording import Recording
 from darp.formats.survey import open_survey
 from darp.kinematics.camera_poses import POSED, interpolate_joints
 from darp.kinematics.rig import Rig

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 
 from darp.acquisition.motion_check import ArmCollisionModel
 from darp.errors import AcquisitionError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics import z1
 from darp.kinematics.ik import solve_look_at
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from darp.acquisition.backend import RigBackend
+from darp.backend import RigBackend
 from darp.calibration.captures import CaptureWriter
 from darp.calibration.plan import CapturePlan
 from darp.errors import CalibrationError

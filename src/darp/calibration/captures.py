@@ -40,7 +40,7 @@ from darp.errors import CalibrationError, FormatError
 from darp.formats.atomic import atomic_path
 from darp.formats.calibration import CharucoBoardSpec
 from darp.formats.calibration import board_from_dict as parse_board
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.formats.schema import (
     as_array,
     as_dict,

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from darp.errors import CalibrationError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.transforms import rotation_to_rotvec, rotvec_to_rotation
 
 FORWARD_MODELS = ("Brown Conrady", "Modified Brown Conrady", "Inverse Brown Conrady")

@@ -31,7 +31,7 @@ from darp.calibration.board import board_size_m, corners_board_m
 from darp.calibration.captures import board_from_dict, board_to_dict
 from darp.errors import CalibrationError, FormatError
 from darp.formats.calibration import CharucoBoardSpec
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.formats.schema import as_array, load_json_object, write_json_checked
 from darp.kinematics import collision, z1
 from darp.kinematics.ik import solve_look_at

@@ -8,6 +8,7 @@ import typer
 
 from darp.errors import DarpError
 
+
 def _click_error_types() -> tuple[type[BaseException], ...]:
     """Click's exception base, from click itself and from the copy recent typer versions vendor."""
     import click

@@ -37,7 +37,7 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
                  mount_offsets: dict[str, np.ndarray] | None = None, overwrite: bool = False,
                  on_capture: Callable[[str, int], None] | None = None) -> CaptureSet:
     """Plan (unless given) and run calibration captures on the twin; returns the capture folder."""
-    from darp.twin.board import BOARD_THICKNESS_M
+    from darp.twin.objects.board import BOARD_THICKNESS_M
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
 

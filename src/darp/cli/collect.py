@@ -25,7 +25,7 @@ PHASES = {"localise": "localising", "confirm": "confirming", "plan": "planning",
 
 
 def _object(spec: str, scale: float) -> Any:
-    from darp.twin.objects import load_mesh_object, make_object
+    from darp.twin.objects.model import load_mesh_object, make_object
 
     path = Path(spec)
     if path.suffix.lower() in MESH_SUFFIXES or path.exists():
@@ -36,7 +36,7 @@ def _object(spec: str, scale: float) -> Any:
 def _placement(text: str | None, obj: Any, rig: Any, seed: int) -> Any:
     import numpy as np
 
-    from darp.twin.objects import ObjectPlacement, RectRegion, random_placement
+    from darp.twin.objects.model import ObjectPlacement, RectRegion, random_placement
 
     z = rig.table.height_m
     if text is not None:
@@ -151,11 +151,12 @@ def _collect_twin(name: str, obj_name: str, scale: float, placement: str | None,
                   quiet: bool) -> None:
     from darp.acquisition.survey import run_survey
     from darp.formats.atomic import write_json_atomic
+    from darp.formats.truth import TRUTH_DIR
     from darp.kinematics.rig import load_rig
-    from darp.twin.objects import to_world
+    from darp.twin.objects.model import to_world
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
-    from darp.twin.truth import TRUTH_DIR, write_truth
+    from darp.twin.truth import write_truth
 
     rig = load_rig(rig_file)
     w, h = _resolution(resolution)

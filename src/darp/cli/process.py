@@ -24,7 +24,7 @@ def _warn_estimated_envelope(survey: str, envelope: dict[str, Any] | None) -> No
 
 
 def _settings(path: Path | None) -> Any:
-    from darp.reconstruction.process_settings import ProcessSettings, load_settings
+    from darp.processing.settings import ProcessSettings, load_settings
 
     return ProcessSettings() if path is None else load_settings(path)
 
@@ -35,7 +35,7 @@ def _job(survey_path: Path, out: Path, calibration: Path | None, truth_poses: bo
     from darp.errors import DarpError
     from darp.formats.calibration import read_calibration
     from darp.formats.survey import open_survey
-    from darp.reconstruction.pipeline import SurveyJob
+    from darp.processing.pipeline import SurveyJob
 
     if calibration is not None:
         cal = read_calibration(calibration)
@@ -90,7 +90,7 @@ def keyframes(
     from rich.console import Console
     from rich.table import Table
 
-    from darp.reconstruction.pipeline import stage_keyframes, stage_poses
+    from darp.processing.pipeline import stage_keyframes, stage_poses
 
     settings = _settings(settings_file)
     with _progress_bars() as progress:
@@ -126,9 +126,9 @@ def process(
     from rich.table import Table
 
     from darp.errors import DarpError
-    from darp.evaluation.results import PROCESS_STAGES, write_summary
     from darp.formats.survey import find_survey_folders
-    from darp.reconstruction.pipeline import process_survey
+    from darp.processing.pipeline import process_survey
+    from darp.processing.results import PROCESS_STAGES, write_summary
 
     settings = _settings(settings_file)
     folders = find_survey_folders(surveys)
@@ -147,7 +147,7 @@ def process(
             progress.advance(overall)
     summary_path = write_summary(out, done)
 
-    from darp.evaluation.results import read_results
+    from darp.processing.results import read_results
 
     def mm(value: Any) -> str:
         return "-" if value is None else f"{value:.2f}"
@@ -178,7 +178,7 @@ def report(
     out: Path = typer.Argument(..., help="Output folder of darp process."),
 ) -> None:
     """Write report.md and report.html (every table and figure across the processed surveys)."""
-    from darp.evaluation.report import write_report
+    from darp.processing.report import write_report
 
     md_path, html_path = write_report(out)
     typer.echo(f"wrote {md_path}")

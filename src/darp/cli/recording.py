@@ -143,7 +143,7 @@ def info_command(
     """Device, streams (format, size, fps, intrinsics, frames, timestamps, rate), extrinsics, depth scale."""
     import json
 
-    from darp.formats.recording import open_recording
+    from darp.formats.realsense.recording import open_recording
 
     with open_recording(file) as recording:
         summary = summarize(recording)
@@ -251,7 +251,7 @@ def export_command(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from darp.formats.atomic import atomic_open, atomic_path, write_json_atomic
-    from darp.formats.recording import open_recording
+    from darp.formats.realsense.recording import open_recording
 
     with open_recording(file) as recording:
         keys = _parse_streams(streams, recording)

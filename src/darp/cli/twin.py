@@ -25,7 +25,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 
 
 def _load_object(spec: str, scale: float) -> Any:
-    from darp.twin.objects import load_mesh_object, make_object
+    from darp.twin.objects.model import load_mesh_object, make_object
 
     path = Path(spec)
     if path.suffix.lower() in MESH_SUFFIXES or path.exists():
@@ -45,7 +45,7 @@ def _parse_placement(text: str) -> tuple[float, float, float]:
 def _placement(text: str | None, obj: Any, rig: Any, seed: int) -> Any:
     import numpy as np
 
-    from darp.twin.objects import ObjectPlacement, RectRegion, random_placement
+    from darp.twin.objects.model import ObjectPlacement, RectRegion, random_placement
 
     z = rig.table.height_m
     if text is not None:
@@ -165,7 +165,7 @@ def waypoints_command(
 @twin_app.command("objects")
 def objects_command() -> None:
     """List the twin's built-in objects with their envelopes (and the paper's)."""
-    from darp.twin.objects import OBJECT_NAMES, make_object
+    from darp.twin.objects.model import OBJECT_NAMES, make_object
 
     typer.echo(f"{'object':<14} {'radius_cm':>9} {'height_cm':>9} {'paper_r_cm':>10} {'paper_h_cm':>10} parts")
     for name in OBJECT_NAMES:

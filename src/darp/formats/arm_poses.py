@@ -26,6 +26,7 @@ from typing import NoReturn
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.text import read_utf8_text
 
 JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")
 COLUMNS = ("time_s", "arm", *JOINT_COLUMNS)
@@ -104,14 +105,7 @@ def read_arm_poses(
     instead of refusing them. ``strict_tail`` makes a cut-short last line an error instead of dropping it.
     """
     path = Path(path)
-    try:
-        text = path.read_bytes().decode("utf-8-sig")
-    except FileNotFoundError:
-        raise FormatError("no such file", path) from None
-    except IsADirectoryError:
-        raise FormatError("is a folder, not a CSV file", path) from None
-    except UnicodeDecodeError as err:
-        raise FormatError(f"not UTF-8 text (byte {err.start})", path) from err
+    text = read_utf8_text(path, "a CSV file")
     if not text.strip():
         raise FormatError("empty file: expected a header row " + ",".join(COLUMNS), path)
 

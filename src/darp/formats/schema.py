@@ -17,6 +17,7 @@ import numpy as np
 
 from darp.errors import FormatError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.text import read_utf8_text
 
 RIGID_TOLERANCE = 1e-5  # max |R^T R - I| entry and |det R - 1| accepted for a stored rotation
 
@@ -24,14 +25,7 @@ RIGID_TOLERANCE = 1e-5  # max |R^T R - I| entry and |det R - 1| accepted for a s
 def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -> dict[str, Any]:
     """Read a JSON file whose top level is an object; syntax errors name the line and column."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise error("no such file", path) from None
-    except IsADirectoryError:
-        raise error("is a folder, not a JSON file", path) from None
-    except UnicodeDecodeError as err:
-        raise error(f"not UTF-8 text (byte {err.start})", path) from err
+    text = read_utf8_text(path, "a JSON file", error)
     if not text.strip():
         raise error("empty file: expected a JSON object", path)
     try:

@@ -21,7 +21,7 @@ from pathlib import Path
 from darp.errors import SurveyError
 from darp.formats.arm_poses import ArmPoseLog, read_arm_poses
 from darp.formats.envelope import ENVELOPE_FILE, Envelope, read_envelope
-from darp.formats.recording import Recording, open_recording
+from darp.formats.realsense.recording import Recording, open_recording
 
 DEFAULT_SERIAL_TO_ARM: dict[str, str] = {"348522076490": "arm110", "405622074504": "arm111"}
 ARM_POSES_FILE = "arm_poses.csv"

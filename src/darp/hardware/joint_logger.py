@@ -1,6 +1,6 @@
 """``JointLogger``: a background thread that writes every arm's joint state to ``arm_poses.csv`` at ~33 Hz.
 
-Each tick reads every arm's :meth:`~darp.acquisition.backend.ArmBackend.read_state` and appends one row
+Each tick reads every arm's :meth:`~darp.backend.ArmBackend.read_state` and appends one row
 per arm with the state's own host-clock time (``time.time()`` seconds, the clock RealSense global
 timestamps use), through :class:`~darp.formats.arm_poses.ArmPoseWriter` (validated, flushed every few
 rows, fsynced on close). Ticks follow an absolute schedule, so the mean rate does not drift when a read
@@ -19,7 +19,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Self
 
-from darp.acquisition.backend import ArmBackend
+from darp.backend import ArmBackend
 from darp.errors import DarpError, HardwareError
 from darp.formats.arm_poses import ArmPoseWriter
 

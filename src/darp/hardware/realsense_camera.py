@@ -36,9 +36,9 @@ from typing import Self
 
 import numpy as np
 
-from darp.acquisition.backend import CameraBackend, LiveFrameSet
+from darp.backend import CameraBackend, LiveFrameSet
 from darp.errors import ConfigError, HardwareError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.hardware import sdk as sdk_loader
 
 log = logging.getLogger(__name__)

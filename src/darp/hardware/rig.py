@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.acquisition.backend import ArmBackend, CameraBackend, Clock, RigBackend
+from darp.backend import ArmBackend, CameraBackend, Clock, RigBackend
 from darp.errors import DarpError, HardwareError
 from darp.hardware.joint_logger import JointLogger
 from darp.hardware.realsense_camera import RealSenseCamera

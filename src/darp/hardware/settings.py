@@ -26,10 +26,10 @@ from pathlib import Path
 from typing import Any
 
 from darp.errors import ConfigError
+from darp.formats.text import read_yaml_mapping
 from darp.hardware.joint_logger import DEFAULT_RATE_HZ
 from darp.hardware.realsense_camera import CameraSettings
 from darp.hardware.z1_arm import DEFAULT_CONTROLLER_PORT, DEFAULT_SDK_PORT, MotionLimits, Z1Connection
-from darp.kinematics import rig_yaml
 
 SECTION = "hardware"
 _WORDS = {int: "an integer", float: "a number", bool: "true or false", str: "a string", dict: "a mapping"}
@@ -143,7 +143,7 @@ def _check_ports(arms: Mapping[str, Z1Connection]) -> None:
 def load_hardware_settings(path: str | Path, arm_ids: Sequence[str]) -> HardwareSettings:
     """The ``hardware:`` section of the rig file ``path`` (defaults when absent); errors name the file."""
     path = Path(path)
-    data = rig_yaml.read_yaml_mapping(path)
+    data = read_yaml_mapping(path)
     try:
         return hardware_settings_from_dict(data.get(SECTION), arm_ids)
     except ConfigError as err:

@@ -35,7 +35,7 @@ from typing import Self
 
 import numpy as np
 
-from darp.acquisition.backend import ArmBackend, JointState
+from darp.backend import ArmBackend, JointState
 from darp.errors import ConfigError, HardwareError, KinematicsError
 from darp.hardware import sdk as sdk_loader
 from darp.hardware.trajectory import JointPlan, plan_hold, plan_move, plan_stop

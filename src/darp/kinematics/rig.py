@@ -18,6 +18,7 @@ import numpy as np
 
 from darp.errors import ConfigError, KinematicsError
 from darp.formats.calibration import ArmCalibration, Calibration
+from darp.formats.text import read_yaml_mapping
 from darp.kinematics import collision, rig_yaml, z1
 from darp.kinematics.camera_poses import compose_world_cam
 
@@ -391,7 +392,7 @@ def rig_from_dict(data: Mapping[str, Any], source: Path | None = None) -> Rig:
 def load_rig(path: str | Path | None = None) -> Rig:
     """Load a rig YAML file (None: the packaged default). Errors are ConfigErrors naming the file."""
     path = default_rig_path() if path is None else Path(path)
-    data = rig_yaml.read_yaml_mapping(path)
+    data = read_yaml_mapping(path)
     try:
         return rig_from_dict(data, source=path)
     except ConfigError as err:

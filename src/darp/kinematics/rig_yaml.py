@@ -9,7 +9,6 @@ Every error is a :class:`ConfigError` naming the field (``arms.arm110.T_flange_c
 from __future__ import annotations
 
 from collections.abc import Mapping
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -22,32 +21,6 @@ if TYPE_CHECKING:
     from darp.kinematics.rig import Rig
 
 RIGID_TOLERANCE = 1e-6  # accepted |R^T R - I| and |det R - 1| for a matrix given in a rig file
-
-
-def read_yaml_mapping(path: Path, *, empty_ok: bool = False) -> dict[str, Any]:
-    """Parse a YAML (or JSON) file whose top level is a mapping; every failure is a ConfigError naming
-    ``path``. ``empty_ok``: an empty file is an empty mapping (a settings file that changes nothing)."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError("no such file", path) from None
-    except IsADirectoryError:
-        raise ConfigError("is a folder, not a file", path) from None
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"not UTF-8 text (byte {err.start})", path) from err
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
-        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ConfigError(f"invalid YAML{where}: {problem}", path) from None
-    if data is None and empty_ok:
-        return {}
-    if not isinstance(data, dict):
-        kind = "empty" if data is None else type(data).__name__
-        raise ConfigError(f"top level must be a mapping, got {kind}", path)
-    return data
 
 
 class FieldReader:

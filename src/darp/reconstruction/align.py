@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from darp.errors import ReconstructionError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.reconstruction.backproject import check_pose, depth_to_metres, pixel_rays
 
 DEFAULT_OCCLUSION_TOLERANCE_M = 0.01  # deeper than the z-buffer by more than this (+1 % of z): hidden

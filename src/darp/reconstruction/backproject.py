@@ -33,7 +33,7 @@ from typing import Protocol
 import numpy as np
 
 from darp.errors import ReconstructionError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.reconstruction.depth_edges import HOLE_SEARCH_PX, depth_normals, edge_free_mask, normals_at
 
 _UNDISTORT_ITERATIONS = 30

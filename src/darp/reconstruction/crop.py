@@ -22,7 +22,7 @@ import numpy as np
 
 from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 from darp.reconstruction.backproject import check_pose, depth_to_metres, region_window, world_points
 
 DEFAULT_MARGIN_M = 0.01

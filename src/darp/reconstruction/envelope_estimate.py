@@ -60,10 +60,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from darp.acquisition.estimate import min_enclosing_circle
 from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
-from darp.formats.recording import Recording
+from darp.formats.realsense.recording import Recording
+from darp.geometry import min_enclosing_circle
 from darp.reconstruction.backproject import DepthFilterSettings, PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.keyframes import (

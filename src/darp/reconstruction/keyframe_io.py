@@ -46,8 +46,8 @@ import numpy as np
 
 from darp.errors import FormatError, ReconstructionError
 from darp.formats.atomic import atomic_open, write_json_atomic
-from darp.formats.recording import Recording
-from darp.formats.recording_types import FrameSet, Intrinsics
+from darp.formats.realsense.recording import Recording
+from darp.formats.realsense.types import FrameSet, Intrinsics
 from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb
 from darp.reconstruction.backproject import PosedDepth, depth_to_metres
 from darp.reconstruction.crop import EnvelopeCrop, support_mask

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from darp.errors import ReconstructionError
-from darp.formats.recording_types import Intrinsics
+from darp.formats.realsense.types import Intrinsics
 
 FUSE, HELDOUT = "fuse", "heldout"
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from darp.acquisition.backend import ArmBackend, JointState
+from darp.backend import ArmBackend, JointState
 from darp.errors import KinematicsError, TwinError
 from darp.kinematics import z1
 from darp.twin.clock import NS_PER_S, SimClock

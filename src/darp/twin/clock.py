@@ -18,7 +18,7 @@ import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from darp.acquisition.backend import Clock
+from darp.backend import Clock
 from darp.errors import TwinError
 
 NS_PER_S = 1_000_000_000

@@ -166,7 +166,7 @@ def record_survey(
                 extra={"source": "darp twin record: the object's true envelope"},
             )
             write_envelope(partial / ENVELOPE_FILE, envelope)
-            from darp.twin.objects import to_world
+            from darp.twin.objects.model import to_world
 
             write_truth(partial, true_rig=twin.true_rig, settings=settings,
                         camera_poses={a: c.truth for a, c in twin.cameras.items()},

@@ -19,12 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from darp.acquisition.backend import RigBackend
+from darp.backend import RigBackend
 from darp.errors import TwinError
 from darp.formats.arm_poses import ArmPoseWriter
 from darp.kinematics.rig import Rig, load_rig
 from darp.twin.arm_sim import SimArm
-from darp.twin.camera_backend import TwinCameraBackend
+from darp.twin.camera.backend import TwinCameraBackend
 from darp.twin.clock import NS_PER_S, SimClock, s_to_ns
 from darp.twin.settings import TwinSettings
 from darp.twin.truth import TrueRig, draw_true_rig
@@ -48,7 +48,7 @@ class TwinRig(RigBackend):
                  obj: Any | None = None, placement: Any | None = None, board: Any | None = None,
                  T_world_board: np.ndarray | None = None,
                  q_initial_rad: dict[str, np.ndarray] | None = None, camera_workers: bool = False) -> None:
-        """``obj``: a :class:`darp.twin.objects.TwinObject` placed by ``placement`` (an ``ObjectPlacement``);
+        """``obj``: a :class:`darp.twin.objects.model.TwinObject` placed by ``placement`` (an ``ObjectPlacement``);
         ``board``: a :class:`darp.formats.calibration.CharucoBoardSpec` lying on the table at ``T_world_board``;
         ``q_initial_rad``: starting SDK angles per arm (default: the rig's park configurations);
         ``camera_workers``: render and record each camera in its own subprocess (same files, faster on
@@ -92,11 +92,11 @@ class TwinRig(RigBackend):
 
     # -- cameras ----------------------------------------------------------------------------------
     def _build_cameras(self, workers: bool) -> None:
-        from darp.twin.camera_spec import UnitCalibration, draw_unit, make_camera_spec
-        from darp.twin.camera_worker import CameraWorker, available_cores
-        from darp.twin.imu import ImuSettings, ImuSimulator
-        from darp.twin.render import SceneRenderer
-        from darp.twin.sensor import TwinCamera, TwinCameraSettings
+        from darp.twin.camera.imu import ImuSettings, ImuSimulator
+        from darp.twin.camera.render import SceneRenderer
+        from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings
+        from darp.twin.camera.spec import UnitCalibration, draw_unit, make_camera_spec
+        from darp.twin.camera.worker import CameraWorker, available_cores
 
         c, s = self.settings.camera, self.settings
         size = (c.width, c.height)

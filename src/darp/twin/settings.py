@@ -35,7 +35,7 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
-from darp.kinematics.rig_yaml import read_yaml_mapping
+from darp.formats.text import read_yaml_mapping
 
 SCHEMA = "darp-twin-settings/1"
 PROFILES = ("ideal", "realistic")

@@ -15,7 +15,7 @@ Scene (world frame of the rig file: z up, table top at ``rig.table.height_m``):
 - the object: one mesh geom per part in body ``object`` at ``T_world_object``, with colours, textures
   and per-part material flags (``dark``, ``specular``, ``transparent``) exposed per geom id for the
   camera's dropout model;
-- optionally a ChArUco board lying face-up on the table (:func:`darp.twin.board.add_charuco_board`).
+- optionally a ChArUco board lying face-up on the table (:func:`darp.twin.objects.board.add_charuco_board`).
 
 Contacts: collision bits make every arm geom collide with the table, the object and the other arm,
 and nothing else (no self-contacts within an arm, no table-object contact; each base stands on the
@@ -38,7 +38,7 @@ from darp.formats.calibration import CharucoBoardSpec
 from darp.kinematics import z1
 from darp.kinematics.collision import LINK_CYLINDERS
 from darp.kinematics.transforms import make_transform
-from darp.twin.render import mujoco  # render sets MUJOCO_GL before importing mujoco
+from darp.twin.camera.render import mujoco  # render sets MUJOCO_GL before importing mujoco
 
 TABLE_THICKNESS_M = 0.03
 FLOOR_DROP_M = 0.75
@@ -265,7 +265,7 @@ class TwinWorld:
         """``true_arms``: arm id -> object with ``T_world_base`` and ``T_flange_cam`` (a :class:`TrueArm`).
 
         ``board``: the calibration board record, drawn at ``T_world_board`` with the twin's default
-        texture (:data:`darp.twin.board.DEFAULT_TEXTURE`).
+        texture (:data:`darp.twin.objects.board.DEFAULT_TEXTURE`).
         """
         self.rig = rig
         self.arm_ids = tuple(true_arms)
@@ -290,7 +290,7 @@ class TwinWorld:
         self.board_geom: str | None = None
         self.T_world_board = None if board is None else np.asarray(T_world_board, dtype=float)
         if board is not None:
-            from darp.twin.board import add_charuco_board
+            from darp.twin.objects.board import add_charuco_board
 
             if T_world_board is None:
                 raise TwinError("a board needs its pose T_world_board")

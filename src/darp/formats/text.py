@@ -1,0 +1,55 @@
+"""Reading a user's text file (UTF-8, optional BOM) and YAML mappings, with every failure mapped to
+one darp error that names the file: a missing file, a folder, a file that is not a regular file,
+bytes that are not UTF-8."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from darp.errors import ConfigError, DarpError, FormatError
+
+
+def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatError) -> str:
+    """The text of ``path`` (a leading BOM dropped); ``what`` names the expected kind in the folder
+    error ("is a folder, not a JSON file")."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise error("no such file", path) from None
+    except IsADirectoryError:
+        raise error(f"is a folder, not {what}", path) from None
+    except PermissionError:
+        raise error("permission denied", path) from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        raise error(f"not UTF-8 text (byte {err.start})", path) from err
+
+
+def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, Any]:
+    """Parse a YAML (or JSON) file whose top level is a mapping; every failure is a ConfigError naming
+    ``path``. ``empty_ok``: an empty file is an empty mapping (a settings file that changes nothing)."""
+    path = Path(path)
+    text = read_utf8_text(path, "a file", ConfigError)
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ConfigError(f"invalid YAML{where}: {problem}", path) from None
+    except RecursionError:
+        raise ConfigError("nested too deeply", path) from None
+    if data is None and empty_ok:
+        return {}
+    if not isinstance(data, dict):
+        kind = "empty" if data is None else type(data).__name__
+        raise ConfigError(f"top level must be a mapping, got {kind}", path)
+    return data
+
+
+__all__ = ["read_utf8_text", "read_yaml_mapping"]

@@ -1,0 +1,220 @@
+"""The pipeline's evaluation stage: held-out, cross-arm and truth metrics of one processed survey, and figures.
+
+Inputs are the stage outputs in ``<out>/<survey>/`` (keyframes, clouds, mesh); the raw survey is read
+only for the release-composition row and, for a twin survey, the ``truth/`` folder (true object mesh
+and true camera poses). Raw distances are kept in ``evaluation/*.npz`` so that statistics can be
+pooled over surveys (the paper pools 1,563,466 held-out points of ten objects).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.evaluation.composition import survey_composition
+from darp.evaluation.cross_arm import cross_arm_consistency
+from darp.evaluation.heldout import evaluate_heldout
+from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
+from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M, sample_surface, truth_metrics, visible_in_frames
+from darp.formats.atomic import atomic_path
+from darp.processing.pipeline import FIGURES_DIR, FUSED_FILE, MESH_FILE, SurveyJob
+from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
+from darp.reconstruction.keyframe_io import iter_keyframes, posed_frames, read_keyframe_index
+from darp.reconstruction.keyframes import FUSE, HELDOUT
+
+EVALUATION_DIR = "evaluation"
+HELDOUT_DISTANCES = "heldout_distances.npz"
+TRUTH_DISTANCES = "truth_distances.npz"
+FIGURES = {"cross_arm": "cross_arm.png", "partial_fused": "partial_fused.png", "heldout": "heldout_histogram.png"}
+
+
+def _save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as handle:
+        np.savez(handle, **arrays)
+
+
+def load_distances(path: str | Path) -> dict[str, np.ndarray]:
+    """Arrays of an ``evaluation/*_distances.npz`` file ({} when absent)."""
+    path = Path(path)
+    if not path.is_file():
+        return {}
+    with np.load(path, allow_pickle=False) as data:
+        return {name: data[name] for name in data.files}
+
+
+def _cloud(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    ply = read_ply(path)
+    return ply.points, ply.normals, ply.colours
+
+
+def read_truth_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of the twin's ``truth/object.ply`` (it carries face colours, which
+    :func:`darp.reconstruction.cloud_io.read_ply` does not read: trimesh does)."""
+    import trimesh
+
+    from darp.errors import FormatError
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except (OSError, ValueError) as err:
+        raise FormatError(f"cannot read the true mesh: {err}", path) from err
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
+
+
+def keyframe_pose_pairs(job: SurveyJob) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per arm: the keyframes' poses and the twin's true poses of the same frames, (K, 4, 4) each."""
+    from darp.formats.truth import read_camera_poses
+
+    assert job.survey.truth_path is not None
+    index = read_keyframe_index(job.keyframes_dir)
+    out = {}
+    for arm in sorted({k.arm for k in index.keyframes}):
+        truth = read_camera_poses(job.survey.truth_path / f"camera_poses_{arm}.npz")
+        lookup = {int(n): i for i, n in enumerate(truth["frame_number"])}
+        pairs = [(k.T_world_cam, truth["T_world_cam"][lookup[k.frame_number]])
+                 for k in index.select(arm=arm) if k.frame_number in lookup]
+        if pairs:
+            out[arm] = (np.array([p[0] for p in pairs]), np.array([p[1] for p in pairs]))
+    return out
+
+
+def pose_errors_vs_truth(pairs: dict[str, tuple[np.ndarray, np.ndarray]]) -> dict[str, Any]:
+    """Per arm: how far the keyframes' poses are from the true poses (translation mm, rotation deg)."""
+    from darp.kinematics.transforms import pose_error
+
+    out: dict[str, Any] = {}
+    for arm, (estimated, true) in pairs.items():
+        t_err, r_err = pose_error(estimated, true)
+        t_mm, r_deg = np.asarray(t_err) * 1000.0, np.degrees(np.asarray(r_err))
+        out[arm] = {"keyframes": len(t_mm), "translation_median_mm": round(float(np.median(t_mm)), 4),
+                    "translation_max_mm": round(float(t_mm.max()), 4),
+                    "rotation_median_deg": round(float(np.median(r_deg)), 5),
+                    "rotation_max_deg": round(float(r_deg.max()), 5)}
+    return out
+
+
+def world_gauge(pairs: dict[str, tuple[np.ndarray, np.ndarray]]) -> np.ndarray | None:
+    """The rigid ``T_truthworld_world`` that best maps the keyframes' camera centres (both arms) onto the
+    true ones (Kabsch, least squares), or None with fewer than 3 keyframes.
+
+    A calibration realises its own world frame (e.g. midway between the calibrated base origins); the
+    twin keeps the nominal one. The two differ by a rigid 'gauge' that no held-out or cross-arm measure
+    can see; accuracy after removing it isolates the reconstruction's own error.
+    """
+    if not pairs:
+        return None
+    a = np.concatenate([e[:, :3, 3] for e, _ in pairs.values()])
+    b = np.concatenate([t[:, :3, 3] for _, t in pairs.values()])
+    if len(a) < 3:
+        return None
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, cb - R @ ca
+    return T
+
+
+def _truth(job: SurveyJob, fused: np.ndarray, mesh: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, Any], dict]:
+    settings = job.settings.evaluation
+    assert job.survey.truth_path is not None
+    truth_v, truth_t = read_truth_mesh(job.survey.truth_path / "object.ply")
+    rng = np.random.default_rng(settings.seed)
+    samples, normals = sample_surface(truth_v, truth_t, rng, spacing_m=settings.truth_sample_spacing_m)
+    total = len(read_keyframe_index(job.keyframes_dir).select(FUSE))
+
+    def frames() -> Any:
+        for k, frame in enumerate(posed_frames(iter_keyframes(job.keyframes_dir, FUSE), colour=False)):
+            yield frame
+            job.report("evaluation", k + 1, total)
+
+    seen = visible_in_frames(samples, frames(), tolerance_m=settings.visibility_tolerance_m, normals=normals)
+    metrics = truth_metrics(fused, truth_v, truth_t, samples, seen, mesh=mesh, rng=rng, thresholds_m=TRUTH_THRESHOLDS_M)
+    truth_distance = MeshDistance(truth_v, truth_t)
+    accuracy = truth_distance.distances(fused)
+    seen_samples = samples[seen]
+    from scipy.spatial import cKDTree
+
+    completeness = cKDTree(fused).query(seen_samples, k=1)[0].astype(np.float32) if seen_samples.size else np.empty(0)
+    pairs = keyframe_pose_pairs(job)
+    summary = {**metrics.to_dict(), "pose_error": pose_errors_vs_truth(pairs)}
+    gauge = world_gauge(pairs)
+    if gauge is not None:
+        aligned = fused @ gauge[:3, :3].T + gauge[:3, 3]
+        angle = np.degrees(np.arccos(np.clip((np.trace(gauge[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+        summary["world_gauge"] = {
+            "translation_mm": round(float(np.linalg.norm(gauge[:3, 3] + gauge[:3, :3] @ fused.mean(axis=0)
+                                                          - fused.mean(axis=0)) * 1000.0), 4),
+            "rotation_deg": round(float(angle), 5),
+            "T_truthworld_world": gauge.tolist(),
+            "accuracy_aligned": distance_stats(truth_distance.distances(aligned), TRUTH_THRESHOLDS_M).to_dict()}
+    return summary, {"accuracy": accuracy, "completeness": completeness}
+
+
+def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:
+    """The evaluation stage: every number of the survey's ``results.json`` that needs computing."""
+    out, settings = job.out, job.settings
+    folder = out / EVALUATION_DIR
+    folder.mkdir(exist_ok=True)
+    index = read_keyframe_index(job.keyframes_dir)
+    crop = job.crop()
+    v, t = read_mesh_ply(out / MESH_FILE)
+    job.report("evaluation", 0, None)
+
+    heldout = evaluate_heldout(posed_frames(iter_keyframes(job.keyframes_dir, HELDOUT), colour=False),
+                               MeshDistance(v, t), object_name=index.object_name or job.survey.name,
+                               settings=settings.fusion, region=crop)
+    _save_arrays(folder / HELDOUT_DISTANCES, heldout.distances)
+
+    arms = [a for a in job.arms if (out / f"{a}.ply").is_file()]
+    clouds = {arm: _cloud(out / f"{arm}.ply") for arm in arms}
+    fused, _, fused_colours = _cloud(out / FUSED_FILE)
+    cross = None
+    if len(arms) == 2 and all(len(clouds[a][0]) for a in arms):
+        (pa, na, _), (pb, nb, _) = clouds[arms[0]], clouds[arms[1]]
+        cross = cross_arm_consistency(pa, pb, normals_a=na, normals_b=nb, names=(arms[0], arms[1])).to_dict()
+
+    truth = None
+    if job.survey.truth_path is not None and (job.survey.truth_path / "object.ply").is_file():
+        truth, distances = _truth(job, fused, (v, t))
+        _save_arrays(folder / TRUTH_DISTANCES, distances)
+
+    figures: dict[str, str] = {}
+    if settings.evaluation.figures:
+        figures = draw_figures(out, {a: clouds[a][0] for a in arms}, fused, fused_colours, heldout.distances,
+                               title=index.object_name or job.survey.name)
+    composition = survey_composition(job.survey)
+    job.report("evaluation", 1, 1)
+    return {"heldout": heldout.to_dict(), "cross_arm": cross, "truth": truth, "figures": figures,
+            "composition": {**composition.__dict__, "notes": list(composition.notes)}}
+
+
+def draw_figures(out: Path, arm_clouds: dict[str, np.ndarray], fused: np.ndarray, fused_colours: np.ndarray | None,
+                 heldout: dict[str, np.ndarray], title: str) -> dict[str, str]:
+    """The survey's figures in ``figures/``; returns their paths relative to ``out`` by kind."""
+    from darp.evaluation.figures import cross_arm_figure, heldout_histogram, partial_fused_figure
+
+    folder = out / FIGURES_DIR
+    folder.mkdir(exist_ok=True)
+    made: dict[str, str] = {}
+    non_empty = {a: p for a, p in arm_clouds.items() if len(p)}
+    if non_empty:
+        cross_arm_figure(non_empty, folder / FIGURES["cross_arm"], title=f"{title}: cross-arm alignment")
+        made["cross_arm"] = f"{FIGURES_DIR}/{FIGURES['cross_arm']}"
+    if len(arm_clouds) == 2 and len(fused):
+        (a, pa), (b, pb) = arm_clouds.items()
+        partial_fused_figure(pa, pb, fused, folder / FIGURES["partial_fused"], names=(a, b),
+                             fused_colours=fused_colours, title=f"{title}: partial and fused clouds")
+        made["partial_fused"] = f"{FIGURES_DIR}/{FIGURES['partial_fused']}"
+    if any(len(d) for d in heldout.values()):
+        heldout_histogram(heldout, folder / FIGURES["heldout"], title=f"{title}: held-out point-to-mesh distances")
+        made["heldout"] = f"{FIGURES_DIR}/{FIGURES['heldout']}"
+    return made
+
+
+__all__ = ["EVALUATION_DIR", "FIGURES", "HELDOUT_DISTANCES", "TRUTH_DISTANCES", "draw_figures",
+           "evaluate_processed_survey", "keyframe_pose_pairs", "load_distances", "pose_errors_vs_truth",
+           "read_truth_mesh", "world_gauge"]

@@ -1,0 +1,198 @@
+"""``results.json``: the machine-readable results of one processed survey and of all surveys together.
+
+Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
+
+    survey, object, pose_source ("calibration" | "truth"), calibration {epoch, path}
+    composition     the release-composition row (radius, height, standoff, rows, duration, depth frames, size)
+    envelope        the object cylinder used: {source: "manip_envelope.json" | "estimated", center_m, radius_m, height_m}
+    keyframes       {total, fuse, heldout, arms: {arm: {frames, posed, settled, in_view, views, keyframes, heldout}}}
+    clouds          {arm110, arm111, fused}: points per cloud;  mesh {vertices, triangles, area_m2, radii_m}
+    heldout         {object, keyframes, aggregate, arms}: count, median/mean/rmse/p90/max in mm, % within 5/10 mm
+    cross_arm       {cell_mm, directions: [{source, target, points, co_observed, point_to_point, point_to_plane}]}
+    truth           null, or {samples, seen, cloud, mesh, pose_error}: accuracy and completeness statistics
+                    (mm, % within 2/5/10 mm), F-score % at 2/5/10 mm, keyframe pose error vs the true poses
+    figures         {kind: path relative to the survey folder}
+    stages          {stage: seconds}
+    paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
+                    within 5 / 10 mm, 224 keyframes, 1,563,466 points)
+
+Across surveys (``<out>/results.json``, schema ``darp-results-summary/1``)::
+
+    surveys         [{name, object, pose_source, folder}]
+    heldout         {objects: [per-object rows], aggregate (pooled points), arms (pooled per arm), paper}
+    cross_arm       {survey: per-survey cross_arm}
+    truth           {objects: {survey: truth}, aggregate: pooled accuracy/completeness/F-score} or null
+    paper           as above
+
+Pooled statistics are computed from the raw distances each survey keeps in ``evaluation/``, never by
+averaging per-object statistics.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.errors import EvaluationError, FormatError
+from darp.evaluation.heldout import PAPER_HELDOUT, HeldoutResult, HeldoutSummary
+from darp.evaluation.point_to_mesh import distance_stats
+from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M
+from darp.formats.atomic import write_json_atomic
+from darp.formats.schema import to_jsonable
+from darp.processing.evaluate import (
+    EVALUATION_DIR,
+    HELDOUT_DISTANCES,
+    TRUTH_DISTANCES,
+    evaluate_processed_survey,
+    load_distances,
+)
+from darp.processing.pipeline import RECONSTRUCTION_STAGES, Stage, SurveyJob, read_stage_state
+
+RESULTS_FILE = "results.json"
+SCHEMA = "darp-results/1"
+SUMMARY_SCHEMA = "darp-results-summary/1"
+
+
+def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]:
+    """The per-survey results document from the stage summaries and the evaluation."""
+    stages = read_stage_state(job.out).get("stages", {})
+    summary = {name: state.get("summary") or {} for name, state in stages.items()}
+    keyframes = summary.get("keyframes", {})
+    heldout = evaluation["heldout"]
+    return {
+        "schema": SCHEMA,
+        "survey": job.survey.name,
+        "survey_path": str(job.survey.path),
+        "object": heldout.get("object") or job.survey.name,
+        "pose_source": "truth" if job.truth_poses else "calibration",
+        "calibration": {"epoch": job.calibration.epoch,
+                        "path": None if job.calibration_path is None else str(job.calibration_path)},
+        "composition": evaluation.get("composition"),
+        "envelope": keyframes.get("envelope"),
+        "keyframes": {"total": keyframes.get("keyframes"), "fuse": keyframes.get("fuse"),
+                      "heldout": keyframes.get("heldout"), "arms": keyframes.get("arms", {})},
+        "clouds": summary.get("fusion", {}).get("points", {}),
+        "mesh": summary.get("mesh", {}),
+        "heldout": heldout,
+        "cross_arm": evaluation.get("cross_arm"),
+        "truth": evaluation.get("truth"),
+        "figures": evaluation.get("figures", {}),
+        "stages": {name: state.get("seconds") for name, state in stages.items()},
+        "paper": PAPER_HELDOUT,
+    }
+
+
+def stage_evaluation(job: SurveyJob) -> dict[str, Any]:
+    """Evaluate and write ``results.json`` (the last stage of :data:`PROCESS_STAGES`)."""
+    evaluation = evaluate_processed_survey(job)
+    results = survey_results(job, evaluation)
+    write_json_atomic(job.out / RESULTS_FILE, to_jsonable(results))
+    heldout = evaluation["heldout"]["aggregate"]
+    return {"heldout_median_mm": heldout.get("median_mm"), "heldout_points": heldout.get("count"),
+            "truth": evaluation["truth"] is not None}
+
+
+PROCESS_STAGES: tuple[Stage, ...] = (
+    *RECONSTRUCTION_STAGES,
+    Stage("evaluation", stage_evaluation, (RESULTS_FILE,), ("evaluation",)),
+)
+"""poses -> keyframes -> fusion -> mesh -> evaluation: what ``darp process`` runs."""
+
+
+# -- reading and aggregating --------------------------------------------------------------------------------
+def read_results(path: str | Path) -> dict[str, Any]:
+    """A ``results.json`` (per survey or summary); ``path`` may be its folder."""
+    path = Path(path)
+    file = path / RESULTS_FILE if path.is_dir() else path
+    try:
+        data = json.loads(file.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise FormatError(f"no {RESULTS_FILE} (run darp process first)", path) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise FormatError(f"invalid JSON: {err}", file) from err
+    if not isinstance(data, dict) or data.get("schema") not in (SCHEMA, SUMMARY_SCHEMA):
+        raise FormatError(f"not a darp results file (schema {data.get('schema') if isinstance(data, dict) else None!r})",
+                          file)
+    return data
+
+
+def find_survey_results(out: str | Path) -> list[Path]:
+    """Survey output folders under ``out`` (those holding a per-survey results.json), sorted by name."""
+    out = Path(out)
+    if not out.is_dir():
+        raise EvaluationError("no such output folder", out)
+    folders = [p for p in sorted(out.iterdir()) if p.is_dir() and (p / RESULTS_FILE).is_file()]
+    if (out / RESULTS_FILE).is_file() and read_results(out).get("schema") == SCHEMA:
+        folders = [out]
+    return folders
+
+
+def _heldout_result(folder: Path, results: dict[str, Any]) -> HeldoutResult:
+    distances = load_distances(folder / EVALUATION_DIR / HELDOUT_DISTANCES)
+    frames = {arm: int(row.get("keyframes", 0)) for arm, row in results["heldout"].get("arms", {}).items()}
+    return HeldoutResult(results.get("object") or results["survey"], distances, frames)
+
+
+def _pooled_truth(folders: Sequence[Path]) -> dict[str, Any] | None:
+    parts: dict[str, list[np.ndarray]] = {"accuracy": [], "completeness": []}
+    for folder in folders:
+        arrays = load_distances(folder / EVALUATION_DIR / TRUTH_DISTANCES)
+        for key, found in parts.items():
+            if key in arrays:
+                found.append(arrays[key])
+    if not parts["accuracy"]:
+        return None
+    acc = distance_stats(np.concatenate(parts["accuracy"]), TRUTH_THRESHOLDS_M)
+    comp = distance_stats(np.concatenate(parts["completeness"]) if parts["completeness"] else np.empty(0),
+                          TRUTH_THRESHOLDS_M)
+    fscore = {}
+    for t in TRUTH_THRESHOLDS_M:
+        p, r = acc.within_pct[t], comp.within_pct[t]
+        fscore[f"{t * 1000:g}mm"] = None if np.isnan(p) or np.isnan(r) else round(
+            0.0 if p + r == 0 else 2 * p * r / (p + r), 4)
+    return {"surveys": len(parts["accuracy"]), "accuracy": acc.to_dict(), "completeness": comp.to_dict(),
+            "fscore_pct": fscore}
+
+
+def aggregate_results(folders: Sequence[str | Path]) -> dict[str, Any]:
+    """The summary across processed surveys (pooled held-out points, per-object rows, truth)."""
+    folders = [Path(f) for f in folders]
+    if not folders:
+        raise EvaluationError("no processed surveys to aggregate")
+    per = [read_results(f) for f in folders]
+    summary = HeldoutSummary(tuple(_heldout_result(f, r) for f, r in zip(folders, per)))
+    truth_rows = {r["survey"]: r["truth"] for r in per if r.get("truth")}
+    return {
+        "schema": SUMMARY_SCHEMA,
+        "surveys": [{"name": r["survey"], "object": r.get("object"), "pose_source": r.get("pose_source"),
+                     "folder": f.name} for f, r in zip(folders, per)],
+        "heldout": summary.to_dict(),
+        "cross_arm": {r["survey"]: r.get("cross_arm") for r in per},
+        "truth": None if not truth_rows else {"objects": truth_rows, "aggregate": _pooled_truth(folders)},
+        "paper": PAPER_HELDOUT,
+    }
+
+
+def write_summary(out: str | Path, folders: Sequence[str | Path]) -> Path:
+    """Aggregate ``folders`` and write ``<out>/results.json``."""
+    path = Path(out) / RESULTS_FILE
+    write_json_atomic(path, to_jsonable(aggregate_results(folders)))
+    return path
+
+
+__all__ = [
+    "PROCESS_STAGES",
+    "RESULTS_FILE",
+    "SCHEMA",
+    "SUMMARY_SCHEMA",
+    "aggregate_results",
+    "find_survey_results",
+    "read_results",
+    "stage_evaluation",
+    "survey_results",
+    "write_summary",
+]

@@ -1,0 +1,111 @@
+"""Settings of ``darp process``: keyframes, fusion (with its depth filters), meshing and evaluation.
+
+A settings file (YAML or JSON) gives any subset; everything not given keeps its default::
+
+    keyframes: {per_view: 3, min_separation_deg: 6, heldout_every: 5}
+    fusion: {voxel_size_m: 0.0015, min_frames: 3, depth: {max_depth_m: 1.0}}
+    mesh: {radius_factors: [2, 4, 8]}
+    evaluation: {truth_sample_spacing_m: 0.001, figures: true}
+
+Unknown keys are errors naming the file and the key (a typo must not silently keep a default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from darp.errors import ConfigError, DarpError
+from darp.formats.text import read_yaml_mapping
+from darp.reconstruction.backproject import DepthFilterSettings
+from darp.reconstruction.fusion import FusionSettings
+from darp.reconstruction.keyframes import KeyframeSettings
+from darp.reconstruction.mesh import MeshSettings
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """What the evaluation stage measures and draws."""
+
+    truth_sample_spacing_m: float = 0.001  # area-uniform samples of the true surface (twin only)
+    visibility_tolerance_m: float = 0.005  # a true sample is 'seen' when a keyframe's depth is this close
+    figures: bool = True  # cross-arm, partial/fused and held-out histogram figures
+    seed: int = 0  # random sampling of surfaces (truth metrics)
+
+    def __post_init__(self) -> None:
+        if not (self.truth_sample_spacing_m > 0 and self.visibility_tolerance_m > 0):
+            raise ConfigError("evaluation: truth_sample_spacing_m and visibility_tolerance_m must be > 0")
+
+
+@dataclass(frozen=True)
+class ProcessSettings:
+    """Every setting of the processing pipeline."""
+
+    keyframes: KeyframeSettings = field(default_factory=KeyframeSettings)
+    fusion: FusionSettings = field(default_factory=FusionSettings)
+    mesh: MeshSettings = field(default_factory=MeshSettings)
+    evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
+
+    def to_dict(self) -> dict[str, Any]:
+        return json.loads(json.dumps(dataclasses.asdict(self)))
+
+    def fingerprint(self, *groups: str) -> str:
+        """Short hash of the given groups' values (all when none): changes when any of them changes."""
+        values = self.to_dict()
+        chosen = {g: values[g] for g in (groups or tuple(values))}
+        return hashlib.sha256(json.dumps(chosen, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None = None) -> Any:
+    if values is None:
+        return cls()
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"{where}: expected a mapping, got {type(values).__name__}")
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
+    kwargs = dict(values)
+    for name, sub in (nested or {}).items():
+        if name in kwargs:
+            kwargs[name] = _build(sub, kwargs[name], f"{where}.{name}")
+    if cls is MeshSettings and "radius_factors" in kwargs:
+        kwargs["radius_factors"] = tuple(float(f) for f in kwargs["radius_factors"])
+    try:
+        return cls(**kwargs)
+    except DarpError as err:
+        raise ConfigError(f"{where}: {err.message}") from None
+    except TypeError as err:
+        raise ConfigError(f"{where}: {err}") from None
+
+
+def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
+    """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
+    groups = {"keyframes", "fusion", "mesh", "evaluation"}
+    unknown = sorted(set(values) - groups)
+    if unknown:
+        raise ConfigError(f"unknown settings group(s) {', '.join(unknown)} (groups: {', '.join(sorted(groups))})")
+    return ProcessSettings(
+        keyframes=_build(KeyframeSettings, values.get("keyframes"), "keyframes"),
+        fusion=_build(FusionSettings, values.get("fusion"), "fusion", {"depth": DepthFilterSettings}),
+        mesh=_build(MeshSettings, values.get("mesh"), "mesh"),
+        evaluation=_build(EvaluationSettings, values.get("evaluation"), "evaluation"),
+    )
+
+
+def load_settings(path: str | Path) -> ProcessSettings:
+    """Read a settings file (YAML or JSON, any subset of the groups)."""
+    path = Path(path)
+    values = read_yaml_mapping(path, empty_ok=True)  # JSON is YAML too
+    try:
+        return settings_from_dict(values)
+    except ConfigError as err:
+        raise ConfigError(err.message, path) from None
+
+
+__all__ = ["EvaluationSettings", "ProcessSettings", "load_settings", "settings_from_dict"]
