@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -190,3 +191,27 @@ def test_console_entry_point_has_no_traceback(tmp_path):
                             capture_output=True, text=True, timeout=60, check=False)
     assert result.returncode == 2
     assert result.stderr.startswith(f"darp: error: {bad}: ") and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("name", ["x.bag", "x.db3"])
+def test_a_fifo_named_like_a_recording_is_refused_before_it_is_opened(tmp_path, name):
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    result = subprocess.run([sys.executable, "-c", "from darp.cli import main; main()", "recording", "info", str(fifo)],
+                            capture_output=True, text=True, timeout=60, check=False)  # it used to block forever
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr == f"darp: error: {fifo}: is a named pipe (FIFO), not a regular file: not a recording\n"
+
+
+def test_a_device_or_folder_named_like_a_recording_is_refused(tmp_path, capsys):
+    folder = tmp_path / "x.bag"
+    folder.mkdir()
+    assert run(["recording", "info", str(folder)]) == 2
+    assert capsys.readouterr().err == f"darp: error: {folder}: is a folder, not a recording\n"
+    if Path("/dev/null").exists():
+        assert run(["recording", "export", "/dev/null", "--out", str(tmp_path / "out")]) == 2
+        assert capsys.readouterr().err == "darp: error: /dev/null: is a character device, not a regular file: not a recording\n"
+        with pytest.raises(RecordingError, match="character device"):
+            from darp.formats.bag_reader import BagRecording
+
+            BagRecording("/dev/null")

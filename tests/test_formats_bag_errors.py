@@ -80,7 +80,7 @@ def test_wrong_format(tmp_path: Path, content: bytes) -> None:
 
 
 def test_missing_file_and_folder(tmp_path: Path) -> None:
-    with pytest.raises(RecordingError, match="cannot open"):
+    with pytest.raises(RecordingError, match="no such file"):
         BagRecording(tmp_path / "absent.bag")
     with pytest.raises(RecordingError):
         open_recording(tmp_path)

@@ -38,7 +38,7 @@ from darp.formats.bag_frames import (
     message_span,
 )
 from darp.formats.bag_walk import CorruptMessage, Visit, Walk, visit_one
-from darp.formats.recording import Recording
+from darp.formats.recording import Recording, require_regular_file
 from darp.formats.recording_types import FrameInfo
 from darp.formats.rosbag1 import ByteSource, load_index
 
@@ -82,10 +82,7 @@ class BagRecording(Recording):
         self._view: memoryview | None = None
         self._mm: mmap.mmap | None = None
         self._chunks: ChunkStore | None = None
-        try:
-            self._size = self.path.stat().st_size
-        except OSError as err:
-            raise RecordingError(f"cannot open: {err.strerror}", self.path) from None
+        self._size = require_regular_file(self.path).st_size
         if self._size == 0:
             raise RecordingError("empty file (0 bytes): not a RealSense recording", self.path)
         try:

@@ -7,8 +7,10 @@ on demand. Everything generic (nearest-frame lookup, frame sets, time windows) l
 from __future__ import annotations
 
 import bisect
-from collections import deque
+import os
+import stat
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
@@ -183,16 +185,35 @@ def _match(candidates: Iterable[Frame], depth: FrameInfo) -> Frame | None:
     return close[-1] if close else None
 
 
+_SPECIAL_FILES = ((stat.S_ISFIFO, "named pipe (FIFO)"), (stat.S_ISCHR, "character device"),
+                  (stat.S_ISBLK, "block device"), (stat.S_ISSOCK, "socket"))
+
+
+def require_regular_file(path: Path) -> os.stat_result:
+    """``path``'s stat, refusing anything but a regular file before it is opened: reading a FIFO or a
+    device named ``x.bag`` would block, or never end."""
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise RecordingError("no such file", path) from None
+    except OSError as err:
+        raise RecordingError(f"cannot open: {err.strerror}", path) from None
+    if stat.S_ISDIR(info.st_mode):
+        raise RecordingError("is a folder, not a recording", path)
+    if not stat.S_ISREG(info.st_mode):
+        kind = next((name for test, name in _SPECIAL_FILES if test(info.st_mode)), "special file")
+        raise RecordingError(f"is a {kind}, not a regular file: not a recording", path)
+    return info
+
+
 def open_recording(path: str | Path) -> Recording:
     """Open a RealSense recording, choosing the reader from the file's magic bytes.
 
-    ROS1 bags start with ``#ROSBAG V2.0``; ROS2 recordings are SQLite files (``.db3``).
+    ROS1 bags start with ``#ROSBAG V2.0``; ROS2 recordings are SQLite files (``.db3``). Anything but a
+    regular file is refused before it is opened.
     """
     path = Path(path)
-    if not path.exists():
-        raise RecordingError("no such file", path)
-    if path.is_dir():
-        raise RecordingError("is a folder, not a recording", path)
+    require_regular_file(path)
     with open(path, "rb") as handle:
         magic = handle.read(16)
     if not magic:
