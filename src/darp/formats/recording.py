@@ -9,6 +9,7 @@ from __future__ import annotations
 import bisect
 import os
 import stat
+import warnings
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -17,13 +18,14 @@ from types import TracebackType
 
 import numpy as np
 
-from darp.errors import RecordingError
+from darp.errors import RecordingError, SalvagedRecordingWarning
 from darp.formats.recording_types import (
     IMAGE_STREAMS,
     DeviceInfo,
     Frame,
     FrameInfo,
     FrameSet,
+    Salvage,
     StreamProfile,
 )
 
@@ -36,6 +38,7 @@ class Recording(ABC):
     streams: dict[str, StreamProfile]  # by darp stream key
     depth_scale: float  # metres per depth unit
     file_version: int | None  # /file_version stored in the recording (3 or 4), None if absent
+    salvage: Salvage | None = None  # set when the file is damaged and was read as far as it goes
 
     # -- what a concrete reader provides -------------------------------------------------------
     @abstractmethod
@@ -210,7 +213,8 @@ def open_recording(path: str | Path) -> Recording:
     """Open a RealSense recording, choosing the reader from the file's magic bytes.
 
     ROS1 bags start with ``#ROSBAG V2.0``; ROS2 recordings are SQLite files (``.db3``). Anything but a
-    regular file is refused before it is opened.
+    regular file is refused before it is opened. A damaged file that could be read in part (a bag
+    without an index) opens with ``salvage`` set and issues a :class:`SalvagedRecordingWarning`.
     """
     path = Path(path)
     require_regular_file(path)
@@ -218,12 +222,17 @@ def open_recording(path: str | Path) -> Recording:
         magic = handle.read(16)
     if not magic:
         raise RecordingError("empty file (0 bytes): not a RealSense recording", path)
+    recording: Recording
     if magic.startswith(b"#ROSBAG V2.0"):
         from darp.formats.bag_reader import BagRecording
 
-        return BagRecording(path)
-    if magic.startswith(b"SQLite format 3"):
+        recording = BagRecording(path)
+    elif magic.startswith(b"SQLite format 3"):
         from darp.formats.db3_reader import Db3Recording
 
-        return Db3Recording(path)
-    raise RecordingError("not a RealSense recording (neither a ROS1 bag nor a ROS2 .db3 file)", path)
+        recording = Db3Recording(path)
+    else:
+        raise RecordingError("not a RealSense recording (neither a ROS1 bag nor a ROS2 .db3 file)", path)
+    if recording.salvage is not None:
+        warnings.warn(SalvagedRecordingWarning(recording.salvage.summary(), path), stacklevel=2)
+    return recording
