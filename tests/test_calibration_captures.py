@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calibration_synthetic import COLOR, T_DEPTH_COLOR
 
+from calibration_synthetic import COLOR, T_DEPTH_COLOR
 from darp.calibration.board import DEFAULT_BOARD
 from darp.calibration.captures import CaptureWriter, read_captures
 from darp.errors import CalibrationError, FormatError

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calibration_synthetic import board_pose, random_poses, shared_once, true_rig, write_synthetic_captures
 
+from calibration_synthetic import board_pose, random_poses, shared_once, true_rig, write_synthetic_captures
 from darp.calibration.captures import read_captures
 from darp.calibration.check import check_calibration
 from darp.cli._app import run

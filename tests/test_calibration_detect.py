@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pyrealsense2 as rs
 import pytest
-from calibration_synthetic import COLOR, render_board
 
+from calibration_synthetic import COLOR, render_board
 from darp.calibration.board import DEFAULT_BOARD, corners_board_m
 from darp.calibration.captures import CaptureRecord
 from darp.calibration.detect import CharucoCornerDetector, DetectionSettings

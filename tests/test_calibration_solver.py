@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from calibration_synthetic import board_pose, random_poses, synthetic_detections, true_rig
 
+from calibration_synthetic import board_pose, random_poses, synthetic_detections, true_rig
 from darp.calibration.board import DEFAULT_BOARD
 from darp.calibration.evaluate import fold_assignment, kfold_heldout, summarise, truth_errors
 from darp.calibration.handeye import HAND_EYE_METHODS, best, opencv_hand_eye

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calibration_synthetic import shared_once
 
+from calibration_synthetic import shared_once
 from darp.calibration.captures import read_captures
 from darp.calibration.check import check_calibration
 from darp.calibration.solve import SolveSettings, solve_captures

@@ -192,6 +192,19 @@ def test_cli_notes_go_to_stderr(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert list(csv.reader(io.StringIO(captured.out)))[1][1:5] == ["", "", "", "5"]
 
 
+def test_cli_warns_once_about_an_interrupted_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from damaged_recordings import salvage_warning, unindexed_copy
+
+    root, _ = _survey(tmp_path / "Cube", rows={"arm110": 5, "arm111": 5}, depth={"arm110": 4, "arm111": 3})
+    bag = root / "cam348522076490.bag"
+    unindexed_copy(bag, tmp_path / "interrupted.bag").replace(bag)
+    assert run(["inspect", str(root), "-f", "csv"]) == 0
+    captured = capsys.readouterr()
+    salvage_warning(captured.err, bag, "no index (interrupted recording?)", "recovered 4 depth, 4 color, 4 ir1 frames")
+    assert len(captured.err.splitlines()) == 1  # the warning, and no separate note about the same file
+    assert list(csv.reader(io.StringIO(captured.out)))[1][7:9] == ["4", "3"]
+
+
 def test_cli_camera_mapping_override(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     root, _ = _survey(tmp_path / "Cube", rows={"arm110": 5, "arm111": 5}, depth={"arm110": 2, "arm111": 3})
     swapped = ["--camera", "348522076490=arm111", "--camera", "405622074504=arm110"]

@@ -183,6 +183,26 @@ def test_clock_offset_moves_frames_against_the_log(survey, tmp_path: Path) -> No
                                expected_poses("arm110", cal, host_rel[posed] + T0_S), atol=1e-6)
 
 
+def test_an_interrupted_recording_is_posed_with_one_warning(survey, tmp_path: Path,
+                                                            capsys: pytest.CaptureFixture[str]) -> None:
+    import shutil
+
+    from damaged_recordings import salvage_warning, unindexed_copy
+
+    folder, cal_path, cal = survey
+    copy = shutil.copytree(folder, tmp_path / folder.name)
+    bag = copy / f"cam{SERIALS['arm110']}.bag"
+    unindexed_copy(bag, tmp_path / "interrupted.bag").replace(bag)
+    out = tmp_path / "poses"
+    assert run(["poses", str(copy), "-c", str(cal_path), "--out", str(out), "--no-figure"]) == 0
+    salvage_warning(capsys.readouterr().err, bag, "no index (interrupted recording?)", "recovered 40 depth frames")
+    summary = json.loads((out / "summary.json").read_text())
+    for arm, counts in EXPECTED.items():  # every frame of the interrupted recording was recovered
+        assert {k: summary["arms"][arm][k] for k in counts} == counts
+    t_s, T = read_tum(out / f"cam{SERIALS['arm110']}_arm110.tum")
+    np.testing.assert_allclose(T[:, :3, 3], expected_poses("arm110", cal, t_s)[:, :3, 3], atol=2e-6)
+
+
 def test_bad_survey_is_one_line_and_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     broken = tmp_path / "Broken"
     broken.mkdir()

@@ -108,3 +108,37 @@ def test_a_survey_without_truth_is_processed_without_truth_metrics(survey_path: 
     assert per["truth"] is None and per["heldout"]["aggregate"]["count"] > 0
     assert run(["report", str(out)]) == 0
     assert "Ground truth" not in (out / "report.md").read_text()
+
+
+@pytest.mark.slow
+def test_keyframes_and_process_read_a_cut_recording_with_one_warning(survey_path: Path, tmp_path: Path, capsys) -> None:
+    """arm110's bag cut inside a chunk at about 90 %: both commands warn once, naming it, and use what is left."""
+    from damaged_recordings import cut_copy, salvage_warning
+    from darp.formats.realsense.bag.reader import BagRecording
+
+    copy = tmp_path / "cube"
+    copy.mkdir()
+    for entry in survey_path.iterdir():  # the rest of the survey as is (links: the bags are large)
+        (copy / entry.name).symlink_to(entry)
+    name = "cam348522076490.bag"
+    with BagRecording(survey_path / name) as whole:
+        chunks = whole._index.chunks
+        victim = chunks[len(chunks) * 9 // 10]
+        depth_chunks = whole._data["depth"]["chunk"]
+    recovered = int((depth_chunks < chunks.index(victim)).sum())
+    (copy / name).unlink()
+    cut_copy(survey_path / name, copy / name, victim.data_start + victim.data_len // 2)
+    calibration = str(survey_path / "truth" / "calibration.json")
+
+    kf = tmp_path / "kf"
+    assert run(["keyframes", str(copy), "-c", calibration, "--out", str(kf)]) == 0
+    salvage_warning(capsys.readouterr().err, copy / name, "no index", f"truncated at byte {victim.pos}: ",
+                    f"recovered {recovered} depth")
+    assert json.loads((kf / "keyframes.json").read_text())["keyframes"]
+
+    out = tmp_path / "out"
+    assert run(["process", str(copy), "-c", calibration, "--out", str(out)]) == 0
+    salvage_warning(capsys.readouterr().err, copy / name, "no index", f"truncated at byte {victim.pos}: ")
+    poses = json.loads((out / "cube" / "poses" / "summary.json").read_text())
+    assert poses["arms"]["arm110"]["frames"] == recovered
+    assert json.loads((out / "cube" / "results.json").read_text())["heldout"]["aggregate"]["count"] > 0

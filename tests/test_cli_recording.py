@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -190,3 +191,106 @@ def test_console_entry_point_has_no_traceback(tmp_path):
                             capture_output=True, text=True, timeout=60, check=False)
     assert result.returncode == 2
     assert result.stderr.startswith(f"darp: error: {bad}: ") and "Traceback" not in result.stderr
+
+
+# -- damaged recordings: read as far as they go, and said so ----------------------------------------------
+@pytest.fixture(scope="module")
+def damaged(tmp_path_factory):
+    """A complete bag (small chunks), its interrupted form (no index) and a copy cut in half, with the frames
+    each should yield: those in complete chunks, from the complete bag's own index."""
+    from damaged_recordings import cut_copy, unindexed_copy
+    from darp.formats.realsense.bag.reader import BagRecording
+    from test_formats_bag import write_sample
+
+    root = tmp_path_factory.mktemp("damaged")
+    sample = write_sample(root / "whole.bag", chunk_threshold=20_000)
+    half = sample.path.stat().st_size // 2
+    with BagRecording(sample.path) as whole:
+        chunks = whole._index.chunks
+        complete = sum(c.data_start + c.data_len <= half for c in chunks)
+        chunk_of = {key: whole._data[key]["chunk"] for key in whole.streams}
+    return {
+        "sample": sample,
+        "interrupted": (unindexed_copy(sample.path, root / "interrupted.bag"), len(chunks),
+                        {key: len(frames) for key, frames in sample.frames.items()}),
+        "cut": (cut_copy(sample.path, root / "cut.bag", half), complete,
+                {key: int((chunk_of[key] < complete).sum()) for key in chunk_of}),
+    }
+
+
+@pytest.mark.parametrize("kind,missing", [("interrupted", "no index (interrupted recording?)"),
+                                          ("cut", "truncated at byte ")])
+def test_info_on_a_salvaged_bag_warns_and_shows_what_was_recovered(damaged, capsys, kind, missing):
+    from damaged_recordings import salvage_warning
+
+    path, chunks, frames = damaged[kind]
+    recovered = f"recovered {frames['depth']} depth, {frames['color']} color"
+    assert run(["recording", "info", str(path)]) == 0
+    out, err = capsys.readouterr()
+    salvage_warning(err, path, missing, recovered, f"from {chunks} complete chunks")
+    assert "salvaged:" in out and missing in out and recovered in out
+
+    assert run(["recording", "info", str(path), "--json"]) == 0
+    out, err = capsys.readouterr()
+    salvage_warning(err, path, missing)
+    info = json.loads(out)
+    salvaged = info["salvaged"]
+    assert salvaged["frames"] == frames and {k: s["frames"] for k, s in info["streams"].items()} == frames
+    assert salvaged["chunks"] == chunks and salvaged["duration_s"] == pytest.approx(info["duration_s"])
+    assert any(missing in m for m in salvaged["missing"]) and salvaged["missing"][0].startswith("no index")
+    if kind == "cut":
+        size = path.stat().st_size
+        assert 0 < salvaged["truncated_at_byte"] < size and f"({size - salvaged['truncated_at_byte']} bytes ignored)" \
+            in salvaged["summary"]
+    else:
+        assert salvaged["truncated_at_byte"] is None
+
+
+def test_info_on_an_intact_bag_says_nothing_of_salvage(damaged, capsys):
+    path = damaged["sample"].path
+    assert run(["recording", "info", str(path), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["salvaged"] is None and err == ""
+
+
+def test_export_of_a_cut_bag_warns_once_and_writes_the_recovered_frames(damaged, tmp_path, capsys):
+    from damaged_recordings import salvage_warning
+
+    path, _, frames = damaged["cut"]
+    out = tmp_path / "export"
+    assert run(["recording", "export", str(path), "--out", str(out), "--format", "npy"]) == 0
+    stdout, err = capsys.readouterr()
+    salvage_warning(err, path, "truncated at byte ", f"recovered {frames['depth']} depth")
+    assert f"exported {frames['depth']} depth, {frames['color']} color" in stdout
+    rows = _rows(out / "frames.csv")
+    sample = damaged["sample"].frames
+    for key in ("depth", "color", "ir1", "ir2"):
+        mine = [row for row in rows if row["stream"] == key]
+        assert len(mine) == frames[key] > 0
+        for row, expected in zip(mine, sample[key], strict=False):
+            assert np.array_equal(np.load(out / row["file"]), expected["data"])
+    assert len(_rows(out / "imu.csv")) == frames["accel"] + frames["gyro"]
+
+
+@pytest.mark.parametrize("name", ["x.bag", "x.db3"])
+def test_a_fifo_named_like_a_recording_is_refused_before_it_is_opened(tmp_path, name):
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    result = subprocess.run([sys.executable, "-c", "from darp.cli import main; main()", "recording", "info", str(fifo)],
+                            capture_output=True, text=True, timeout=60, check=False)  # it used to block forever
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr == f"darp: error: {fifo}: is a named pipe (FIFO), not a regular file: not a recording\n"
+
+
+def test_a_device_or_folder_named_like_a_recording_is_refused(tmp_path, capsys):
+    folder = tmp_path / "x.bag"
+    folder.mkdir()
+    assert run(["recording", "info", str(folder)]) == 2
+    assert capsys.readouterr().err == f"darp: error: {folder}: is a folder, not a recording\n"
+    if Path("/dev/null").exists():
+        assert run(["recording", "export", "/dev/null", "--out", str(tmp_path / "out")]) == 2
+        assert capsys.readouterr().err == "darp: error: /dev/null: is a character device, not a regular file: not a recording\n"
+        with pytest.raises(RecordingError, match="character device"):
+            from darp.formats.realsense.bag.reader import BagRecording
+
+            BagRecording("/dev/null")

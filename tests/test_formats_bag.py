@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pyrealsense2 as rs
 import pytest
-from rosbags_writing import message_putter, realsense_typestore
 from scipy.spatial.transform import Rotation
 
 from darp.formats.realsense import ros_messages as rm
@@ -16,6 +15,7 @@ from darp.formats.realsense.bag.reader import BagRecording
 from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.recording import open_recording
 from darp.formats.realsense.types import DeviceInfo, Intrinsics, MotionIntrinsics, StreamProfile
+from rosbags_writing import message_putter, realsense_typestore
 
 DEVICE = DeviceInfo("Intel RealSense D435I", "348522076490", "5.13.0.50", "0B3A",
                     {"Product Line": "D400", "Usb Type Descriptor": "3.2"})

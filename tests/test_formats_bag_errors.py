@@ -7,14 +7,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_formats_bag import DEVICE, profiles, write_sample
 
-from darp.errors import DarpError, RecordingError
+from darp.errors import DarpError, RecordingError, SalvagedRecordingWarning
 from darp.formats.realsense.bag.reader import BagRecording
 from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.recording import open_recording
 from darp.formats.realsense.rosbag1.index import MAGIC, load_index, read_record
 from darp.formats.realsense.types import StreamProfile
+from test_formats_bag import DEVICE, profiles, write_sample
 
 CHUNKED = 20_000  # small chunks: about one frame set each at 64x48
 
@@ -80,7 +80,7 @@ def test_wrong_format(tmp_path: Path, content: bytes) -> None:
 
 
 def test_missing_file_and_folder(tmp_path: Path) -> None:
-    with pytest.raises(RecordingError, match="cannot open"):
+    with pytest.raises(RecordingError, match="no such file"):
         BagRecording(tmp_path / "absent.bag")
     with pytest.raises(RecordingError):
         open_recording(tmp_path)
@@ -129,8 +129,12 @@ def test_truncated_bag_reads_complete_chunks(lz4_bag, tmp_path: Path, kind: str,
         "inside-index": (index_pos + 40, len(chunks)),
     }[kind]
     cut = _cut(lz4_bag.path, tmp_path / "cut.bag", length)
-    with open_recording(cut) as recording:
+    with pytest.warns(SalvagedRecordingWarning, match="cut.bag: .*recovered"):
+        recording = open_recording(cut)
+    with recording:
         assert recording.truncated and "complete chunks recovered" in recording.truncation_note
+        assert recording.salvage is not None and recording.salvage.chunks == complete
+        assert recording.salvage.frames["depth"] == len([c for c in chunks_of["depth"] if c < complete])
         for key in ("depth", "gyro"):
             expected = [f for f, c in zip(lz4_bag.frames[key], chunks_of[key]) if c < complete]
             assert [i.frame_number for i in recording.frame_infos(key)] == [f["number"] for f in expected]
@@ -182,6 +186,7 @@ def test_corrupted_last_chunk_of_an_unindexed_bag_is_skipped(lz4_bag, tmp_path: 
 
 
 @pytest.mark.parametrize("fixture", ["raw_bag", "lz4_bag"])
+@pytest.mark.filterwarnings("ignore::darp.errors.SalvagedRecordingWarning")
 def test_damage_anywhere_gives_only_recording_errors(request: pytest.FixtureRequest, tmp_path: Path, fixture: str) -> None:
     """Flip bytes at 150 random places (and cut at 30 random lengths): every outcome is a readable
     recording or a RecordingError, never a raw struct/Key/Index error."""
@@ -318,11 +323,36 @@ def test_exception_inside_with_leaves_only_a_readable_partial(tmp_path: Path) ->
         raise RuntimeError("camera unplugged")
     assert not target.exists()
     partial = tmp_path / "cam.bag.partial"
-    with open_recording(partial) as recording:
-        assert recording.truncated and "no index (interrupted write)" in recording.truncation_note
+    with pytest.warns(SalvagedRecordingWarning, match="no index"):
+        recording = open_recording(partial)
+    with recording:
+        assert recording.truncated and "no index (interrupted recording?)" in recording.truncation_note
+        assert recording.salvage.missing == ("no index (interrupted recording?)",)
+        assert recording.salvage.frames == {"depth": 20, "ir1": 0, "ir2": 0}
         frames = list(recording.iter_frames(["depth"]))
         assert [f.info.frame_number for f in frames] == list(range(20))
         assert all(np.array_equal(f.data, d) for f, d in zip(frames, written))
+
+
+def test_unindexed_copy_is_what_an_interrupted_writer_leaves(tmp_path: Path) -> None:
+    """The tests' stand-in for an interrupted recording (damaged_recordings.unindexed_copy of a complete bag)
+    is byte for byte the ``.partial`` the writer leaves."""
+    from damaged_recordings import unindexed_copy
+
+    def write(interrupt: bool) -> None:
+        with BagWriter(tmp_path / "cam.bag", DEVICE, profiles(64, 48)[:3], chunk_threshold=CHUNKED) as writer:
+            for i in range(20):
+                writer.write_image("depth", np.full((48, 64), i, np.uint16), 1000.0 + 33.3 * i, i)
+            if interrupt:
+                raise RuntimeError("camera unplugged")
+
+    with pytest.raises(RuntimeError, match="camera unplugged"):
+        write(interrupt=True)
+    partial = tmp_path / "cam.bag.partial"
+    left = partial.read_bytes()
+    partial.unlink()
+    write(interrupt=False)
+    assert unindexed_copy(tmp_path / "cam.bag", tmp_path / "copy.bag").read_bytes() == left
 
 
 def test_killed_writer_leaves_complete_chunks(tmp_path: Path) -> None:

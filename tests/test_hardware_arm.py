@@ -6,10 +6,10 @@ import time
 
 import numpy as np
 import pytest
-from fakes.fixtures import fake_z1  # noqa: F401 (pytest fixtures)
 
 from darp.errors import HardwareError, KinematicsError
 from darp.hardware.z1_arm import MotionLimits, Z1Arm, Z1Connection
+from fakes.fixtures import fake_z1  # noqa: F401 (pytest fixtures)
 
 START = np.array([0.0, 0.6, -1.2, 1.2, 0.0, 0.0])  # the default rig's park pose
 FAST = MotionLimits(max_speed_rad_s=1.0, max_accel_rad_s2=4.0, settle_timeout_s=1.0)

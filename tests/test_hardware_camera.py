@@ -12,11 +12,11 @@ from itertools import pairwise
 
 import numpy as np
 import pytest
-from fakes.fixtures import fake_rs  # noqa: F401 (pytest fixtures)
 
 from darp.errors import HardwareError
 from darp.formats.realsense.recording import open_recording
 from darp.hardware.realsense_camera import CameraSettings, RealSenseCamera
+from fakes.fixtures import fake_rs  # noqa: F401 (pytest fixtures)
 
 SERIAL = "348522076490"
 SMALL = CameraSettings(width=424, height=240, fps=15)

@@ -8,13 +8,13 @@ import sys
 import numpy as np
 import pytest
 import yaml
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 from darp.cli._app import run
 from darp.hardware.check import FAIL, OK, WARNING, check_rig, usb_load_mb_s
 from darp.hardware.realsense_camera import CameraSettings
 from darp.hardware.z1_arm import Z1Connection, probe_arm
 from darp.kinematics.rig import default_rig_path
+from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 PARK = np.array([0.0, 0.6, -1.2, 1.2, 0.0, 0.0])
 SERIALS = {"arm110": "348522076490", "arm111": "405622074504"}

@@ -9,10 +9,10 @@ import time
 
 import numpy as np
 import pytest
-from fakes import fake_pyrealsense2, fake_unitree_arm_interface
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 from darp.kinematics import z1
+from fakes import fake_pyrealsense2, fake_unitree_arm_interface
+from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 # Every name the z1_sdk Python binding defines (examples_py/arm_python_interface.cpp, z1_sdk 2.x),
 # plus those of the multi-arm patch of docs/hardware.md.

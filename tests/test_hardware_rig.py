@@ -7,7 +7,6 @@ import time
 import numpy as np
 import pytest
 import yaml
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 from darp.backend import ArmBackend, JointState
 from darp.errors import ConfigError, FormatError, HardwareError
@@ -16,6 +15,7 @@ from darp.formats.realsense.recording import open_recording
 from darp.hardware.joint_logger import JointLogger
 from darp.hardware.rig import HardwareRig
 from darp.kinematics.rig import default_rig_path, load_rig
+from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 PARK = np.array([0.0, 0.6, -1.2, 1.2, 0.0, 0.0])
 SERIALS = {"arm110": "348522076490", "arm111": "405622074504"}

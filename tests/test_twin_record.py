@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from realsense_playback import play_back
 
 import darp
 from darp.errors import TwinError
@@ -28,6 +27,7 @@ from darp.twin.rig_backend import TwinRig
 from darp.twin.settings import TwinSettings
 from darp.twin.truth import draw_true_rig, read_truth
 from darp.twin.waypoints import Waypoint, WaypointPlan
+from realsense_playback import play_back
 
 SMALL = {"width": 424, "height": 240}
 PLACEMENT = ObjectPlacement(0.0, 0.02, 0.3)

@@ -1,7 +1,9 @@
-"""The exception hierarchy: one root, one subclass per layer.
+"""The exception hierarchy: one root, one subclass per layer; and darp's warnings.
 
 Library code raises these; only the command-line layer turns them into a one-line message and exit
 code 2. Messages name the file (when there is one) and the problem, so that they can be shown as is.
+Warnings (:class:`DarpWarning`) are issued with :func:`warnings.warn` and printed by the command line
+as ``darp: warning: <file>: <message>``.
 """
 
 from __future__ import annotations
@@ -60,3 +62,18 @@ class ReconstructionError(DarpError):
 
 class EvaluationError(DarpError):
     """Evaluation inputs are missing or inconsistent."""
+
+
+class DarpWarning(UserWarning):
+    """Root of darp's warnings: the input was used, but something about it needs saying. Library code
+    issues them with :func:`warnings.warn`; the command line prints each once as a ``darp: warning:`` line."""
+
+    def __init__(self, message: str, path: str | Path | None = None) -> None:
+        self.path = Path(path) if path is not None else None
+        self.message = message
+        super().__init__(f"{path}: {message}" if path is not None else message)
+
+
+class SalvagedRecordingWarning(DarpWarning):
+    """A damaged recording (no usable index, cut short) was opened by salvaging what is readable;
+    ``Recording.salvage`` says what is missing and what was recovered."""

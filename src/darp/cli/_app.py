@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import sys
+import warnings
+from collections.abc import Callable
+from typing import Any
 
 import typer
 
-from darp.errors import DarpError
+from darp.errors import DarpError, DarpWarning
 
 
 def _click_error_types() -> tuple[type[BaseException], ...]:
@@ -40,10 +43,37 @@ def fail(message: str) -> typer.Exit:
     return typer.Exit(code=2)
 
 
+def _warning_printer(fallback: Callable[..., Any]) -> Callable[..., None]:
+    """A ``warnings.showwarning`` that prints each :class:`DarpWarning` once per file (or message) as one
+    ``darp: warning: <file>: <message>`` line on stderr, and leaves other warnings to ``fallback``."""
+    shown: set[tuple[type, str]] = set()
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int, file: Any = None,
+             line: str | None = None) -> None:
+        if not issubclass(category, DarpWarning):
+            fallback(message, category, filename, lineno, file, line)
+            return
+        path = getattr(message, "path", None)
+        key = (category, str(path.resolve()) if path is not None else str(message))
+        if key not in shown:
+            shown.add(key)
+            typer.echo(f"darp: warning: {message}", err=True)
+
+    return show
+
+
 def run(argv: list[str] | None = None) -> int:
-    """Run the app, mapping DarpError (and bad files) to one line and exit code 2."""
+    """Run the app, mapping DarpError (and bad files) to one line and exit code 2, and DarpWarnings to one
+    ``darp: warning:`` line each."""
     import darp.cli  # noqa: F401  (registers the command modules)
 
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", DarpWarning)  # every file's warning reaches the printer (once each)
+        warnings.showwarning = _warning_printer(warnings.showwarning)
+        return _run(argv)
+
+
+def _run(argv: list[str] | None) -> int:
     try:
         # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
         rc = app(args=argv, standalone_mode=False)

@@ -89,6 +89,7 @@ def summarize(recording: Any) -> dict[str, Any]:
                    "product_id": device.product_id},
         "depth_scale_m": recording.depth_scale,
         "duration_s": (max(last_ns) - min(first_ns)) / 1e9 if first_ns else 0.0,
+        "salvaged": None if recording.salvage is None else recording.salvage.as_dict(),
         "streams": streams,
         "extrinsics_from_depth": extrinsics,
     }
@@ -120,6 +121,12 @@ def _print_summary(summary: dict[str, Any]) -> None:
                   f"compression {summary['compression']}, {summary['size_bytes'] / 1e6:.2f} MB")
     console.print(f"  device {dev['name']}, serial {dev['serial']}, firmware {dev['firmware']}")
     console.print(f"  depth scale {summary['depth_scale_m']:.9g} m/unit, duration {summary['duration_s']:.3f} s")
+    if summary["salvaged"] is not None:
+        from rich.markup import escape
+
+        salvaged = summary["salvaged"]
+        console.print(f"  [bold yellow]salvaged:[/bold yellow] {escape('; '.join(salvaged['missing']))}")
+        console.print(f"  {escape(salvaged['recovered'])}")
     console.print(_table("streams", ["stream", "format", "size", "fps", "frames", "rate Hz"], [
         [k, s["format"], f"{s['width']}x{s['height']}" if s["width"] else "-", str(s["fps"]), str(s["frames"]),
          num(s["measured_rate_hz"], ".2f")] for k, s in streams.items()]))

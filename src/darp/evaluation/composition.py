@@ -66,9 +66,6 @@ def survey_composition(survey: Survey) -> SurveyComposition:
             continue
         with survey.open_recording(arm) as recording:
             depth[arm] = recording.frame_count("depth") if "depth" in recording.streams else None
-            if getattr(recording, "truncated", False):
-                notes.append(f"{recording.path.name}: no index (interrupted recording); "
-                             "frames counted by scanning")
     envelope = survey.envelope()
     if log.truncated_tail_line is not None:
         notes.append(f"arm_poses.csv: cut-short last line {log.truncated_tail_line} ignored")

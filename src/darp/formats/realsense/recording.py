@@ -7,6 +7,9 @@ on demand. Everything generic (nearest-frame lookup, frame sets, time windows) l
 from __future__ import annotations
 
 import bisect
+import os
+import stat
+import warnings
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -15,13 +18,14 @@ from types import TracebackType
 
 import numpy as np
 
-from darp.errors import RecordingError
+from darp.errors import RecordingError, SalvagedRecordingWarning
 from darp.formats.realsense.types import (
     IMAGE_STREAMS,
     DeviceInfo,
     Frame,
     FrameInfo,
     FrameSet,
+    Salvage,
     StreamProfile,
 )
 
@@ -34,6 +38,7 @@ class Recording(ABC):
     streams: dict[str, StreamProfile]  # by darp stream key
     depth_scale: float  # metres per depth unit
     file_version: int | None  # /file_version stored in the recording (3 or 4), None if absent
+    salvage: Salvage | None = None  # set when the file is damaged and was read as far as it goes
 
     # -- what a concrete reader provides -------------------------------------------------------
     @abstractmethod
@@ -183,26 +188,51 @@ def _match(candidates: Iterable[Frame], depth: FrameInfo) -> Frame | None:
     return close[-1] if close else None
 
 
+_SPECIAL_FILES = ((stat.S_ISFIFO, "named pipe (FIFO)"), (stat.S_ISCHR, "character device"),
+                  (stat.S_ISBLK, "block device"), (stat.S_ISSOCK, "socket"))
+
+
+def require_regular_file(path: Path) -> os.stat_result:
+    """``path``'s stat, refusing anything but a regular file before it is opened: reading a FIFO or a
+    device named ``x.bag`` would block, or never end."""
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        raise RecordingError("no such file", path) from None
+    except OSError as err:
+        raise RecordingError(f"cannot open: {err.strerror}", path) from None
+    if stat.S_ISDIR(info.st_mode):
+        raise RecordingError("is a folder, not a recording", path)
+    if not stat.S_ISREG(info.st_mode):
+        kind = next((name for test, name in _SPECIAL_FILES if test(info.st_mode)), "special file")
+        raise RecordingError(f"is a {kind}, not a regular file: not a recording", path)
+    return info
+
+
 def open_recording(path: str | Path) -> Recording:
     """Open a RealSense recording, choosing the reader from the file's magic bytes.
 
-    ROS1 bags start with ``#ROSBAG V2.0``; ROS2 recordings are SQLite files (``.db3``).
+    ROS1 bags start with ``#ROSBAG V2.0``; ROS2 recordings are SQLite files (``.db3``). Anything but a
+    regular file is refused before it is opened. A damaged file that could be read in part (a bag
+    without an index) opens with ``salvage`` set and issues a :class:`SalvagedRecordingWarning`.
     """
     path = Path(path)
-    if not path.exists():
-        raise RecordingError("no such file", path)
-    if path.is_dir():
-        raise RecordingError("is a folder, not a recording", path)
+    require_regular_file(path)
     with open(path, "rb") as handle:
         magic = handle.read(16)
     if not magic:
         raise RecordingError("empty file (0 bytes): not a RealSense recording", path)
+    recording: Recording
     if magic.startswith(b"#ROSBAG V2.0"):
         from darp.formats.realsense.bag.reader import BagRecording
 
-        return BagRecording(path)
-    if magic.startswith(b"SQLite format 3"):
+        recording = BagRecording(path)
+    elif magic.startswith(b"SQLite format 3"):
         from darp.formats.realsense.db3.reader import Db3Recording
 
-        return Db3Recording(path)
-    raise RecordingError("not a RealSense recording (neither a ROS1 bag nor a ROS2 .db3 file)", path)
+        recording = Db3Recording(path)
+    else:
+        raise RecordingError("not a RealSense recording (neither a ROS1 bag nor a ROS2 .db3 file)", path)
+    if recording.salvage is not None:
+        warnings.warn(SalvagedRecordingWarning(recording.salvage.summary(), path), stacklevel=2)
+    return recording

@@ -137,3 +137,33 @@ class FrameSet:
             if frame is not None:
                 return frame.info.timestamp_ms
         raise ValueError("empty frame set")
+
+
+@dataclass(frozen=True)
+class Salvage:
+    """What a reader recovered from a damaged recording instead of refusing it (``Recording.salvage``;
+    None for an intact file). A ROS1 bag without a usable index (an interrupted recording, a cut copy)
+    is read up to its last complete chunk."""
+
+    missing: tuple[str, ...]  # what is missing or damaged, one phrase each
+    frames: dict[str, int]  # frames recovered, per stream
+    duration_s: float  # span of the recovered frames' recording times
+    chunks: int | None = None  # complete chunks recovered (ROS1 bags)
+    truncated_at: int | None = None  # byte offset of the first incomplete or unreadable record, if any
+
+    @property
+    def recovered(self) -> str:
+        """``recovered 40 depth, 80 accel frames (1.333 s) from 5 complete chunks``."""
+        frames = ", ".join(f"{count} {key}" for key, count in self.frames.items()) or "no"
+        chunks = "" if self.chunks is None else f" from {self.chunks} complete chunk{'s' * (self.chunks != 1)}"
+        return f"recovered {frames} frames ({self.duration_s:.3f} s){chunks}"
+
+    def summary(self) -> str:
+        """One line: what is missing, then what was recovered."""
+        return "; ".join([*self.missing, self.recovered])
+
+    def as_dict(self) -> dict[str, object]:
+        """JSON-ready form (``darp recording info --json``)."""
+        return {"missing": list(self.missing), "truncated_at_byte": self.truncated_at, "chunks": self.chunks,
+                "frames": dict(self.frames), "duration_s": self.duration_s, "recovered": self.recovered,
+                "summary": self.summary()}

@@ -38,9 +38,9 @@ from darp.formats.realsense.bag.frames import (
     message_span,
 )
 from darp.formats.realsense.bag.walk import CorruptMessage, Visit, Walk, visit_one
-from darp.formats.realsense.recording import Recording
+from darp.formats.realsense.recording import Recording, require_regular_file
 from darp.formats.realsense.rosbag1.index import ByteSource, load_index
-from darp.formats.realsense.types import FrameInfo
+from darp.formats.realsense.types import FrameInfo, Salvage
 
 _RELEASE_STEP = 8 << 20  # drop streamed file pages in steps of this many bytes
 _LOW_LEVEL = (struct.error, ValueError, KeyError, IndexError, UnicodeDecodeError)
@@ -70,11 +70,12 @@ class BagRecording(Recording):
     """A librealsense ROS1 ``.bag`` opened for reading.
 
     Extras beyond :class:`Recording`: ``truncated`` (no usable index: frames were recovered by scanning
-    complete chunks; ``truncation_note`` says what was found), ``depth_scale_source`` (``option``,
-    ``frame`` or ``default``), ``compressions`` (chunk compressions present), ``sensor_names`` and
-    :meth:`topics`. ``verify_checksums=False`` skips the LZ4 content checksum (librealsense checks it;
-    damage inside literal runs then goes unnoticed). ``decode_threads`` LZ4 chunks are decoded ahead on
-    that many worker threads while frames are streamed (default: one per core, at most 4; 0: none).
+    complete chunks; ``salvage`` says what was missing and what was recovered, ``truncation_note`` the
+    same in one line), ``depth_scale_source`` (``option``, ``frame`` or ``default``), ``compressions``
+    (chunk compressions present), ``sensor_names`` and :meth:`topics`. ``verify_checksums=False`` skips
+    the LZ4 content checksum (librealsense checks it; damage inside literal runs then goes unnoticed).
+    ``decode_threads`` LZ4 chunks are decoded ahead on that many worker threads while frames are
+    streamed (default: one per core, at most 4; 0: none).
     """
 
     def __init__(self, path: str | Path, *, verify_checksums: bool = True, decode_threads: int | None = None) -> None:
@@ -82,10 +83,7 @@ class BagRecording(Recording):
         self._view: memoryview | None = None
         self._mm: mmap.mmap | None = None
         self._chunks: ChunkStore | None = None
-        try:
-            self._size = self.path.stat().st_size
-        except OSError as err:
-            raise RecordingError(f"cannot open: {err.strerror}", self.path) from None
+        self._size = require_regular_file(self.path).st_size
         if self._size == 0:
             raise RecordingError("empty file (0 bytes): not a RealSense recording", self.path)
         try:
@@ -125,6 +123,9 @@ class BagRecording(Recording):
         self.depth_scale, self.depth_scale_source = description.depth_scale, description.depth_scale_source
         self._topics, self._types, self._tf = description.topics, description.types, description.tf
         self._data, self._metadata_entries = description.data, description.metadata
+        if self._index.truncated:
+            self.salvage = Salvage(self._index.problems, {key: self.frame_count(key) for key in self.streams},
+                                   self.duration_s, len(self._index.chunks), self._index.truncated_at)
 
     def _message(self, chunk: int, offset: int) -> tuple[memoryview, int, int]:
         """(chunk bytes, start, end) of the data of the message record at ``offset`` in chunk ``chunk``."""

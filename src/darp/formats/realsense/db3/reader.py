@@ -22,7 +22,7 @@ import numpy as np
 
 from darp.errors import RecordingError
 from darp.formats.realsense.db3.images import decode_compressed_image, decode_raw_image
-from darp.formats.realsense.recording import Recording
+from darp.formats.realsense.recording import Recording, require_regular_file
 from darp.formats.realsense.types import (
     STREAM_KEYS,
     DeviceInfo,
@@ -98,6 +98,7 @@ class Db3Recording(Recording):
         self.sensor_names: dict[int, str] = {}
         self.options: dict[int, dict[str, str]] = {}
         self._con: sqlite3.Connection | None = None
+        require_regular_file(self.path)  # sqlite would block on a FIFO named x.db3
         try:
             self._con = sqlite3.connect(f"{self.path.resolve().as_uri()}?mode=ro", uri=True)
             self._load()

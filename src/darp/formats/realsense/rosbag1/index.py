@@ -83,13 +83,13 @@ def load_index(source: ByteSource | memoryview, path: Path) -> BagIndex:
         raise RecordingError(f"corrupt bag header at byte offset {len(MAGIC)}: {err}", path) from err
     first = data_start + data_len
     if index_pos == 0:
-        return scan(src, path, first, "no index (interrupted write)")
+        return scan(src, path, first, "no index (interrupted recording?)")
     if index_pos >= src.size:
-        return scan(src, path, first, f"index position {index_pos} lies past the end of the file ({src.size} bytes)")
+        return scan(src, path, first, f"no index (cut short? its position {index_pos} lies past the end of the file)")
     try:
         return _indexed(src, path, index_pos, conn_count, chunk_count)
     except (Incomplete, ValueError, KeyError, struct.error) as err:
-        return scan(src, path, first, f"unreadable index at byte offset {index_pos} ({err or 'cut short'})")
+        return scan(src, path, first, f"unreadable index at byte offset {index_pos} ({str(err) or 'cut short'})")
 
 
 def _indexed(src: ByteSource, path: Path, index_pos: int, conn_count: int, chunk_count: int) -> BagIndex:

@@ -47,8 +47,16 @@ class BagIndex:
     connections: dict[int, Connection]
     chunks: list[Chunk]
     entries: dict[int, np.ndarray]  # ENTRY_DTYPE, sorted by (time, chunk, offset)
-    truncated: bool = False
-    note: str = ""
+    truncated: bool = False  # rebuilt by scanning: no usable index
+    problems: tuple[str, ...] = ()  # (scanned) why, and what was cut or skipped, one phrase each
+    truncated_at: int | None = None  # (scanned) byte offset of the first incomplete or unreadable record
+
+    @property
+    def note(self) -> str:
+        """What was missing and what was recovered, in one line ("" for an indexed bag)."""
+        if not self.truncated:
+            return ""
+        return "; ".join([*self.problems, f"{len(self.chunks)} complete chunks recovered by scanning"])
 
 
 class Incomplete(Exception):

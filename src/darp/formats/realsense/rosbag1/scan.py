@@ -78,7 +78,7 @@ def scan(src: ByteSource, path: Path, pos: int, reason: str) -> BagIndex:
     pending: _Parts = {}  # index data of the chunk being scanned
     parts: _Parts = {}
     cut_at = None
-    notes = [reason]
+    problems = [reason]
 
     def settle(last: bool) -> None:
         """Adopt the scanned chunk's index data, or read the chunk itself when that is not enough."""
@@ -97,7 +97,7 @@ def scan(src: ByteSource, path: Path, pos: int, reason: str) -> BagIndex:
                     raise
                 raise RecordingError(f"corrupt chunk at byte offset {chunk.pos}: {err}", path) from err
             chunks.pop()
-            notes.append(f"last chunk at byte offset {chunk.pos} is unreadable and was skipped")
+            problems.append(f"last chunk at byte offset {chunk.pos} is unreadable and was skipped")
             return
         for conn, arrays in found.items():
             parts.setdefault(conn, []).extend(arrays)
@@ -108,10 +108,11 @@ def scan(src: ByteSource, path: Path, pos: int, reason: str) -> BagIndex:
             op = record_op(fields)
         except Incomplete:
             cut_at = pos
+            problems.append(f"truncated at byte {pos}: last record incomplete ({size - pos} bytes ignored)")
             break
         except (ValueError, KeyError, struct.error):
             cut_at = pos
-            notes.append(f"unreadable record at byte offset {pos}")
+            problems.append(f"unreadable record at byte offset {pos} ({size - pos} bytes ignored)")
             break
         try:
             if op == OP_CHUNK:
@@ -130,10 +131,8 @@ def scan(src: ByteSource, path: Path, pos: int, reason: str) -> BagIndex:
         pos = start + length
     if chunks:
         settle(last=True)
-    if cut_at is not None:
-        notes.append(f"{size - cut_at} trailing bytes from offset {cut_at} are an incomplete record")
-    notes.insert(1, f"{len(chunks)} complete chunks recovered by scanning")
-    return BagIndex(connections, chunks, _sorted_entries(parts), truncated=True, note="; ".join(notes))
+    return BagIndex(connections, chunks, _sorted_entries(parts), truncated=True, problems=tuple(problems),
+                    truncated_at=cut_at)
 
 
 _NAMES = {OP_CHUNK: "chunk record", OP_INDEX_DATA: "index-data record", OP_CONNECTION: "connection record"}
