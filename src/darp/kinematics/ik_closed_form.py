@@ -130,10 +130,6 @@ def analytic_ik(T_base_targets: ArrayLike, frame: str = "flange",
     return Q.reshape(n, 8, 6), ok.reshape(n, 8), miss.reshape(n, 8)
 
 
-def _limit_violation(Q: Array, lower: Array, upper: Array) -> Array:
-    return np.max(np.maximum(lower - Q, Q - upper), axis=-1).clip(min=0.0)
-
-
 def limit_violation(Q: Array, lower: Array, upper: Array) -> Array:
     """Largest amount (rad, >= 0) by which any joint of each row lies outside [lower, upper]."""
     return np.max(np.maximum(lower - Q, Q - upper), axis=-1).clip(min=0.0)
