@@ -207,19 +207,10 @@ class TwinRig(RigBackend):
                     self.contacts_dropped += 1
         return now_ns + self._monitor_period_ns
 
-    def clearance(self, arm_id: str) -> tuple[float, str, str]:
-        """Smallest distance from ``arm_id`` to the table, the object or the other arm now (m, geom, geom)."""
-        self.prepare_world(self.clock.elapsed_ns)
-        return self.world.clearance(arm_id)
-
     # -- poses --------------------------------------------------------------------------------------
     def park_q(self, arm_id: str) -> np.ndarray:
         """The rig file's park configuration (SDK angles)."""
         return np.array(self.rig.arms[arm_id].park_q_rad, dtype=float)
-
-    def T_world_cam_true(self, arm_id: str) -> np.ndarray:
-        """The camera's true pose now."""
-        return self.true_camera_poses(arm_id, np.array([self.clock.elapsed_ns]))[0]
 
     def close(self) -> None:
         """Abort unfinished recordings, close the log and free the renderer (idempotent)."""

@@ -88,9 +88,7 @@ class TwinCameraBackend(CameraBackend):
         # Wall seconds of capture, IMU and writing; cpu: the worker's CPU seconds; *_cpu: CPU seconds of a stage.
         self.timings_s = {"capture": 0.0, "imu": 0.0, "write": 0.0, "cpu": 0.0, "imu_cpu": 0.0, "write_cpu": 0.0}
         self._imu_from_ns: int | None = None
-        self._imu_counters = {"accel": 0, "gyro": 0}
         self._tick = 0
-        self._on_frame: list[Callable[[int], None]] = []
         clock.add_process(f"{arm_id}:camera", self._frame_tick, first_due_ns=max(self.phase_ns, clock.elapsed_ns))
 
     # -- clock ------------------------------------------------------------------------------------
@@ -111,10 +109,6 @@ class TwinCameraBackend(CameraBackend):
         return self.frame_time_ns(self._tick)
 
     # -- recording --------------------------------------------------------------------------------
-    @property
-    def recording(self) -> bool:
-        return self._recording
-
     def stream_profiles(self) -> list[Any]:
         profiles = self.spec.stream_profiles()
         keys = [*IMAGE_ORDER, *(("accel", "gyro") if self.imu is not None else ())]
@@ -195,8 +189,6 @@ class TwinCameraBackend(CameraBackend):
             self.timings_s["write_cpu"] += (c1 - c0) + (time.process_time() - c2)
         self.truth.append(n, stamp_ms, self.clock.host_time_s(t_ns), T_world_cam, self.host.true_q(self.arm_id, t_ns))
         self.frames_recorded += 1
-        for callback in self._on_frame:
-            callback(n)
 
     def _imu_samples(self, until_ns: int) -> list[tuple[str, np.ndarray, float, int]]:
         """Accel and gyro samples in [last tick, ``until_ns``) on their own rates, in time order."""
@@ -260,10 +252,6 @@ class TwinCameraBackend(CameraBackend):
     @property
     def depth_intrinsics(self) -> Intrinsics:
         return self.spec.depth
-
-    def add_frame_callback(self, callback: Callable[[int], None]) -> None:
-        """Call ``callback(frame_number)`` after every recorded frame (progress bars)."""
-        self._on_frame.append(callback)
 
     def close(self) -> None:
         """Abort an unfinished recording and free the cameras' resources (idempotent)."""
