@@ -38,7 +38,7 @@ from __future__ import annotations
 import json
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -63,8 +63,8 @@ KEYFRAME_ARRAYS = ("rgb", "depth", "ir_left", "ir_right", "support_mask", "intri
 
 
 @dataclass(frozen=True, eq=False)
-class Keyframe:
-    """One exported keyframe: images, calibration and pose (see the module docstring)."""
+class KeyframeMeta:
+    """What a keyframe is and where it was taken (see the module docstring), without its pixels."""
 
     arm: str
     serial: str
@@ -73,6 +73,13 @@ class Keyframe:
     t_s: float
     split: str
     view: int
+    T_world_cam: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe(KeyframeMeta):
+    """One exported keyframe: images, calibration and pose (see the module docstring)."""
+
     rgb: np.ndarray
     depth: np.ndarray
     ir_left: np.ndarray
@@ -80,7 +87,6 @@ class Keyframe:
     support_mask: np.ndarray
     intrinsics: Intrinsics
     depth_scale: float
-    T_world_cam: np.ndarray
     streams: tuple[str, ...] = ("depth", "color", "ir1", "ir2")
 
     @property
@@ -93,20 +99,17 @@ class Keyframe:
         return PosedDepth(self.arm, self.frame_number, self.depth, self.depth_scale, self.intrinsics,
                           self.T_world_cam, self.rgb if colour else None)
 
+    def index_entry(self, file: str) -> KeyframeInfo:
+        """Its entry in ``keyframes.json``, for the file ``file`` (relative to the keyframes folder)."""
+        meta = {f.name: getattr(self, f.name) for f in fields(KeyframeMeta)}
+        return KeyframeInfo(**meta, file=file)
+
 
 @dataclass(frozen=True, eq=False)
-class KeyframeInfo:
+class KeyframeInfo(KeyframeMeta):
     """One index entry: where a keyframe's file is and what it is, without its pixels."""
 
     file: str  # relative to the keyframes folder
-    arm: str
-    serial: str
-    frame_number: int
-    timestamp_ms: float
-    t_s: float
-    split: str
-    view: int
-    T_world_cam: np.ndarray
 
     def to_dict(self) -> dict[str, Any]:
         return {"file": self.file, "arm": self.arm, "serial": self.serial, "frame_number": self.frame_number,
@@ -231,9 +234,10 @@ def read_keyframe_index(folder: str | Path) -> KeyframeIndex:
             T = np.array(entry["T_world_cam"], np.float64)
             if T.shape != (4, 4) or entry["split"] not in (FUSE, HELDOUT):
                 raise ValueError("bad pose or split")
-            entries.append(KeyframeInfo(str(entry["file"]), str(entry["arm"]), str(entry["serial"]),
-                                        int(entry["frame_number"]), float(entry["timestamp_ms"]),
-                                        float(entry["t_s"]), entry["split"], int(entry["view"]), T))
+            entries.append(KeyframeInfo(file=str(entry["file"]), arm=str(entry["arm"]), serial=str(entry["serial"]),
+                                        frame_number=int(entry["frame_number"]),
+                                        timestamp_ms=float(entry["timestamp_ms"]), t_s=float(entry["t_s"]),
+                                        split=entry["split"], view=int(entry["view"]), T_world_cam=T))
         except (KeyError, TypeError, ValueError) as err:
             raise FormatError(f"keyframes[{n}]: {err}", path) from None
     known = {"schema", "survey", "object", "pose_source", "format", "settings", "arms", "keyframes"}
@@ -342,8 +346,7 @@ def export_arm_keyframes(recording: Recording, selection: ArmKeyframes, trajecto
                                     split=HELDOUT if held else FUSE, view=view, T_world_cam=T, crop=crop)
         rel = f"{arm}/{kf.frame_number:06d}.npz"
         write_keyframe(out / rel, kf)
-        entries.append(KeyframeInfo(rel, arm, serial, kf.frame_number, kf.timestamp_ms, kf.t_s, kf.split, kf.view,
-                                    kf.T_world_cam))
+        entries.append(kf.index_entry(rel))
         if k == middle:
             write_observation(out / OBSERVATIONS_DIR / f"{arm}.npz", frameset, recording, arm)
         if progress is not None:
@@ -375,6 +378,7 @@ __all__ = [
     "Keyframe",
     "KeyframeIndex",
     "KeyframeInfo",
+    "KeyframeMeta",
     "export_arm_keyframes",
     "frameset_at",
     "iter_keyframes",
