@@ -12,6 +12,7 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import Self
 
 import numpy as np
 
@@ -157,7 +158,7 @@ class Recording(ABC):
             yield emit(waiting.popleft())
 
     # -- context manager ------------------------------------------------------------------------
-    def __enter__(self) -> Recording:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

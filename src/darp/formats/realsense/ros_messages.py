@@ -218,7 +218,9 @@ def decode_stream_info(buf: bytes | memoryview, pos: int) -> tuple[int, str]:
     return fps, encoding
 
 
-def decode_imu_intrinsic(buf: bytes | memoryview, pos: int) -> tuple[tuple[float, ...], ...]:
+def decode_imu_intrinsic(buf: bytes | memoryview, pos: int) -> tuple[tuple[float, ...], tuple[float, float, float],
+                                                                    tuple[float, float, float]]:
+    """(data: 12 values of the 3x4 matrix, noise variances, bias variances)."""
     values = struct.unpack_from("<18f", buf, pos)
     return values[:12], values[12:15], values[15:18]
 
