@@ -21,6 +21,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
+from typing import Self
 
 import numpy as np
 
@@ -126,6 +127,7 @@ class RigBackend(ABC):
 
     def close(self) -> None:
         """Release hardware or simulation resources (default: nothing)."""
+        return None
 
     def wait_until_still(self, arm_id: str, timeout_s: float, poll_s: float = 0.01) -> bool:
         """Sleep on the rig's clock until ``arm_id`` stops moving; False on timeout."""
@@ -137,7 +139,7 @@ class RigBackend(ABC):
             self.clock.sleep(poll_s)
         return True
 
-    def __enter__(self) -> RigBackend:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(
