@@ -18,6 +18,7 @@ Arm ids are ``arm110`` and ``arm111``; joint vectors are six angles in radians (
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -97,8 +98,8 @@ class CameraBackend(ABC):
         """
 
     @abstractmethod
-    def stop_recording(self) -> None:
-        """Stop recording and close the file."""
+    def stop_recording(self) -> Path | None:
+        """Stop recording and close the file; a backend may return the finished file's path."""
 
     @abstractmethod
     def latest_frameset(self) -> LiveFrameSet:
@@ -114,8 +115,8 @@ class RigBackend(ABC):
     """Two arms, their cameras and a clock; owns the joint logger."""
 
     clock: Clock
-    arms: dict[str, ArmBackend]
-    cameras: dict[str, CameraBackend]  # by arm id
+    arms: Mapping[str, ArmBackend]  # read-only here, so a backend may hold its own arm type
+    cameras: Mapping[str, CameraBackend]  # by arm id
 
     @abstractmethod
     def start_joint_log(self, path: Path) -> None:
