@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 
 CM = 0.01  # builders write their dimensions in centimetres, as the paper's table does
 
@@ -172,7 +173,7 @@ def rounded_block(size_xyz_cm: Sequence[float], corner_cm: float, *, subdivision
 
 
 def quads(corners: np.ndarray, quad_list: Sequence[tuple[int, int, int, int]],
-          outward: Sequence[Sequence[float]]) -> Piece:
+          outward: Sequence[ArrayLike]) -> Piece:
     """Triangulate planar quads, each wound so that its normal points along its ``outward`` vector."""
     corners = np.asarray(corners, dtype=float)
     faces = []
