@@ -123,7 +123,7 @@ def align_colour_to_depth(depth: np.ndarray, depth_scale: float, depth_intrinsic
     flat, z_c, ui, vi = flat[ok], z_c[ok], ui[ok].astype(np.int64), vi[ok].astype(np.int64)
     target = vi * colour_intrinsics.width + ui
     if occlusion and flat.size:
-        zbuf = np.full(colour_intrinsics.height * colour_intrinsics.width, np.inf, np.float32)
+        zbuf: np.ndarray = np.full(colour_intrinsics.height * colour_intrinsics.width, np.inf, np.float32)
         np.minimum.at(zbuf, target, z_c.astype(np.float32))
         zbuf = cv2.erode(zbuf.reshape(colour_intrinsics.height, colour_intrinsics.width),
                          np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf).reshape(-1)

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import json
 import zipfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -148,7 +148,7 @@ def write_keyframe(path: str | Path, kf: Keyframe) -> Path:
     """Write one keyframe ``.npz`` atomically (compressed)."""
     path = Path(path)
     i = kf.intrinsics
-    arrays = {
+    arrays: dict[str, np.ndarray | np.generic] = {
         "rgb": np.asarray(kf.rgb, np.uint8), "depth": np.asarray(kf.depth, np.uint16),
         "ir_left": np.asarray(kf.ir_left, np.uint8), "ir_right": np.asarray(kf.ir_right, np.uint8),
         "support_mask": np.asarray(kf.support_mask, bool),
@@ -168,7 +168,8 @@ def write_keyframe(path: str | Path, kf: Keyframe) -> Path:
     return path
 
 
-def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compresslevel: int = NPZ_COMPRESSLEVEL) -> Path:
+def save_npz(path: str | Path, arrays: Mapping[str, np.ndarray | np.generic],
+             compresslevel: int = NPZ_COMPRESSLEVEL) -> Path:
     """An ``np.savez_compressed``-compatible archive written atomically, at a chosen zlib level.
 
     Level 1 is about five times faster than numpy's default (6) on depth, colour and speckled IR
@@ -312,8 +313,8 @@ def keyframe_from_frameset(frameset: FrameSet, recording: Recording, *, arm: str
 
 def write_observation(path: str | Path, frameset: FrameSet, recording: Recording, arm: str) -> Path:
     """Save one raw frame set (unaligned RGB, depth, IR left/right) for the observations figure."""
-    arrays: dict[str, np.ndarray] = {"arm": np.array(arm), "serial": np.array(recording.device.serial),
-                                     "depth_scale": np.float64(recording.depth_scale)}
+    arrays: dict[str, np.ndarray | np.generic] = {"arm": np.array(arm), "serial": np.array(recording.device.serial),
+                                                  "depth_scale": np.float64(recording.depth_scale)}
     if frameset.depth is not None:
         arrays["depth"] = np.asarray(frameset.depth.data, np.uint16)
         arrays["frame_number"] = np.int64(frameset.depth.info.frame_number)
@@ -339,7 +340,7 @@ def export_arm_keyframes(recording: Recording, selection: ArmKeyframes, trajecto
     entries: list[KeyframeInfo] = []
     middle = len(selection) // 2
     for k, (index, view, held) in enumerate(zip(selection.indices.tolist(), selection.view_ids.tolist(),
-                                                selection.heldout.tolist())):
+                                                selection.heldout.tolist(), strict=True)):
         frameset = frameset_at(recording, index)
         T = trajectory.poses.T_world_cam[index]
         kf = keyframe_from_frameset(frameset, recording, arm=arm, serial=serial, t_s=trajectory.poses.t_s[index],
