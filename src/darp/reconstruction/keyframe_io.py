@@ -197,8 +197,11 @@ def read_keyframe(path: str | Path) -> Keyframe:
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
         raise FormatError(f"not a readable keyframe .npz: {err}", path) from err
     w, h, fx, fy, ppx, ppy = (float(v) for v in a["intrinsics"])
-    intrinsics = Intrinsics(int(w), int(h), fx, fy, ppx, ppy, str(a["distortion_model"]),
-                            tuple(float(c) for c in a["distortion_coeffs"]))  # type: ignore[arg-type]
+    coeffs = tuple(float(c) for c in a["distortion_coeffs"])
+    if len(coeffs) != 5:
+        raise FormatError(f"not a darp keyframe: distortion_coeffs has {len(coeffs)} values, not 5", path)
+    k1, k2, k3, k4, k5 = coeffs
+    intrinsics = Intrinsics(int(w), int(h), fx, fy, ppx, ppy, str(a["distortion_model"]), (k1, k2, k3, k4, k5))
     return Keyframe(
         arm=str(a["arm"]), serial=str(a["serial"]), frame_number=int(a["frame_number"]),
         timestamp_ms=float(a["timestamp_ms"]), t_s=float(a["t_s"]), split=str(a["split"]), view=int(a["view"]),

@@ -177,7 +177,7 @@ def merge_stats(parts: list[VoxelStats]) -> VoxelStats:
         n_points=reduce([p.n_points for p in parts]),
         sum_xyz=reduce([p.sum_xyz for p in parts]),
         sum_normal=reduce([p.sum_normal for p in parts]),
-        sum_rgb=reduce([p.sum_rgb for p in parts]) if with_colour else None,  # type: ignore[misc]
+        sum_rgb=reduce([p.sum_rgb for p in parts if p.sum_rgb is not None]) if with_colour else None,
         n_frames=reduce([p.n_frames for p in parts]),
         view_mask=reduce([p.view_mask for p in parts], np.bitwise_or),
         arm_mask=reduce([p.arm_mask for p in parts], np.bitwise_or),

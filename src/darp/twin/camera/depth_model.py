@@ -20,6 +20,7 @@ listed in docs/twin-camera.md. All randomness comes from the ``numpy.random.Gene
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -101,9 +102,9 @@ class DepthNoiseSettings:
             max_depth_m=1e9,
         )
 
-    def with_(self, **changes: float | bool) -> DepthNoiseSettings:
-        """A copy with some settings changed (validated)."""
-        return replace(self, **changes)  # type: ignore[arg-type]
+    def with_(self, **changes: Any) -> DepthNoiseSettings:
+        """A copy with some settings changed (numbers and flags by field name; validated)."""
+        return replace(self, **changes)
 
 
 def _window_min(x: np.ndarray, span: int, *, leftward: bool = False) -> np.ndarray:

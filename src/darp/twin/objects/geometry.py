@@ -46,9 +46,8 @@ def concat(pieces: Sequence[Piece]) -> Piece:
     offsets = np.cumsum([0] + [len(p.vertices) for p in pieces[:-1]])
     vertices = np.vstack([p.vertices for p in pieces])
     faces = np.vstack([p.faces + o for p, o in zip(pieces, offsets, strict=True)])
-    uv = None
-    if all(p.uv is not None for p in pieces):
-        uv = np.vstack([p.uv for p in pieces])  # type: ignore[misc]
+    uvs = [p.uv for p in pieces if p.uv is not None]
+    uv = np.vstack(uvs) if len(uvs) == len(pieces) else None
     return Piece(vertices, faces, uv)
 
 
