@@ -291,8 +291,7 @@ def test_keyframe_round_trip_and_index(tmp_path: Path) -> None:
     for kf in keyframes:
         rel = f"{kf.arm}/{kf.frame_number:06d}.npz"
         write_keyframe(tmp_path / rel, kf)
-        infos.append(KeyframeInfo(rel, kf.arm, kf.serial, kf.frame_number, kf.timestamp_ms, kf.t_s, kf.split,
-                                  kf.view, kf.T_world_cam))
+        infos.append(kf.index_entry(rel))
     write_keyframe_index(KeyframeIndex(tmp_path, "mug", "mug", "calibration", KeyframeSettings().to_dict(),
                                        {"arm110": {"keyframes": 2}}, infos, {"calibration_epoch": "e1"}))
     back = load_keyframes(tmp_path)
@@ -306,6 +305,8 @@ def test_keyframe_round_trip_and_index(tmp_path: Path) -> None:
     assert [k.frame_number for k in iter_keyframes(tmp_path, split="heldout")] == [9]
     assert [k.frame_number for k in load_keyframes(tmp_path, arm="arm111")] == [4]
     index = read_keyframe_index(tmp_path)
+    assert all(isinstance(k, KeyframeInfo) and k.to_dict() == i.to_dict()
+               for k, i in zip(index.keyframes, infos, strict=True))
     assert index.extra == {"calibration_epoch": "e1"} and index.settings["per_view"] == KeyframeSettings().per_view
     pd = back[0].posed_depth()
     assert pd.frame_id == 7 and pd.colour is back[0].rgb and pd.depth_scale == 0.001

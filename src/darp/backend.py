@@ -18,9 +18,11 @@ Arm ids are ``arm110`` and ``arm111``; joint vectors are six angles in radians (
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
+from typing import Self
 
 import numpy as np
 
@@ -96,8 +98,8 @@ class CameraBackend(ABC):
         """
 
     @abstractmethod
-    def stop_recording(self) -> None:
-        """Stop recording and close the file."""
+    def stop_recording(self) -> Path | None:
+        """Stop recording and close the file; a backend may return the finished file's path."""
 
     @abstractmethod
     def latest_frameset(self) -> LiveFrameSet:
@@ -113,8 +115,8 @@ class RigBackend(ABC):
     """Two arms, their cameras and a clock; owns the joint logger."""
 
     clock: Clock
-    arms: dict[str, ArmBackend]
-    cameras: dict[str, CameraBackend]  # by arm id
+    arms: Mapping[str, ArmBackend]  # read-only here, so a backend may hold its own arm type
+    cameras: Mapping[str, CameraBackend]  # by arm id
 
     @abstractmethod
     def start_joint_log(self, path: Path) -> None:
@@ -126,6 +128,7 @@ class RigBackend(ABC):
 
     def close(self) -> None:
         """Release hardware or simulation resources (default: nothing)."""
+        return None
 
     def wait_until_still(self, arm_id: str, timeout_s: float, poll_s: float = 0.01) -> bool:
         """Sleep on the rig's clock until ``arm_id`` stops moving; False on timeout."""
@@ -137,7 +140,7 @@ class RigBackend(ABC):
             self.clock.sleep(poll_s)
         return True
 
-    def __enter__(self) -> RigBackend:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

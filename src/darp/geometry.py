@@ -3,6 +3,8 @@ both: numpy and scipy only, no files, no robots."""
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull, QhullError
@@ -17,10 +19,8 @@ def min_enclosing_circle(points_xy: Array) -> tuple[Array, float]:
     if len(P) == 0:
         raise ValueError("no points to enclose")
     if len(P) > 3:
-        try:
+        with contextlib.suppress(QhullError):  # collinear or coincident: all points are on a line
             P = P[ConvexHull(P).vertices]
-        except QhullError:  # collinear or coincident: all points are on a line
-            pass
     P = P[np.random.default_rng(0).permutation(len(P))]
 
     def circle2(a: Array, b: Array) -> tuple[Array, float]:

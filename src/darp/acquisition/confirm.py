@@ -145,7 +145,8 @@ def decide(primary: LocalisationResult, secondary: LocalisationResult, settings:
                         f"{a.arm_id} and {b.arm_id} agree (centres {check['centre_distance_m'] * 100:.1f} cm apart, "
                         f"tolerance {check['centre_tolerance_m'] * 100:.1f} cm): centres averaged, larger extents kept",
                         steps)
-    gap = f"centres {check['centre_distance_m'] * 100:.1f} cm apart (tolerance {check['centre_tolerance_m'] * 100:.1f} cm)"
+    gap = (f"centres {check['centre_distance_m'] * 100:.1f} cm apart "
+           f"(tolerance {check['centre_tolerance_m'] * 100:.1f} cm)")
     if s.conflict_policy == "terminate" or reobserve is None:
         return Decision("terminated", None, "conflict", f"{a.arm_id} and {b.arm_id} disagree: {gap}; "
                         "conflicting estimates are not averaged", steps)

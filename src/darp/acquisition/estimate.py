@@ -42,6 +42,7 @@ from darp.geometry import min_enclosing_circle
 from darp.kinematics.rig import Rig, Workspace
 
 Array = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
 
 REJECTION_REASONS = ("no_depth", "low_valid_fraction", "no_object", "few_points", "too_small", "truncated",
                      "outside_workspace", "too_tall", "unreachable")
@@ -128,7 +129,7 @@ class Observation:
 
 
 # -- geometry helpers -----------------------------------------------------------------------------
-def backproject(depth_m: Array, intrinsics: Intrinsics, stride: int = 1) -> tuple[Array, Array, Array]:
+def backproject(depth_m: Array, intrinsics: Intrinsics, stride: int = 1) -> tuple[Array, IndexArray, IndexArray]:
     """Valid pixels of a depth image as camera-frame points: (points (N, 3), u (N,), v (N,))."""
     d = np.asarray(depth_m, dtype=np.float64)[::stride, ::stride]
     v, u = np.nonzero(d > 0)
@@ -158,7 +159,7 @@ def fit_table_plane(points: Array, table_z: float, band_m: float) -> tuple[Array
     return coef, len(sel)
 
 
-def _largest_blob(xy: Array, lo: Array, hi: Array, cell_m: float, min_cell_points: int) -> Array:
+def _largest_blob(xy: Array, lo: Array, hi: Array, cell_m: float, min_cell_points: int) -> IndexArray:
     """Indices of the points in the largest 8-connected blob of occupied grid cells (by points)."""
     shape = np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
     ij = np.clip(((xy - lo) / cell_m).astype(int), 0, shape - 1)
@@ -256,7 +257,8 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
     if not in_workspace_xy(estimate.centre_m, ws, s.workspace_tolerance_m):
         return Observation(None, "outside_workspace",
                            f"object at ({centre_xy[0]:.3f}, {centre_xy[1]:.3f}) m is outside the workspace "
-                           f"x {ws.x_range_m[0]:.2f}..{ws.x_range_m[1]:.2f}, y {ws.y_range_m[0]:.2f}..{ws.y_range_m[1]:.2f}",
+                           f"x {ws.x_range_m[0]:.2f}..{ws.x_range_m[1]:.2f}, "
+                           f"y {ws.y_range_m[0]:.2f}..{ws.y_range_m[1]:.2f}",
                            candidate=estimate, stats=stats)
     if height > ws.z_range_m[1] - ws.z_range_m[0]:
         return Observation(None, "too_tall", f"object is {height:.3f} m tall (workspace height "

@@ -113,7 +113,7 @@ class Localiser:
         self.settings = settings if settings is not None else LocaliseSettings()
         self.motion = motion if motion is not None else MotionSettings()
         self.margins = margins if margins is not None else ClearanceMargins.from_rig(rig)
-        self.events = events if events is not None else (lambda kind, **fields: None)
+        self.events: EventSink = events if events is not None else (lambda kind, **fields: None)
 
     def _planner(self, arm_id: str, centre: Array, radius: float, height: float, obstacle: Any) -> ViewpointPlanner:
         model = ArmCollisionModel(self.rig, arm_id, calibration=self.calibration, obstacle=obstacle,
@@ -139,7 +139,7 @@ class Localiser:
             self.events("view_skipped", arm=arm_id, **record)
             return None
         try:
-            checked_move(self.backend, planner.model, cand.q_rad, self.motion)
+            checked_move(self.backend, planner.model, cand.joints_rad, self.motion)
         except UnsafeMoveError as err:
             record.update(ok=False, reason="unreachable", detail=str(err))
             result.views.append(record)
@@ -152,7 +152,7 @@ class Localiser:
         if obs.candidate is not None:
             obs.candidate.stage = stage
         record.update(elevation_deg=cand.elevation_deg, distance_m=round(distance_m, 4),
-                      q_rad=[round(float(v), 5) for v in cand.q_rad], **obs.to_record())
+                      q_rad=[round(float(v), 5) for v in cand.joints_rad], **obs.to_record())
         result.views.append(record)
         self.events("observation", arm=arm_id, **record)
         return obs

@@ -25,6 +25,7 @@ queries of :mod:`darp.kinematics.collision` run only where a bound falls below i
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -148,7 +149,7 @@ class ArmCollisionModel:
     # -- geometry ---------------------------------------------------------------------------------
     def model_q(self, q_rad: Array) -> Array:
         """Corrected joint angles (q + dq) that the kinematic model uses."""
-        return np.asarray(q_rad, dtype=float) + self.dq
+        return cast(Array, np.asarray(q_rad, dtype=float) + self.dq)
 
     def primitives(self, q_rad: Array) -> PrimitiveSet:
         """World-frame shapes of the arm and its camera at commanded joints ``q_rad``."""
@@ -156,7 +157,7 @@ class ArmCollisionModel:
 
     def T_world_cam(self, q_rad: Array) -> Array:
         """Eq. 1 at commanded joints ``q_rad``."""
-        return self.T_world_base @ z1.fk(self.model_q(q_rad), self.rig.wrist_frame) @ self.T_flange_cam
+        return cast(Array, self.T_world_base @ z1.fk(self.model_q(q_rad), self.rig.wrist_frame) @ self.T_flange_cam)
 
     # -- configurations ---------------------------------------------------------------------------
     def joint_limit_verdict(self, q_rad: Array) -> Verdict:
@@ -207,7 +208,7 @@ class ArmCollisionModel:
         q0, q1 = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
         n = max(1, int(np.ceil(float(np.max(np.abs(q1 - q0))) / max_step_rad)))
         s = np.arange(1, n + 1) / n
-        return q0 + s[:, None] * (q1 - q0)
+        return cast(Array, q0 + s[:, None] * (q1 - q0))
 
     def check_path(self, q_from: Array, q_to: Array, max_step_rad: float = 0.03) -> Verdict:
         """Clearances along the straight joint-space move ``q_from`` -> ``q_to`` (start not rechecked)."""
@@ -246,11 +247,11 @@ class ArmCollisionModel:
         d_self, _, _ = segment_distances(A[:, i], B[:, i], A[:, j], B[:, j])
         lb_self = np.min(d_self - R[:, i] - R[:, j], axis=1)
         need |= lb_self < m.self_m + _BOUND_SLACK_M
-        for k in np.flatnonzero(need[:first_bad]):
-            verdict = self.check_configuration(samples[k])
+        for k_need in np.flatnonzero(need[:first_bad]):
+            verdict = self.check_configuration(samples[k_need])
             if not verdict.ok:
                 return Verdict(False, verdict.reason, verdict.detail, verdict.distances_m,
-                               path_fraction=(k + 1) / len(samples))
+                               path_fraction=(k_need + 1) / len(samples))
         if bad_table.size:
             k = first_bad
             return Verdict(False, "table", f"path dips to {table[k] * 1000:.0f} mm above the table "

@@ -236,7 +236,7 @@ class SurveyRunner:
             model = self._model(arm_id, obstacle)
             for k, view in enumerate(plans[arm_id].views):
                 self.progress("record", done / max(total, 1), f"{arm_id} view {k + 1}/{len(plans[arm_id].views)}")
-                took = checked_move(self.backend, model, view.q_rad, self.s.motion)
+                took = checked_move(self.backend, model, view.joints_rad, self.s.motion)
                 state = self.backend.arms[arm_id].read_state()
                 self.events("view_reached", arm=arm_id, view=k, move_s=round(took, 3),
                             q_rad=[round(float(v), 5) for v in state.q_rad])
@@ -262,14 +262,18 @@ class SurveyRunner:
                   "arms": loc, "confirmation": None if self.outcome.decision is None
                   else self.outcome.decision.to_record()}
         extra = {"planning": {a: p.to_record() for a, p in plans.items()}} if plans else {}
+        center: tuple[float, float, float] | None = None
+        if est is not None:
+            x, y, z = (float(v) for v in est.centre_m)
+            center = (x, y, z)
         return Envelope(
             object_name=self.object_name or self.episode.name,
-            center_m=None if est is None else tuple(float(v) for v in est.centre_m),
+            center_m=center,
             radius_m=None if est is None else float(est.radius_m),
             height_m=None if est is None else float(est.height_m),
             standoff_m=None if est is None else standoff_for_radius(est.radius_m),
             park_q_rad={a: tuple(float(v) for v in q) for a, q in self.park.items()},
-            view_q_rad={a: [tuple(float(v) for v in c.q_rad) for c in p.views] for a, p in plans.items()},
+            view_q_rad={a: [tuple(float(v) for v in c.joints_rad) for c in p.views] for a, p in plans.items()},
             localisation=record, extra=extra)
 
     # -- the procedure ----------------------------------------------------------------------------

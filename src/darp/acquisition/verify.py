@@ -100,7 +100,8 @@ class VerificationReport:
         return {"folder": str(self.folder), "passed": self.passed, "checks": [c.to_record() for c in self.checks]}
 
 
-def settled_windows(t_s: Array, q_rad: Array, q_view: Array, tolerance_rad: float, min_s: float) -> list[tuple[float, float]]:
+def settled_windows(t_s: Array, q_rad: Array, q_view: Array, tolerance_rad: float,
+                    min_s: float) -> list[tuple[float, float]]:
     """Time windows (start, end) in which the logged joints stay within ``tolerance_rad`` of ``q_view``
     for at least ``min_s``."""
     near = np.all(np.abs(q_rad - np.asarray(q_view)) <= tolerance_rad, axis=1)

@@ -40,7 +40,7 @@ joint move's duration grows with it); the tour starts and ends at park.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -160,6 +160,12 @@ class Candidate:
                 "ok": self.ok, "reason": self.reason, "detail": self.detail,
                 "q_rad": None if self.q_rad is None else [float(v) for v in self.q_rad]}
 
+    @property
+    def joints_rad(self) -> Array:
+        """``q_rad`` of a candidate that IK solved (every feasible view: ``ok`` implies it)."""
+        assert self.q_rad is not None, f"candidate {self.index} has no joints ({self.reason or 'unchecked'})"
+        return self.q_rad
+
 
 @dataclass
 class ViewPlan:
@@ -174,7 +180,7 @@ class ViewPlan:
 
     @property
     def q_views(self) -> Array:
-        return np.array([c.q_rad for c in self.views]) if self.views else np.zeros((0, 6))
+        return np.array([c.joints_rad for c in self.views]) if self.views else np.zeros((0, 6))
 
     def to_record(self) -> dict[str, Any]:
         return {"arm": self.arm_id, "shape": self.shape.to_record(), "n_views": len(self.views),
@@ -222,7 +228,7 @@ class ViewpointPlanner:
     # -- candidates -------------------------------------------------------------------------------
     def candidates(self, shape: OrbitShape) -> list[Candidate]:
         """Camera positions of an orbit: rings bottom-up, azimuths across the arm's side."""
-        out = []
+        out: list[Candidate] = []
         half = 0.5 * shape.azimuth_span_deg
         az_offsets = np.linspace(-half, half, shape.n_azimuth) if shape.n_azimuth > 1 else np.zeros(1)
         for elev in shape.elevations_deg:
@@ -326,7 +332,7 @@ class ViewpointPlanner:
         for cand in cands:  # IK seeded from the previous solution keeps neighbours' joints close
             self.check_candidate(cand, q_init=q_prev)
             if cand.ok:
-                q_prev = cand.q_rad
+                q_prev = cand.joints_rad
         good = [c for c in cands if c.ok]
         return self._tour(good), cands
 
@@ -335,7 +341,7 @@ class ViewpointPlanner:
         s = self.settings
         self._paths: dict[tuple[int, int], Any] = {}  # path verdicts by (from, to) candidate index; -1: park
         while good:
-            order = order_views(self.q_park, np.array([c.q_rad for c in good]), self.q_park, s.two_opt_rounds)
+            order = order_views(self.q_park, np.array([c.joints_rad for c in good]), self.q_park, s.two_opt_rounds)
             tour = [good[i] for i in order]
             dropped = self._first_bad_move(tour)
             if dropped is None:
@@ -348,7 +354,7 @@ class ViewpointPlanner:
         s = self.settings
         q_prev, i_prev = self.q_park, -1
         for cand in [*tour, None]:
-            q_next = self.q_park if cand is None else cand.q_rad
+            q_next = self.q_park if cand is None else cand.joints_rad
             i_next = -1 if cand is None else cand.index
             step = float(np.max(np.abs(q_next - q_prev)))
             culprit = tour[-1] if cand is None else cand
@@ -375,7 +381,7 @@ def _fail(cand: Candidate, reason: str, detail: str) -> Candidate:
 # -- ordering ------------------------------------------------------------------------------------
 def move_cost(qa: Array, qb: Array) -> Array:
     """Cost of a joint move: its largest joint change (rad); broadcasts over leading dimensions."""
-    return np.max(np.abs(np.asarray(qb, float) - np.asarray(qa, float)), axis=-1)
+    return cast(Array, np.max(np.abs(np.asarray(qb, float) - np.asarray(qa, float)), axis=-1))
 
 
 def tour_cost(q_start: Array, Q: Array, q_end: Array | None = None) -> float:

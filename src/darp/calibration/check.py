@@ -21,7 +21,7 @@ blamed on one of them: both arms are then reported stale.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -98,10 +98,10 @@ def fit_board(params: ChainParams, obs: Observations, wrist_frame: str = "flange
 
     def fun(x: np.ndarray) -> np.ndarray:
         p.T_ref_board = start @ delta(x)
-        return (predict_pixels(p, obs, wrist_frame) - obs.uv).ravel()
+        return cast(np.ndarray, (predict_pixels(p, obs, wrist_frame) - obs.uv).ravel())
 
     res = least_squares(fun, np.zeros(6), loss="soft_l1", f_scale=1.0, x_scale=[1e-3] * 3 + [1e-3] * 3)
-    return start @ delta(res.x)
+    return cast(np.ndarray, start @ delta(res.x))
 
 
 def _limits(cal: Calibration, arm: str, s: CheckSettings) -> tuple[float, float]:

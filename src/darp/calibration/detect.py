@@ -15,7 +15,9 @@ error is too high (a wrong corner id or a blurred image).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import cast
 
 import cv2
 import numpy as np
@@ -68,7 +70,7 @@ class Detection:
         """Board pose in the depth (hand-eye) frame from this image alone."""
         if self.T_stream_board is None:
             return None
-        return self.record.T_depth_stream @ self.T_stream_board
+        return cast(np.ndarray, self.record.T_depth_stream @ self.T_stream_board)
 
 
 class CharucoCornerDetector:
@@ -162,13 +164,13 @@ def board_pose_pnp(object_points: np.ndarray, ideal_px: np.ndarray, K: np.ndarra
 
 
 def detect_captures(captures: CaptureSet, settings: DetectionSettings | None = None,
-                    progress: object | None = None) -> list[Detection]:
+                    progress: Callable[[], object] | None = None) -> list[Detection]:
     """Detect every capture of a folder (``progress``: optional callable advanced once per image)."""
     detector = CharucoCornerDetector(captures.board, settings)
     out = []
     for record in captures.captures:
         out.append(detector.detect(record, captures.load_image(record)))
-        if callable(progress):
+        if progress is not None:
             progress()
     return out
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -110,7 +110,7 @@ def effective_base(T_world_base: np.ndarray, dq: np.ndarray) -> np.ndarray:
 
 def effective_hand_eye(T_wrist_cam: np.ndarray, dq: np.ndarray) -> np.ndarray:
     """The hand-eye as the captures see it: joint 6's zero offset folded in (about the flange x axis)."""
-    return make_transform(rot_x(float(dq[5]))) @ np.asarray(T_wrist_cam)
+    return cast(np.ndarray, make_transform(rot_x(float(dq[5]))) @ np.asarray(T_wrist_cam))
 
 
 def canonicalised(cal: Calibration, arms: tuple[str, str], up_world: np.ndarray | None = None) -> Calibration:

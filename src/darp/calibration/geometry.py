@@ -17,6 +17,8 @@ as ``rs2_deproject_pixel_to_point`` does):
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from darp.errors import CalibrationError
@@ -46,12 +48,12 @@ def log_delta(T: np.ndarray) -> np.ndarray:
 def project(P_cam: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Pinhole projection of camera-frame points (..., 3) to pixels (..., 2)."""
     z = P_cam[..., 2:3]
-    return (P_cam[..., :2] / z) * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]])
+    return cast(np.ndarray, (P_cam[..., :2] / z) * np.array([K[0, 0], K[1, 1]]) + np.array([K[0, 2], K[1, 2]]))
 
 
 def transform(T: np.ndarray, P: np.ndarray) -> np.ndarray:
     """Apply transforms (..., 4, 4) to points (..., N, 3) (broadcasting the transform over N)."""
-    return np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3]
+    return cast(np.ndarray, np.einsum("...ij,...nj->...ni", T[..., :3, :3], P) + T[..., None, :3, 3])
 
 
 def _brown(x: np.ndarray, y: np.ndarray, c: np.ndarray, modified: bool) -> tuple[np.ndarray, np.ndarray]:

@@ -17,6 +17,8 @@ differences in the tests.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 
 from darp.calibration.model import ChainParams, Observations
@@ -37,8 +39,9 @@ def right_jacobian(w: np.ndarray) -> np.ndarray:
     theta = float(np.linalg.norm(w))
     K = _skew(np.asarray(w, float))
     if theta < 1e-6:
-        return np.eye(3) - 0.5 * K + K @ K / 6.0
-    return np.eye(3) - (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K)
+        return cast(np.ndarray, np.eye(3) - 0.5 * K + K @ K / 6.0)
+    return cast(np.ndarray,
+                np.eye(3) - (1 - np.cos(theta)) / theta**2 * K + (theta - np.sin(theta)) / theta**3 * (K @ K))
 
 
 def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: Observations, sigma_px: float,

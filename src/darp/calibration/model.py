@@ -12,8 +12,9 @@ whose own ``T_ref_base`` is the identity. The world frame is chosen afterwards
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any, cast
 
 import numpy as np
 
@@ -77,7 +78,7 @@ class Observations:
 
     def for_arm(self, arm: str) -> np.ndarray:
         """Boolean capture mask of ``arm``."""
-        return self.arm_index == self.arms.index(arm)
+        return cast(np.ndarray, self.arm_index == self.arms.index(arm))
 
 
 def build_observations(detections: Sequence[Detection], board: CharucoBoardSpec,
@@ -119,13 +120,14 @@ def camera_poses(params: ChainParams, obs: Observations, wrist_frame: str = "fla
 
 def board_in_stream(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
     """Predicted ``T_stream_board`` (M, 4, 4) of every capture."""
-    return obs.T_stream_depth @ invert_transform(camera_poses(params, obs, wrist_frame)) @ params.T_ref_board
+    T_depth_ref = invert_transform(camera_poses(params, obs, wrist_frame))
+    return cast(np.ndarray, obs.T_stream_depth @ T_depth_ref @ params.T_ref_board)
 
 
 def predict_points(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
     """Predicted corners in their capture's stream frame (C, 3)."""
     T = board_in_stream(params, obs, wrist_frame)[obs.corner_capture]
-    return np.einsum("cij,cj->ci", T[:, :3, :3], obs.P_board) + T[:, :3, 3]
+    return cast(np.ndarray, np.einsum("cij,cj->ci", T[:, :3, :3], obs.P_board) + T[:, :3, 3])
 
 
 def predict_pixels(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
@@ -138,12 +140,14 @@ def predict_pixels(params: ChainParams, obs: Observations, wrist_frame: str = "f
 
 def reprojection_errors(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
     """Per-corner reprojection error (C,) in pixels."""
-    return np.linalg.norm(predict_pixels(params, obs, wrist_frame) - obs.uv, axis=1)
+    return cast(np.ndarray, np.linalg.norm(predict_pixels(params, obs, wrist_frame) - obs.uv, axis=1))
 
 
 def per_capture(values: np.ndarray, obs: Observations, reduce: str = "median") -> np.ndarray:
     """Reduce per-corner values (C,) to per-capture values (M,)."""
-    fn = {"median": np.median, "mean": np.mean, "max": np.max, "rms": lambda v: np.sqrt(np.mean(v**2))}[reduce]
+    reducers: dict[str, Callable[[np.ndarray], Any]] = {
+        "median": np.median, "mean": np.mean, "max": np.max, "rms": lambda v: np.sqrt(np.mean(v**2))}
+    fn = reducers[reduce]
     return np.array([fn(values[obs.corner_capture == m]) for m in range(obs.n_captures)])
 
 

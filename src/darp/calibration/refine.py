@@ -26,7 +26,7 @@ over the residuals of capture ``c`` (clustered by capture).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -65,7 +65,7 @@ class Layout:
 
     def __post_init__(self) -> None:
         n = 0
-        blocks = [("board", POSE_AXES)]
+        blocks: list[tuple[str, tuple[str, ...]]] = [("board", POSE_AXES)]
         blocks += [(f"base:{a}", POSE_AXES) for a in self.arms[1:]]
         blocks += [(f"handeye:{a}", POSE_AXES) for a in self.arms]
         blocks += [(f"dq:{a}", tuple(f"joint{j + 1}" for j in np.flatnonzero(self.free_joints[a])))
@@ -215,7 +215,7 @@ class RefineResult:
     def std(self, key: str) -> np.ndarray:
         """Standard deviations of one block (e.g. ``"handeye:arm110"``), rad and m."""
         sl = self.layout.slices[key]
-        return np.sqrt(np.clip(np.diag(self.covariance)[sl], 0.0, None))
+        return cast(np.ndarray, np.sqrt(np.clip(np.diag(self.covariance)[sl], 0.0, None)))
 
     def joint_offset_std(self, arm: str) -> np.ndarray:
         """(6,) std of each joint offset (0 where the offset was fixed)."""

@@ -118,7 +118,8 @@ def summary_markdown(outcome: SolveOutcome) -> str:
     if rep["rejected"]:
         lines += ["Rejected captures:", ""] + [f"- {k}: {v}" for k, v in rep["rejected"].items()] + [""]
     lines += ["## Per arm", "", ("| arm | captures | fit px (median) | held-out 3-D mm (median / p90) | "
-                                 "held-out ray mm | held-out px | hand-eye std (mm, deg) |"), "|---|---|---|---|---|---|---|"]
+                                 "held-out ray mm | held-out px | hand-eye std (mm, deg) |"),
+              "|---|---|---|---|---|---|---|"]
     for arm, a in cal.arms.items():
         r = a.residuals
         h = r.get("heldout", {})
@@ -156,8 +157,9 @@ def summary_markdown(outcome: SolveOutcome) -> str:
                          + " | ".join(f"{per_arm[a]['corner_3d_mm']['median']:.3f}" for a in cal.arms) + " |")
     truth = rep.get("truth")
     if truth:
-        lines += ["", "## Against truth", "", ("| method | hand-eye mm (worse arm) | hand-eye deg | base-to-base mm | "
-                                                "base-to-base deg | joint offsets deg (max) | camera pose mm (median) |"),
+        lines += ["", "## Against truth", "", ("| method | hand-eye mm (worse arm) | hand-eye deg | "
+                                                "base-to-base mm | base-to-base deg | joint offsets deg (max) | "
+                                                "camera pose mm (median) |"),
                   "|---|---|---|---|---|---|---|"]
         for name, t in truth.items():
             arms = t["arms"].values()

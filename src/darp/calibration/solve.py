@@ -192,7 +192,8 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
         he_std = res.std(f"handeye:{a}")
         entry.residuals = {
             "fit_reprojection_px": fit_stats[a],
-            "hand_eye_std": {"rotation_deg": np.degrees(he_std[:3]).tolist(), "translation_mm": (1e3 * he_std[3:]).tolist()},
+            "hand_eye_std": {"rotation_deg": np.degrees(he_std[:3]).tolist(),
+                             "translation_mm": (1e3 * he_std[3:]).tolist()},
             "n_rejected": sum(1 for d in detections if d.arm == a and not d.ok),
         }
         if f"base:{a}" in res.layout.slices:

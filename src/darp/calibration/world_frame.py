@@ -12,12 +12,14 @@ measured quantities:
 - **x** = the direction from the first base origin to the second, made orthogonal to z; y = z x x.
 
 Why not "the first base is the world": joint 1's zero offset cannot be separated from the base yaw
-(:mod:`darp.calibration.refine`), so the first base's yaw is not measurable; the line between the base origins is, to a fraction of a
-millimetre. The twin draws its truth in the same definition (:func:`darp.twin.truth.draw_true_rig`), so
-errors against truth measure the calibration, not the convention.
+(:mod:`darp.calibration.refine`), so the first base's yaw is not measurable; the line between the base
+origins is, to a fraction of a millimetre. The twin draws its truth in the same definition
+(:func:`darp.twin.truth.draw_true_rig`), so errors against truth measure the calibration, not the convention.
 """
 
 from __future__ import annotations
+
+from typing import cast
 
 import numpy as np
 
@@ -62,7 +64,7 @@ def tilt_deg(T_world_x: np.ndarray) -> float:
 
 def reexpress(T_old_world_new: np.ndarray, T_old_x: np.ndarray) -> np.ndarray:
     """``T_new_x`` from ``T_old_x``."""
-    return invert_transform(T_old_world_new) @ T_old_x
+    return cast(np.ndarray, invert_transform(T_old_world_new) @ T_old_x)
 
 
 __all__ = ["WORLD_FRAME_TEXT", "board_up", "canonical_world", "reexpress", "tilt_deg", "world_from_reference"]

@@ -196,7 +196,7 @@ def _text(headers: list[str], rows: list[list[str]], total: list[str]) -> str:
 
     def line(cells: list[str]) -> str:
         return "  ".join(
-            cell.ljust(w) if c == 0 else cell.rjust(w) for c, (cell, w) in enumerate(zip(cells, widths))
+            cell.ljust(w) if c == 0 else cell.rjust(w) for c, (cell, w) in enumerate(zip(cells, widths, strict=True))
         ).rstrip()
 
     rule = "-" * len(line(["x" * w for w in widths]))

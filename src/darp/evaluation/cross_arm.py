@@ -137,4 +137,5 @@ def cross_arm_consistency(points_a: np.ndarray, points_b: np.ndarray, *, normals
     )
 
 
-__all__ = ["DEFAULT_CELL_M", "DEFAULT_MAX_LATERAL_M", "DEFAULT_MIN_NORMAL_DOT", "CrossArmResult", "DirectionResult", "co_observed", "cross_arm_consistency"]
+__all__ = ["DEFAULT_CELL_M", "DEFAULT_MAX_LATERAL_M", "DEFAULT_MIN_NORMAL_DOT", "CrossArmResult", "DirectionResult",
+           "co_observed", "cross_arm_consistency"]

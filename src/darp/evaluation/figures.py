@@ -75,7 +75,7 @@ def cross_arm_figure(clouds: Mapping[str, np.ndarray], out: str | Path, *, title
     colours = np.concatenate([np.repeat(np.array([arm_colour(name, k)]), len(p))
                               for k, (name, p) in enumerate(drawn.items())])
     order = np.random.default_rng(seed).permutation(everything.shape[0])
-    for ax, (i, j), label in zip(axes, ((0, 1), (0, 2), (1, 2)), ("XY", "XZ", "YZ")):
+    for ax, (i, j), label in zip(axes, ((0, 1), (0, 2), (1, 2)), ("XY", "XZ", "YZ"), strict=True):
         ax.scatter(everything[order, i], everything[order, j], s=1.5, c=colours[order], alpha=0.6,
                    linewidths=0, rasterized=True)
         for k, name in enumerate(drawn):  # legend entries only
@@ -120,7 +120,7 @@ def partial_fused_figure(partial_a: np.ndarray, partial_b: np.ndarray, fused: np
     half = 0.5 * float((everything.max(axis=0) - everything.min(axis=0)).max()) + 1.0
     fig = Figure(figsize=(15, 5.4))
     labels = (f"(a) {names[0]} partial", f"(b) {names[1]} partial", "(c) fused")
-    for k, ((pts, colour), label) in enumerate(zip(panels, labels)):
+    for k, ((pts, colour), label) in enumerate(zip(panels, labels, strict=True)):
         ax = fig.add_subplot(1, 3, k + 1, projection="3d")
         if len(pts):
             if colour is not None:
@@ -149,7 +149,7 @@ def heldout_histogram(distances: Mapping[str, np.ndarray], out: str | Path, *, t
                       max_mm: float | None = None, bins: int = 120) -> Path:
     """Histogram of held-out point-to-mesh distances (mm) per arm, with the median and 5 / 10 mm marks."""
     arrays = {k: np.asarray(v, np.float64).reshape(-1) * 1000.0 for k, v in distances.items()}
-    pooled = np.concatenate([a for a in arrays.values()]) if arrays else np.empty(0)
+    pooled = np.concatenate(list(arrays.values())) if arrays else np.empty(0)
     if pooled.size == 0:
         raise EvaluationError("no held-out distances to draw")
     top = max_mm if max_mm is not None else max(12.0, float(np.percentile(pooled, 99.5)))
@@ -158,10 +158,11 @@ def heldout_histogram(distances: Mapping[str, np.ndarray], out: str | Path, *, t
     ax = fig.subplots()
     for k, (name, d) in enumerate(arrays.items()):
         if d.size:
-            ax.hist(np.minimum(d, top), bins=edges, histtype="step", linewidth=1.4, color=arm_colour(name, k),
-                    label=f"{name}: {d.size:,} pts, median {np.median(d):.2f} mm")
-    ax.hist(np.minimum(pooled, top), bins=edges, histtype="stepfilled", color="0.6", alpha=0.35,
-            label=f"all: {pooled.size:,} pts")
+            # matplotlib's stubs want bins as a Sequence; it takes numpy's array-like bin edges as well
+            ax.hist(np.minimum(d, top), bins=edges, histtype="step", linewidth=1.4,  # type: ignore[arg-type]
+                    color=arm_colour(name, k), label=f"{name}: {d.size:,} pts, median {np.median(d):.2f} mm")
+    ax.hist(np.minimum(pooled, top), bins=edges, histtype="stepfilled",  # type: ignore[arg-type]  # (as above)
+            color="0.6", alpha=0.35, label=f"all: {pooled.size:,} pts")
     median = float(np.median(pooled))
     ax.axvline(median, color="k", linewidth=1.2, label=f"median {median:.2f} mm")
     for mark, style in ((5.0, "--"), (10.0, ":")):

@@ -33,7 +33,8 @@ def heldout_mask(n_keyframes: int, every: int = 5, offset: int = 2) -> np.ndarra
     """
     if every < 2 or not 0 <= offset < every:
         raise EvaluationError(f"held-out split needs every >= 2 and 0 <= offset < every, got {every}, {offset}")
-    return (np.arange(n_keyframes) % every) == offset
+    heldout: np.ndarray = (np.arange(n_keyframes) % every) == offset
+    return heldout
 
 
 @dataclass(frozen=True, eq=False)

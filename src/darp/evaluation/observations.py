@@ -51,7 +51,7 @@ def survey_observations(survey_out: str | Path) -> dict[str, dict[str, np.ndarra
         for kf in iter_keyframes(keyframes):
             if kf.arm not in found:
                 found[kf.arm] = {"rgb": kf.rgb, "depth": kf.depth, "ir_left": kf.ir_left, "ir_right": kf.ir_right,
-                                 "depth_scale": np.float64(kf.depth_scale)}
+                                 "depth_scale": np.array(kf.depth_scale, np.float64)}  # 0-d, as read from .npz
     return found
 
 

@@ -36,7 +36,8 @@ class MeshDistance:
             raise EvaluationError("triangle indices point past the vertex array")
         self.n_triangles = int(triangles.shape[0])
         self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(triangles))
+        # open3d's stubs make Tensor's dtype and device required; they default to the array's and the CPU
+        self._scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(triangles))  # type: ignore[call-overload]
 
     @classmethod
     def from_open3d(cls, mesh: o3d.geometry.TriangleMesh) -> MeshDistance:
@@ -47,7 +48,7 @@ class MeshDistance:
         pts = _as_points(points)
         out = np.empty(pts.shape[0], np.float32)
         for start in range(0, pts.shape[0], _CHUNK):
-            chunk = o3d.core.Tensor(pts[start:start + _CHUNK])
+            chunk = o3d.core.Tensor(pts[start:start + _CHUNK])  # type: ignore[call-overload]  # (see __init__)
             out[start:start + _CHUNK] = self._scene.compute_distance(chunk).numpy()
         return out
 
@@ -57,7 +58,8 @@ class MeshDistance:
         closest = np.empty_like(pts)
         tri = np.empty(pts.shape[0], np.int64)
         for start in range(0, pts.shape[0], _CHUNK):
-            answer = self._scene.compute_closest_points(o3d.core.Tensor(pts[start:start + _CHUNK]))
+            chunk = o3d.core.Tensor(pts[start:start + _CHUNK])  # type: ignore[call-overload]  # (see __init__)
+            answer = self._scene.compute_closest_points(chunk)
             closest[start:start + _CHUNK] = answer["points"].numpy()
             tri[start:start + _CHUNK] = answer["primitive_ids"].numpy()
         return closest, tri

@@ -21,7 +21,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import NoReturn
+from typing import NoReturn, Self
 
 import numpy as np
 
@@ -122,7 +122,7 @@ def read_arm_poses(
     if "\r" in text:
         body = [line.rstrip("\r") for line in body]
     if any(not line.strip() for line in body):  # skip blank lines, keep true line numbers
-        kept = [(n, line) for n, line in zip(line_numbers, body) if line.strip()]
+        kept = [(n, line) for n, line in zip(line_numbers, body, strict=True) if line.strip()]
         line_numbers = [n for n, _ in kept]
         body = [line for _, line in kept]
 
@@ -279,7 +279,8 @@ class ArmPoseWriter:
         self._pending = 0
         self.rows_written = 0
         try:
-            self._handle = open(self.path, "w" if overwrite else "x", encoding="utf-8", newline="\n")
+            self._handle = open(self.path, "w" if overwrite else "x", encoding="utf-8",  # noqa: SIM115 (closed in close)
+                                newline="\n")
         except FileExistsError:
             raise FormatError("already exists (refusing to overwrite a joint log)", self.path) from None
         except OSError as err:
@@ -331,7 +332,7 @@ class ArmPoseWriter:
             os.fsync(self._handle.fileno())
             self._handle.close()
 
-    def __enter__(self) -> ArmPoseWriter:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

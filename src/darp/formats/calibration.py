@@ -60,8 +60,8 @@ class ArmCalibration:
     """The static transforms and joint-zero correction of one arm."""
 
     serial: str  # camera serial on this arm's wrist
-    T_world_base: np.ndarray  # noqa: N815 (frame naming convention)
-    T_wrist_cam: np.ndarray  # noqa: N815
+    T_world_base: np.ndarray  # frame naming convention: T_to_from
+    T_wrist_cam: np.ndarray
     joint_offsets_rad: np.ndarray = field(default_factory=lambda: np.zeros(N_JOINTS))
     joint_offsets_std_rad: np.ndarray | None = None
     identifiable: tuple[bool, ...] | None = None  # per joint: could its offset be estimated?

@@ -24,7 +24,7 @@ import numpy as np
 
 from darp.errors import DarpError
 from darp.hardware import sdk as sdk_loader
-from darp.hardware.realsense_camera import CameraSettings, device_info, find_device, video_streams
+from darp.hardware.realsense_camera import CameraSettings, VideoStream, device_info, find_device, video_streams
 from darp.hardware.settings import HardwareSettings, load_hardware_settings
 from darp.hardware.z1_arm import ArmProbe, probe_arm
 from darp.kinematics.rig import Rig, default_rig_path, load_rig
@@ -34,7 +34,8 @@ PARK_TOLERANCE_RAD = 0.05
 USB2_BUDGET_MB_S = 35.0  # what a USB 2 link sustains in practice (480 Mbit/s raw, less after protocol)
 # bytes per pixel on the wire: depth Z16, IR Y8, colour (the camera sends YUYV; the SDK converts to BGR8)
 WIRE_BYTES = {"depth": 2, "ir1": 1, "ir2": 1, "color": 2}
-INFO_KEYS = {"name": "name", "serial": "serial_number", "firmware": "firmware_version", "usb": "usb_type_descriptor"}  # field -> camera_info
+INFO_KEYS = {"name": "name", "serial": "serial_number", "firmware": "firmware_version",  # field -> camera_info
+             "usb": "usb_type_descriptor"}
 
 
 @dataclass(frozen=True)
@@ -99,15 +100,15 @@ def list_cameras(rs: ModuleType) -> list[CameraDevice]:
     return out
 
 
-def required_profiles(rs: ModuleType, s: CameraSettings) -> dict[str, tuple]:
+def required_profiles(rs: ModuleType, s: CameraSettings) -> dict[str, VideoStream]:
     """What ``RealSenseCamera`` will request, as the device lists its profiles: label -> (stream, index,
     format, width, height, fps), index 0 for the single-stream sensors (depth, colour)."""
     return {label: (stream, max(index, 0), *rest) for label, (stream, index, *rest) in video_streams(rs, s).items()}
 
 
-def _offered(rs: ModuleType, dev) -> tuple[set[tuple], dict[str, list[int]]]:
+def _offered(rs: ModuleType, dev: Any) -> tuple[set[VideoStream], dict[str, list[int]]]:
     """Every video profile the device offers (stream, index, format, w, h, fps) and its IMU rates."""
-    video: set[tuple] = set()
+    video: set[VideoStream] = set()
     imu: dict[str, list[int]] = {"accel": [], "gyro": []}
     for sensor in dev.query_sensors():
         for p in sensor.get_stream_profiles():
@@ -144,7 +145,7 @@ def _check_camera(report: CheckReport, rs: ModuleType, arm_id: str, serial: str,
     name = f"{arm_id} camera"
     cam = found.get(serial)
     dev = find_device(rs, rs.context(), serial)[0] if cam is not None else None
-    if dev is None:
+    if cam is None or dev is None:
         others = ", ".join(sorted(found)) or "none"
         report.add(name, FAIL, f"{serial} is not connected (cameras found: {others}); check the USB 3 cable and "
                    f"the udev rules")
@@ -244,7 +245,7 @@ def check_arms(report: CheckReport, rig: Rig, settings: HardwareSettings, *, tim
         except DarpError as err:
             report.add(f"{arm_id} controller", FAIL, str(err).removeprefix(f"{arm_id}: "))
             continue
-        except Exception as err:  # noqa: BLE001 (an SDK failure of any kind: reported as the arm's verdict)
+        except Exception as err:  # an SDK failure of any kind: reported as the arm's verdict
             report.add(f"{arm_id} controller", FAIL, f"{connection.describe()}: {type(err).__name__}: {err}")
             continue
         busy = probe.state not in ("PASSIVE", "JOINTCTRL")

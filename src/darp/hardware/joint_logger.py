@@ -84,7 +84,7 @@ class JointLogger:
                     delay = next_t - time.monotonic()
                 if delay > 0:
                     self._stop.wait(delay)
-        except BaseException as err:  # noqa: BLE001 (any failure stops the log; stop() raises it)
+        except BaseException as err:  # any failure stops the log; stop() raises it
             self._error = err
             log.error("joint log stopped: %s", err)
 

@@ -32,7 +32,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Self
+from typing import Any, Self
 
 import numpy as np
 
@@ -82,12 +82,16 @@ class CameraSettings:
 
 DEVICE_INFO_KEYS = ("name", "serial_number", "firmware_version", "usb_type_descriptor")
 
+# pyrealsense2 has no type information: its objects (devices, frames, profiles, enums) are ``Any`` here.
+VideoStream = tuple[Any, int, Any, int, int, int]
+"""A video stream as pyrealsense2 names it: (stream, index, format, width, height, fps)."""
 
-def video_streams(rs: ModuleType, s: CameraSettings) -> dict[str, tuple]:
+
+def video_streams(rs: ModuleType, s: CameraSettings) -> dict[str, VideoStream]:
     """The video streams darp records with settings ``s``: ``label -> (stream, index, format, width,
     height, fps)``; index -1 is "the sensor's only one" (depth, colour), as ``config.enable_stream`` takes it.
     One list for recording and for ``darp hardware check``, so the check asks for what a survey will."""
-    wanted = {"depth z16": (rs.stream.depth, -1, rs.format.z16, s.width, s.height, s.fps)}
+    wanted: dict[str, VideoStream] = {"depth z16": (rs.stream.depth, -1, rs.format.z16, s.width, s.height, s.fps)}
     if s.infrared:
         wanted["IR1 y8"] = (rs.stream.infrared, 1, rs.format.y8, s.width, s.height, s.fps)
         wanted["IR2 y8"] = (rs.stream.infrared, 2, rs.format.y8, s.width, s.height, s.fps)
@@ -96,15 +100,15 @@ def video_streams(rs: ModuleType, s: CameraSettings) -> dict[str, tuple]:
     return wanted
 
 
-def device_info(rs: ModuleType, dev) -> dict[str, str]:
+def device_info(rs: ModuleType, dev: Any) -> dict[str, str]:
     """The device's ``DEVICE_INFO_KEYS`` that it reports (camera_info name -> value)."""
     return {key: dev.get_info(getattr(rs.camera_info, key)) for key in DEVICE_INFO_KEYS
             if dev.supports(getattr(rs.camera_info, key))}
 
 
-def find_device(rs: ModuleType, ctx, serial: str) -> tuple[object | None, list[str]]:
+def find_device(rs: ModuleType, ctx: Any, serial: str) -> tuple[Any | None, list[str]]:
     """``(the connected device with this serial or None, the serials of every connected device)``."""
-    serials = []
+    serials: list[str] = []
     for dev in ctx.query_devices():
         found = dev.get_info(rs.camera_info.serial_number)
         if found == serial:
@@ -113,14 +117,14 @@ def find_device(rs: ModuleType, ctx, serial: str) -> tuple[object | None, list[s
     return None, serials
 
 
-def _intrinsics(rs_intr) -> Intrinsics:
+def _intrinsics(rs_intr: Any) -> Intrinsics:
     model = DISTORTION_NAMES.get(str(rs_intr.model).split(".")[-1], str(rs_intr.model))
-    coeffs = tuple(float(c) for c in list(rs_intr.coeffs)[:5])
+    k1, k2, k3, k4, k5 = (float(c) for c in list(rs_intr.coeffs)[:5])
     return Intrinsics(int(rs_intr.width), int(rs_intr.height), float(rs_intr.fx), float(rs_intr.fy),
-                      float(rs_intr.ppx), float(rs_intr.ppy), model, coeffs)
+                      float(rs_intr.ppx), float(rs_intr.ppy), model, (k1, k2, k3, k4, k5))
 
 
-def _transform(rs_extr) -> np.ndarray:
+def _transform(rs_extr: Any) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = np.asarray(rs_extr.rotation, dtype=np.float64).reshape(3, 3).T  # stored column-major
     T[:3, 3] = np.asarray(rs_extr.translation, dtype=np.float64)
@@ -136,12 +140,12 @@ class RealSenseCamera(CameraBackend):
         self.arm_id = arm_id
         self.settings = settings or CameraSettings()
         self._rs = rs
-        self._ctx = None
-        self._pipe = None
+        self._ctx: Any = None  # rs.context
+        self._pipe: Any = None  # rs.pipeline while streaming
         self._reader: threading.Thread | None = None
         self._stop = threading.Event()
         self._lock = threading.Lock()
-        self._latest = None
+        self._latest: Any = None  # the newest rs.composite_frame with depth
         self._reader_error: BaseException | None = None
         self._recording_path: Path | None = None
         self._depth_intrinsics: Intrinsics | None = None
@@ -246,7 +250,7 @@ class RealSenseCamera(CameraBackend):
         ir1 = fs.get_infrared_frame(1) if self.settings.infrared else None
         if ir1:
             extra["ir1"] = np.array(np.asanyarray(ir1.get_data()), copy=True)
-        return LiveFrameSet(timestamp_s=stamp_ms / 1e3, depth_m=depth_m, depth_intrinsics=self._depth_intrinsics,
+        return LiveFrameSet(timestamp_s=stamp_ms / 1e3, depth_m=depth_m, depth_intrinsics=self.depth_intrinsics,
                             color_bgr=color_bgr, color_intrinsics=self._color_intrinsics if color else None,
                             T_depth_color=None if self._T_depth_color is None else self._T_depth_color.copy(),
                             extra=extra)
@@ -254,9 +258,13 @@ class RealSenseCamera(CameraBackend):
     @property
     def depth_intrinsics(self) -> Intrinsics:
         """Intrinsics of the depth (left infrared) stream (starts streaming if needed)."""
-        if self._depth_intrinsics is None:
+        intrinsics = self._depth_intrinsics
+        if intrinsics is None:
             self.open()
-        return self._depth_intrinsics
+            intrinsics = self._depth_intrinsics
+        if intrinsics is None:  # open() reads them or raises
+            raise HardwareError(f"{self._label()}: the depth stream reported no intrinsics")
+        return intrinsics
 
     # -- streaming --------------------------------------------------------------------------------
     def _module(self) -> ModuleType:
@@ -264,7 +272,7 @@ class RealSenseCamera(CameraBackend):
             self._rs = sdk_loader.load_realsense()
         return self._rs
 
-    def _find_device(self):
+    def _find_device(self) -> Any:
         rs = self._module()
         if self._ctx is None:
             self._ctx = rs.context()
@@ -275,7 +283,7 @@ class RealSenseCamera(CameraBackend):
         raise HardwareError(f"{self._label()} is not connected (cameras found: {found}): check the USB 3 cable and "
                             f"the udev rules (docs/hardware.md)")
 
-    def _imu_rates(self, dev) -> tuple[int, int] | None:
+    def _imu_rates(self, dev: Any) -> tuple[int, int] | None:
         if self.settings.imu == "off":
             return None
         rs = self._module()
@@ -293,7 +301,7 @@ class RealSenseCamera(CameraBackend):
                                 f"is 'on'")
         return None
 
-    def _config(self, imu: tuple[int, int] | None, record_to: Path | None):
+    def _config(self, imu: tuple[int, int] | None, record_to: Path | None) -> Any:
         rs, s = self._module(), self.settings
         cfg = rs.config()
         cfg.enable_device(self.serial)
@@ -338,7 +346,7 @@ class RealSenseCamera(CameraBackend):
             self._stop_streaming()
             raise
 
-    def _prepare(self, rs: ModuleType, profile, recording: bool) -> None:
+    def _prepare(self, rs: ModuleType, profile: Any, recording: bool) -> None:
         """Pause the recorder, switch every sensor to global time, read intrinsics and depth scale."""
         dev = profile.get_device()
         try:
@@ -357,7 +365,7 @@ class RealSenseCamera(CameraBackend):
         except RuntimeError as err:
             raise HardwareError(f"{self._label()}: cannot configure the streaming device: {err}") from err
 
-    def _read_loop(self, pipe) -> None:
+    def _read_loop(self, pipe: Any) -> None:
         while not self._stop.is_set():
             try:
                 ok, fs = pipe.try_wait_for_frames(200)
@@ -370,7 +378,7 @@ class RealSenseCamera(CameraBackend):
                 self._latest = fs
                 self.frames_received += 1
 
-    def _wait_latest(self, timeout_s: float):
+    def _wait_latest(self, timeout_s: float) -> Any:
         deadline = time.monotonic() + timeout_s
         while True:
             if self._reader_error is not None:
@@ -418,4 +426,5 @@ class RealSenseCamera(CameraBackend):
                 log.warning("%s: stopping the pipeline: %s", self._label(), err)
 
 
-__all__ = ["DEVICE_INFO_KEYS", "CameraSettings", "RealSenseCamera", "device_info", "find_device", "video_streams"]
+__all__ = ["DEVICE_INFO_KEYS", "CameraSettings", "RealSenseCamera", "VideoStream", "device_info", "find_device",
+           "video_streams"]

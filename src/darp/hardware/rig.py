@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -128,10 +129,10 @@ class HardwareRig(RigBackend):
         the first failure is raised at the end)."""
         errors: list[BaseException] = []
 
-        def attempt(action, what: str) -> None:
+        def attempt(action: Callable[[], object], what: str) -> None:
             try:
                 action()
-            except Exception as err:  # noqa: BLE001 (collected; the first is raised at the end)
+            except Exception as err:  # collected; the first is raised at the end
                 log.error("closing the rig: %s: %s", what, err)
                 errors.append(err)
 

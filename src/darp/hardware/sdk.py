@@ -31,22 +31,22 @@ UNITREE_HINT = (
 REALSENSE_HINT = "install it with: pip install 'darp[realsense]' (or pip install pyrealsense2)"
 
 
+def _import_sdk(module: str, what: str, hint: str) -> ModuleType:
+    """Import ``module``, or raise a HardwareError naming ``what`` it is and the ``hint`` on getting it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as err:
+        raise HardwareError(f"{what} '{module}' cannot be imported ({err}): {hint}") from err
+
+
 def load_unitree_sdk() -> ModuleType:
     """The ``unitree_arm_interface`` module, or a HardwareError telling how to get it."""
-    try:
-        return importlib.import_module(UNITREE_MODULE)
-    except ImportError as err:
-        raise HardwareError(f"the Unitree Z1 SDK binding '{UNITREE_MODULE}' cannot be imported ({err}): "
-                            f"{UNITREE_HINT}") from err
+    return _import_sdk(UNITREE_MODULE, "the Unitree Z1 SDK binding", UNITREE_HINT)
 
 
 def load_realsense() -> ModuleType:
     """The ``pyrealsense2`` module, or a HardwareError telling how to install it."""
-    try:
-        return importlib.import_module(REALSENSE_MODULE)
-    except ImportError as err:
-        raise HardwareError(f"Intel's RealSense SDK '{REALSENSE_MODULE}' cannot be imported ({err}): "
-                            f"{REALSENSE_HINT}") from err
+    return _import_sdk(REALSENSE_MODULE, "Intel's RealSense SDK", REALSENSE_HINT)
 
 
 def parse_version(text: str) -> tuple[int, int, int]:

@@ -106,9 +106,8 @@ def hardware_settings_from_dict(section: Mapping[str, Any] | None, arm_ids: Sequ
         motion = MotionLimits(**_typed(top.get("motion", {}), motion_types, f"{SECTION}.motion"))
     except ConfigError as err:
         raise ConfigError(err.message if err.message.startswith(SECTION) else f"{SECTION}.{err.message}") from None
-    camera_types = {f.name: f.type for f in fields(CameraSettings)}
-    camera_types = {name: {"int": int, "bool": bool, "str": str, "float": float}[str(kind)]
-                    for name, kind in camera_types.items()}
+    kinds: dict[str, type] = {"int": int, "bool": bool, "str": str, "float": float}
+    camera_types = {f.name: kinds[str(f.type)] for f in fields(CameraSettings)}
     try:
         cameras = CameraSettings(**_typed(top.get("cameras", {}), camera_types, f"{SECTION}.cameras"))
     except ConfigError as err:

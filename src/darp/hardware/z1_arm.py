@@ -31,7 +31,7 @@ import threading
 import time
 from dataclasses import dataclass
 from types import ModuleType, TracebackType
-from typing import Self
+from typing import Any, Self
 
 import numpy as np
 
@@ -90,8 +90,10 @@ class MotionLimits:
             raise ConfigError(f"motion.limit_margin_rad: must be >= 0, got {self.limit_margin_rad}")
 
 
-def make_arm_interface(sdk: ModuleType, connection: Z1Connection, arm_id: str):
-    """An ``ArmInterface`` for ``connection``: the stock constructor, or the multi-arm one for other ports."""
+def make_arm_interface(sdk: ModuleType, connection: Z1Connection, arm_id: str) -> Any:
+    """An ``ArmInterface`` for ``connection``: the stock constructor, or the multi-arm one for other ports.
+
+    The binding has no type information: its objects are ``Any`` here."""
     if connection.uses_stock_ports:
         return sdk.ArmInterface(bool(connection.has_gripper))
     missing = [name for name in sdk_loader.MULTI_ARM_NAMES if not hasattr(sdk, name)]
@@ -122,7 +124,7 @@ class Z1Arm(ArmBackend):
         self.motion = motion or MotionLimits()
         self.control_hz = float(control_hz)
         self._sdk = sdk
-        self._arm = None
+        self._arm: Any | None = None  # the SDK's ArmInterface while connected
         self._lock = threading.Lock()
         self._stop_event = threading.Event()
         self._thread: threading.Thread | None = None
@@ -131,7 +133,7 @@ class Z1Arm(ArmBackend):
         self._wall_t = 0.0
         self._latest: JointState | None = None
         self._fault: HardwareError | None = None
-        self._fsm_jointctrl = None
+        self._fsm_jointctrl: Any = None  # the SDK's ArmFSMState.JOINTCTRL
         self.cycles = 0
         self.late_cycles = 0
         lower = np.maximum(z1.JOINT_LOWER, z1.SDK_JOINT_LOWER)
@@ -182,7 +184,7 @@ class Z1Arm(ArmBackend):
         self._thread.start()
         log.info("%s: connected to %s at q = %s", self.arm_id, self.connection.describe(), np.round(q0, 4))
 
-    def _wait_for_controller(self, arm, states, timeout_s: float):
+    def _wait_for_controller(self, arm: Any, states: Any, timeout_s: float) -> Any:
         if not hasattr(arm, "getCurrentState"):  # older bindings: no way to ask, give the loop a moment
             time.sleep(0.1)
             return states.PASSIVE
@@ -196,7 +198,7 @@ class Z1Arm(ArmBackend):
                                     f"{timeout_s:g} s: is that z1_ctrl running and the arm powered and reachable?")
             time.sleep(0.005)
 
-    def _adopt_sdk_limits(self, arm) -> None:
+    def _adopt_sdk_limits(self, arm: Any) -> None:
         """Tighten the joint limits to the SDK model's where it is stricter."""
         try:
             model = arm._ctrlComp.armModel
@@ -215,8 +217,8 @@ class Z1Arm(ArmBackend):
         try:
             if self._thread.is_alive() and self._fault is None:
                 with self._lock:
-                    self._plan = self._stop_plan(self._traj_t)
-                    end = self._plan.end_s
+                    plan = self._plan = self._stop_plan(self._traj_t)
+                    end = plan.end_s
                 deadline = time.monotonic() + brake_timeout_s
                 while self._traj_t < end + 0.05 and time.monotonic() < deadline and self._thread.is_alive():
                     time.sleep(0.01)
@@ -253,7 +255,7 @@ class Z1Arm(ArmBackend):
                     self._traj_t += min(max(now - self._wall_t, 0.0), max_step)
                     self._wall_t = now
                 self._cycle(zeros)
-            except Exception as err:  # noqa: BLE001 (any SDK failure stops commanding; reported later)
+            except Exception as err:  # any SDK failure stops commanding; reported later
                 message = err.message if isinstance(err, HardwareError) else f"{type(err).__name__}: {err}"
                 self._fault = HardwareError(f"{self.arm_id}: control loop stopped: {message}")
                 log.error("%s", self._fault)
@@ -268,8 +270,22 @@ class Z1Arm(ArmBackend):
                 if delay < -5 * period:  # fell far behind (machine busy): resynchronise, do not burst
                     next_t = time.monotonic()
 
+    def _connected_plan(self) -> JointPlan:
+        """The trajectory being tracked (set when connecting, never unset)."""
+        if self._plan is None:
+            raise HardwareError(f"{self.arm_id}: not connected (call connect() first)")
+        return self._plan
+
+    def _connected_state(self) -> JointState:
+        """The latest joint state (set when connecting, never unset)."""
+        if self._latest is None:
+            raise HardwareError(f"{self.arm_id}: not connected (call connect() first)")
+        return self._latest
+
     def _cycle(self, zeros: np.ndarray) -> None:
         arm = self._arm
+        if arm is None:
+            raise HardwareError("the SDK interface was closed")
         q_meas = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
         qd_meas = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
         stamp = time.time()
@@ -280,13 +296,13 @@ class Z1Arm(ArmBackend):
                                     f"protection, an emergency stop or another client; motion stopped")
         with self._lock:
             self._latest = JointState(stamp, q_meas, qd_meas)
-            q_cmd, qd_cmd, _ = self._plan.sample(self._traj_t)
+            q_cmd, qd_cmd, _ = self._connected_plan().sample(self._traj_t)
         arm.q = q_cmd
         arm.qd = qd_cmd
         arm.setArmCmd(q_cmd, qd_cmd, zeros)
 
     def _stop_plan(self, now: float) -> JointPlan:
-        q, qd, qdd = self._plan.sample(now)
+        q, qd, qdd = self._connected_plan().sample(now)
         return plan_stop(now, q, qd, qdd, self.motion.max_speed_rad_s, self.motion.max_accel_rad_s2,
                          self._lower, self._upper)
 
@@ -301,7 +317,7 @@ class Z1Arm(ArmBackend):
         """The latest joint state from the controller (at most one control cycle old), host-clock time."""
         self._check_running()
         with self._lock:
-            s = self._latest
+            s = self._connected_state()
         return JointState(s.time_s, s.q_rad.copy(), s.qd_rad_s.copy())
 
     def move_to(self, q_target_rad: np.ndarray, max_speed_rad_s: float | None = None) -> None:
@@ -314,7 +330,7 @@ class Z1Arm(ArmBackend):
         self._check_running()
         with self._lock:
             now = self._traj_t
-            q, qd, qdd = self._plan.sample(now)
+            q, qd, qdd = self._connected_plan().sample(now)
             self._plan = plan_move(now, q, qd, qdd, target, speed, self.motion.max_accel_rad_s2,
                                    self._lower, self._upper)
 
@@ -322,7 +338,8 @@ class Z1Arm(ArmBackend):
         """True until the trajectory has ended and the measured joints are within tolerance of its end."""
         self._check_running()
         with self._lock:
-            now, end, target, q = self._traj_t, self._plan.end_s, self._plan.q_end, self._latest.q_rad
+            plan = self._connected_plan()
+            now, end, target, q = self._traj_t, plan.end_s, plan.q_end, self._connected_state().q_rad
         if now < end:
             return True
         error = np.abs(q - target)
@@ -396,7 +413,7 @@ def probe_arm(arm_id: str, connection: Z1Connection | None = None, *, timeout_s:
     return ArmProbe(_name(state), q, qd, lower, upper)
 
 
-def _name(state) -> str:
+def _name(state: object) -> str:
     return getattr(state, "name", None) or str(state)
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -46,7 +47,7 @@ class JointInterpolation:
     @property
     def posed(self) -> np.ndarray:
         """Boolean mask of the queries that have a joint state."""
-        return self.status == POSED
+        return cast(np.ndarray, self.status == POSED)
 
     def counts(self) -> dict[str, int]:
         """How many queries ended in each status, by name."""
@@ -70,7 +71,7 @@ class CameraPoses:
     @property
     def posed(self) -> np.ndarray:
         """Boolean mask of the frames that have a pose."""
-        return self.status == POSED
+        return cast(np.ndarray, self.status == POSED)
 
     def counts(self) -> dict[str, int]:
         """How many frames ended in each status, by name, plus ``frames`` (the total)."""
@@ -171,7 +172,7 @@ def _as_rigid(name: str, T: np.ndarray) -> np.ndarray:
 
 def compose_world_cam(T_world_base: np.ndarray, T_base_wrist: np.ndarray, T_wrist_cam: np.ndarray) -> np.ndarray:
     """Eq. 1's product ``T_world_base @ T_base_wrist @ T_wrist_cam`` for one or many wrist poses."""
-    return np.matmul(np.matmul(T_world_base, T_base_wrist), T_wrist_cam)
+    return cast(np.ndarray, np.matmul(np.matmul(T_world_base, T_base_wrist), T_wrist_cam))
 
 
 def _default_fk_batch(wrist_frame: str) -> FkBatch:

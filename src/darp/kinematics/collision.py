@@ -39,6 +39,7 @@ from darp.kinematics.collision_shapes import (
 from darp.kinematics.transforms import make_transform, rpy_to_rotation
 
 Array = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
 
 __all__ = [
     "ADJACENT_LINKS",
@@ -180,7 +181,7 @@ class DistanceResult:
     point_b: Array
 
 
-def _closest_pair(A: PrimitiveSet, B: PrimitiveSet, ia: Array, ib: Array) -> DistanceResult:
+def _closest_pair(A: PrimitiveSet, B: PrimitiveSet, ia: IndexArray, ib: IndexArray) -> DistanceResult:
     """Minimum over the listed pairs (A[ia[k]], B[ib[k]]), refining only pairs that can be closest."""
     if len(ia) == 0:
         return DistanceResult(float("inf"), "", "", np.full(3, np.nan), np.full(3, np.nan))
@@ -211,7 +212,7 @@ def min_distance(prims_a: PrimitiveSet | Sequence[Primitive],
 
 
 def _checked_pairs(names: tuple[str, ...], links: tuple[str, ...],
-                   allowed: Sequence[tuple[str, str]]) -> tuple[Array, Array]:
+                   allowed: Sequence[tuple[str, str]]) -> tuple[IndexArray, IndexArray]:
     skip = {frozenset(p) for p in allowed}
     pairs = [(i, j) for i in range(len(names)) for j in range(i + 1, len(names))
              if links[i] != links[j] and frozenset((links[i], links[j])) not in ADJACENT_LINKS

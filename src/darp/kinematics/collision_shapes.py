@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -31,6 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 from darp.errors import KinematicsError
 
 Array = NDArray[np.float64]
+IndexArray = NDArray[np.intp]  # primitive kinds, indices
 
 KINDS = ("capsule", "cylinder", "box")
 CAPSULE, CYLINDER, BOX = 0, 1, 2
@@ -81,7 +83,7 @@ class Primitive:
         """Box of full ``size_m`` (3,) along the axes of ``T_frame_box``, centred at its origin."""
         size = np.asarray(size_m, dtype=np.float64)
         if size.shape != (3,) or np.any(size <= 0):
-            raise KinematicsError(f"box {name!r}: size must be three positive extents, got {size_m}")
+            raise KinematicsError(f"box {name!r}: size must be three positive extents, got {size_m!s}")
         return Primitive("box", np.asarray(T_frame_box, dtype=np.float64), 0.5 * size, name, link)
 
     @property
@@ -100,7 +102,7 @@ class Primitive:
 class PrimitiveSet:
     """Primitives as arrays: kinds (N,), R (N, 3, 3), centre (N, 3), half (N, 3), names, links."""
 
-    kinds: NDArray[np.int_]
+    kinds: IndexArray
     R: Array
     centre: Array
     half: Array
@@ -157,7 +159,7 @@ def concatenate(sets: Sequence[PrimitiveSet]) -> PrimitiveSet:
                         sum((s.names for s in sets), ()), sum((s.links for s in sets), ()))
 
 
-def _bounding_segment(R: Array, c: Array, half: Array, kinds: Array) -> tuple[tuple[Array, Array], Array]:
+def _bounding_segment(R: Array, c: Array, half: Array, kinds: IndexArray) -> tuple[tuple[Array, Array], Array]:
     """Segments and radii of capsules containing each shape (a box: along its longest side)."""
     n = len(kinds)
     long_axis = np.where(kinds == BOX, np.argmax(half, axis=1), 2)
@@ -184,7 +186,7 @@ def project(s: PrimitiveSet, p: Array) -> Array:
         rounded = v * scale[:, None]
         rounded[:, 2] += z
         out = np.where(round_rows[:, None], rounded, out)
-    return s.centre + np.einsum("nij,nj->ni", s.R, out)
+    return cast(Array, s.centre + np.einsum("nij,nj->ni", s.R, out))
 
 
 def support(s: PrimitiveSet, n: Array) -> Array:
@@ -194,7 +196,7 @@ def support(s: PrimitiveSet, n: Array) -> Array:
     box = np.einsum("ni,ni->n", m, s.half)
     capsule = h * m[:, 2] + r * np.linalg.norm(m, axis=1)
     cylinder = h * m[:, 2] + r * np.hypot(m[:, 0], m[:, 1])
-    return np.einsum("ni,ni->n", s.centre, n) + np.choose(s.kinds, [capsule, cylinder, box])
+    return cast(Array, np.einsum("ni,ni->n", s.centre, n) + np.choose(s.kinds, [capsule, cylinder, box]))
 
 
 def segment_distances(a1: Array, b1: Array, a2: Array, b2: Array) -> tuple[Array, Array, Array]:

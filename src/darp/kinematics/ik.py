@@ -1,7 +1,8 @@
 """Inverse kinematics of the Z1: closed-form solutions, damped least squares, and look-at.
 
 The Z1's geometry has a closed-form IK (:mod:`darp.kinematics.ik_closed_form`), used first: at most
-8 exact solutions per pose; those inside the joint limits are checked by FK and the one nearest ``q_init`` (else the ``forward`` configuration) is returned. A damped least-squares
+8 exact solutions per pose; those inside the joint limits are checked by FK and the one nearest
+``q_init`` (else the ``forward`` configuration) is returned. A damped least-squares
 (Levenberg-Marquardt) solver with joint-limit clamping runs from several seeds when the closed form
 is degenerate or nearly so, or on request (``method="numeric"``). ``success`` is True only when the
 FK residual is below tolerance *and* the joints are within limits.
@@ -10,6 +11,7 @@ FK residual is below tolerance *and* the joints are within limits.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -27,6 +29,7 @@ from darp.kinematics.ik_closed_form import (
 )
 
 Array = NDArray[np.float64]
+IndexArray = NDArray[np.intp]
 
 __all__ = [
     "IKResult",
@@ -78,7 +81,7 @@ def numeric_ik(T_base_target: Array, Q_seeds: Array, *, frame: str, lower: Array
         active = ~converged
         J = z1.jacobian_batch(Q, frame)
         dq = _lm_step(J, err, lam)
-        blocked = ((Q <= lower) & (dq < 0)) | ((Q >= upper) & (dq > 0))
+        blocked = ((lower >= Q) & (dq < 0)) | ((upper <= Q) & (dq > 0))
         if np.any(blocked):
             dq = _lm_step(J * ~blocked[:, None, :], err, lam)
         Q_new = np.clip(Q + dq, lower, upper)
@@ -87,14 +90,15 @@ def numeric_ik(T_base_target: Array, Q_seeds: Array, *, frame: str, lower: Array
         better = (cost_new < cost) & active
         Q = np.where(better[:, None], Q_new, Q)
         err = np.where(better[:, None], err_new, err)
-        pos, rot, cost = np.where(better, pos_new, pos), np.where(better, rot_new, rot), np.where(better, cost_new, cost)
+        pos, rot = np.where(better, pos_new, pos), np.where(better, rot_new, rot)
+        cost = np.where(better, cost_new, cost)
         lam = np.where(better, np.maximum(lam * 0.3, 1e-6), np.minimum(lam * 5.0, 1e3))
     return Q, pos, rot, it
 
 
 def _lm_step(J: Array, err: Array, lam: Array) -> Array:
     A = J @ np.swapaxes(J, 1, 2) + (lam**2)[:, None, None] * np.eye(6)
-    return np.einsum("nji,nj->ni", J, np.linalg.solve(A, err[:, :, None])[:, :, 0])
+    return cast(Array, np.einsum("nji,nj->ni", J, np.linalg.solve(A, err[:, :, None])[:, :, 0]))
 
 
 def _seeds(q_ref: Array, seeds: ArrayLike | None, n_random: int, rng: np.random.Generator,
@@ -107,7 +111,7 @@ def _seeds(q_ref: Array, seeds: ArrayLike | None, n_random: int, rng: np.random.
     return np.concatenate(rows)
 
 
-def _select(Q: Array, q_ref: Array) -> Array:
+def _select(Q: Array, q_ref: Array) -> IndexArray:
     """Order candidate rows by distance to the reference configuration (wrist joints weigh less)."""
     return np.argsort(np.sum(JOINT_WEIGHTS * (Q - q_ref) ** 2, axis=1), kind="stable")
 
@@ -173,7 +177,7 @@ def solve_ik(T_base_target: ArrayLike, *, frame: str = "flange", q_init: ArrayLi
                     f"(best residual {pos[best]:.3g} m, {rot[best]:.3g} rad)")
 
 
-def _analytic_failure(ok: Array, miss: Array, viol: Array) -> str:
+def _analytic_failure(ok: NDArray[np.bool_], miss: Array, viol: Array) -> str:
     if not np.any(ok):
         return f"target out of reach (elbow triangle misses by {np.min(miss) * 1000:.1f} mm)"
     i = int(np.argmin(np.where(ok, viol, np.inf)))
@@ -291,7 +295,7 @@ def solve_look_at(target_base: ArrayLike, distance_m: float, *, T_frame_cam: Arr
     lower, upper = z1.joint_limits(limits)
     R0 = _frames_about(dirs, up)
 
-    def candidates(d_idx: Array, rolls: Array) -> tuple[Array, Array, Array]:
+    def candidates(d_idx: IndexArray, rolls: Array) -> tuple[Array, Array, Array]:
         """Best exact candidate per (direction, roll) row: (Q (M, 6), cost (M,), roll (M,))."""
         c, s = np.cos(rolls), np.sin(rolls)
         R = R0[d_idx].copy()

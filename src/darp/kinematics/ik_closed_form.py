@@ -15,6 +15,8 @@ That gives at most 8 solutions per pose, computed for many poses at once.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -74,7 +76,7 @@ def pose_residuals(Q: Array, T_targets: Array, frame: str) -> tuple[Array, Array
 
 
 def analytic_ik(T_base_targets: ArrayLike, frame: str = "flange",
-                q1_ref: ArrayLike | None = None) -> tuple[Array, Array, Array]:
+                q1_ref: ArrayLike | None = None) -> tuple[Array, NDArray[np.bool_], Array]:
     """All closed-form solutions for targets (N, 4, 4): (Q (N, 8, 6), geometric_ok (N, 8), reach_miss_m (N, 8)).
 
     ``geometric_ok`` marks branches that exist (elbow within reach, cos q5 != 0); joint limits are
@@ -130,10 +132,6 @@ def analytic_ik(T_base_targets: ArrayLike, frame: str = "flange",
     return Q.reshape(n, 8, 6), ok.reshape(n, 8), miss.reshape(n, 8)
 
 
-def _limit_violation(Q: Array, lower: Array, upper: Array) -> Array:
-    return np.max(np.maximum(lower - Q, Q - upper), axis=-1).clip(min=0.0)
-
-
 def limit_violation(Q: Array, lower: Array, upper: Array) -> Array:
     """Largest amount (rad, >= 0) by which any joint of each row lies outside [lower, upper]."""
-    return np.max(np.maximum(lower - Q, Q - upper), axis=-1).clip(min=0.0)
+    return cast(Array, np.max(np.maximum(lower - Q, Q - upper), axis=-1).clip(min=0.0))

@@ -65,7 +65,8 @@ class ArmConfig:
         if self.side not in ARM_SIDES:
             raise ConfigError(f"arms.{self.arm_id}.side: must be one of {', '.join(ARM_SIDES)}, got {self.side!r}")
         if not (isinstance(self.camera_serial, str) and self.camera_serial.isdigit()):
-            raise ConfigError(f"arms.{self.arm_id}.camera_serial: must be a string of digits, got {self.camera_serial!r}")
+            raise ConfigError(f"arms.{self.arm_id}.camera_serial: must be a string of digits, "
+                              f"got {self.camera_serial!r}")
         for name in ("T_world_base", "T_flange_cam"):
             matrix = rig_yaml.check_rigid(getattr(self, name), f"arms.{self.arm_id}.{name}")
             object.__setattr__(self, name, _frozen_array(matrix, (4, 4), f"arms.{self.arm_id}.{name}"))
@@ -371,11 +372,11 @@ def rig_from_dict(data: Mapping[str, Any], source: Path | None = None) -> Rig:
         arms=arms,
         table=Table(
             height_m=table.number("height_m"),
-            x_range_m=table.numbers("x_range_m", 2),
-            y_range_m=table.numbers("y_range_m", 2),
+            x_range_m=table.pair("x_range_m"),
+            y_range_m=table.pair("y_range_m"),
         ),
         workspace=Workspace(
-            x_range_m=ws.numbers("x_range_m", 2), y_range_m=ws.numbers("y_range_m", 2), z_range_m=ws.numbers("z_range_m", 2)
+            x_range_m=ws.pair("x_range_m"), y_range_m=ws.pair("y_range_m"), z_range_m=ws.pair("z_range_m")
         ),
         camera_body=CameraBody(size_m=body.numbers("size_m", 3), center_cam_m=body.numbers("center_cam_m", 3)),
         margins=Margins(

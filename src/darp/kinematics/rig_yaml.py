@@ -62,6 +62,11 @@ class FieldReader:
     def numbers(self, key: str, count: int) -> np.ndarray:
         return _numbers(self.get(key, list), count, self._name(key))
 
+    def pair(self, key: str) -> tuple[float, float]:
+        """Two finite numbers, such as a ``[min, max]`` range."""
+        first, second = (float(v) for v in self.numbers(key, 2))
+        return first, second
+
     def transform(self, key: str) -> np.ndarray:
         """A 4x4 rigid transform from ``{xyz_m, rpy_deg}`` or ``{matrix}``."""
         node = self.sub(key)
@@ -69,7 +74,8 @@ class FieldReader:
         if "matrix" in node.data:
             extra = set(node.data) - {"matrix"}
             if extra:
-                raise ConfigError(f"{name}: give either matrix or xyz_m/rpy_deg, not both ({', '.join(sorted(extra))})")
+                raise ConfigError(f"{name}: give either matrix or xyz_m/rpy_deg, not both "
+                                  f"({', '.join(sorted(extra))})")
             rows = node.get("matrix", list)
             if len(rows) != 4:
                 raise ConfigError(f"{name}.matrix: expected 4 rows, got {len(rows)}")
@@ -77,7 +83,8 @@ class FieldReader:
             return check_rigid(matrix, name)
         unknown = set(node.data) - {"xyz_m", "rpy_deg"}
         if unknown:
-            raise ConfigError(f"{name}: unknown field(s) {', '.join(sorted(unknown))} (expected xyz_m, rpy_deg or matrix)")
+            raise ConfigError(f"{name}: unknown field(s) {', '.join(sorted(unknown))} "
+                              "(expected xyz_m, rpy_deg or matrix)")
         return pose_from_xyz_rpy(node.numbers("xyz_m", 3), np.radians(node.numbers("rpy_deg", 3)))
 
 

@@ -15,6 +15,8 @@ candidate sets are handled without Python loops.
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -94,7 +96,7 @@ def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> Array:
     if T_arr.ndim == 2:
         return p @ T_arr[:3, :3].T + T_arr[:3, 3]
     # Batched transforms broadcast against the points' leading dimensions.
-    return np.einsum("...ij,...j->...i", T_arr[..., :3, :3], p) + T_arr[..., :3, 3]
+    return cast(Array, np.einsum("...ij,...j->...i", T_arr[..., :3, :3], p) + T_arr[..., :3, 3])
 
 
 def _axis_rotation(angle_rad: ArrayLike, axis: int) -> Array:
@@ -143,7 +145,7 @@ def rotvec_to_rotation(rotvec: ArrayLike) -> Array:
     # sin(t)/t and (1-cos(t))/t^2, with their Taylor series for tiny angles.
     a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    return np.eye(3) + a * K + b * (K @ K)
+    return cast(Array, np.eye(3) + a * K + b * (K @ K))
 
 
 def axis_angle_to_rotation(axis: ArrayLike, angle_rad: ArrayLike) -> Array:
@@ -299,7 +301,7 @@ def orthonormalize(R: ArrayLike) -> Array:
     U, _, Vt = np.linalg.svd(M)
     D = np.ones(M.shape[:-2] + (3,))
     D[..., 2] = np.sign(np.linalg.det(U @ Vt))
-    return (U * D[..., None, :]) @ Vt
+    return cast(Array, (U * D[..., None, :]) @ Vt)
 
 
 def world_from_base_origins(origin_a: ArrayLike, origin_b: ArrayLike, up: ArrayLike) -> Array:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -138,7 +139,7 @@ def _chain(Q: Array) -> tuple[list[Array], list[list[Array]]]:
     origins = [pos]
     rotations = [cols]
     cos, sin = np.cos(Q), np.sin(Q)
-    for i, (offset, axis) in enumerate(zip(JOINT_ORIGINS_M, JOINT_AXIS_INDEX)):
+    for i, (offset, axis) in enumerate(zip(JOINT_ORIGINS_M, JOINT_AXIS_INDEX, strict=True)):
         pos = pos + sum(cols[k] * offset[k] for k in range(3) if offset[k] != 0.0)
         c, s = cos[:, i:i + 1], sin[:, i:i + 1]
         # Columns j, k with (axis, j, k) cyclic: R_axis has e_j -> c e_j + s e_k, e_k -> -s e_j + c e_k.
@@ -268,12 +269,12 @@ def link_transforms_batch(Q: ArrayLike) -> Array:
     """``T_base_link`` (N, 7, 4, 4) for link00..link06."""
     Qa = check_q(Q, batched=True)
     origins, rotations = _chain(Qa)
-    return np.stack([_assemble(o, c) for o, c in zip(origins, rotations)], axis=1)
+    return np.stack([_assemble(o, c) for o, c in zip(origins, rotations, strict=True)], axis=1)
 
 
 def link_transforms(q: ArrayLike) -> Array:
     """``T_base_link`` (7, 4, 4) for link00..link06 at joints q (6,)."""
-    return link_transforms_batch(check_q(q, batched=False)[None])[0]
+    return cast(Array, link_transforms_batch(check_q(q, batched=False)[None])[0])
 
 
 def joint_positions(q: ArrayLike) -> Array:
@@ -297,7 +298,7 @@ def jacobian_batch(Q: ArrayLike, frame: str = "flange") -> Array:
 
 def jacobian(q: ArrayLike, frame: str = "flange") -> Array:
     """Geometric Jacobian (6, 6) in the base frame: linear velocity of the frame origin, then angular."""
-    return jacobian_batch(check_q(q, batched=False)[None], frame)[0]
+    return cast(Array, jacobian_batch(check_q(q, batched=False)[None], frame)[0])
 
 
 def manipulability(q: ArrayLike, frame: str = "flange") -> float:
@@ -308,7 +309,7 @@ def manipulability(q: ArrayLike, frame: str = "flange") -> float:
 
 def singular_values(q: ArrayLike, frame: str = "flange") -> Array:
     """Singular values of the Jacobian, largest first."""
-    return np.linalg.svd(jacobian(q, frame), compute_uv=False)
+    return cast(Array, np.linalg.svd(jacobian(q, frame), compute_uv=False))
 
 
 def min_singular_value(q: ArrayLike, frame: str = "flange") -> float:
@@ -322,7 +323,7 @@ def condition_number(q: ArrayLike, frame: str = "flange") -> float:
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
-def within_limits(q: ArrayLike, limits: str = "urdf", tol_rad: float = 0.0) -> bool | Array:
+def within_limits(q: ArrayLike, limits: str = "urdf", tol_rad: float = 0.0) -> bool | NDArray[np.bool_]:
     """True where every joint lies in [lower - tol, upper + tol]; q (6,) -> bool, (N, 6) -> (N,)."""
     lower, upper = joint_limits(limits)
     arr = np.asarray(q, dtype=np.float64)

@@ -32,7 +32,7 @@ FIGURES = {"cross_arm": "cross_arm.png", "partial_fused": "partial_fused.png", "
 
 def _save_arrays(path: Path, arrays: dict[str, np.ndarray]) -> None:
     with atomic_path(path) as tmp, open(tmp, "wb") as handle:
-        np.savez(handle, **arrays)
+        np.savez(handle, allow_pickle=False, **arrays)  # numeric arrays; load_distances reads without pickle
 
 
 def load_distances(path: str | Path) -> dict[str, np.ndarray]:
@@ -60,6 +60,8 @@ def read_truth_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
         mesh = trimesh.load(path, force="mesh", process=False)
     except (OSError, ValueError) as err:
         raise FormatError(f"cannot read the true mesh: {err}", path) from err
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise FormatError(f"the true mesh is not a triangle mesh (trimesh read a {type(mesh).__name__})", path)
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
 
 
@@ -118,7 +120,8 @@ def world_gauge(pairs: dict[str, tuple[np.ndarray, np.ndarray]]) -> np.ndarray |
     return T
 
 
-def _truth(job: SurveyJob, fused: np.ndarray, mesh: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, Any], dict]:
+def _truth(job: SurveyJob, fused: np.ndarray,
+           mesh: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     settings = job.settings.evaluation
     assert job.survey.truth_path is not None
     truth_v, truth_t = read_truth_mesh(job.survey.truth_path / "object.ply")

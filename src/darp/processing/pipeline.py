@@ -29,7 +29,6 @@ stream keyframes from disk.
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import hashlib
 import json
@@ -84,7 +83,11 @@ class SurveyJob:
     truth_poses: bool = False
     progress: ProgressFn | None = None
     keyframes_folder: Path | None = None  # default: <out>/keyframes
-    memo: dict[str, Any] = field(default_factory=dict)
+    # what the stages share, computed once per run
+    _envelope: Envelope | None = field(default=None, init=False, repr=False)
+    _envelope_record: dict[str, Any] = field(default_factory=dict, init=False, repr=False)
+    _recordings: dict[str, Recording] = field(default_factory=dict, init=False, repr=False)
+    _poses: SurveyPoses | None = field(default=None, init=False, repr=False)
 
     def report(self, stage: str, done: float, total: float | None) -> None:
         if self.progress is not None:
@@ -105,28 +108,28 @@ class SurveyJob:
     def envelope(self) -> Envelope:
         """The survey's envelope; without centre/radius/height, one estimated from the survey's own
         poses and depth (:mod:`darp.reconstruction.envelope_estimate`), once per run."""
-        if "envelope" not in self.memo:
+        if self._envelope is None:
             envelope = self.survey.envelope()
             if envelope is None or not envelope.has_geometry:
                 estimate = estimate_survey_envelope(
                     self.poses(), self.recording, [self.calibration.arms[a].T_world_base[:2, 3] for a in self.arms],
                     keyframe_settings=self.settings.keyframes, depth_settings=self.settings.fusion.depth,
                     path=self.survey.path)
-                self.memo["envelope_record"] = estimate.to_dict()
+                self._envelope_record = estimate.to_dict()
                 envelope = estimate.envelope(envelope)
             else:
-                self.memo["envelope_record"] = envelope_record(envelope)
-            self.memo["envelope"] = envelope
-        return self.memo["envelope"]
+                self._envelope_record = envelope_record(envelope)
+            self._envelope = envelope
+        return self._envelope
 
     def envelope_record(self) -> dict[str, Any]:
         """Where the envelope came from: ``{"source": "manip_envelope.json" | "estimated", "center_m", ...}``."""
         self.envelope()
-        return self.memo["envelope_record"]
+        return self._envelope_record
 
     def recording(self, arm: str) -> Recording:
         """``arm``'s recording, opened once per run (reading a bag's frame index decodes every chunk)."""
-        recordings = self.memo.setdefault("recordings", {})
+        recordings = self._recordings
         if arm not in recordings:
             recording = self.survey.open_recording(arm)
             # An empty time window makes the reader index every image stream in ONE pass over the file;
@@ -140,19 +143,20 @@ class SurveyJob:
 
     def close(self) -> None:
         """Close the recordings this run opened."""
-        for recording in self.memo.pop("recordings", {}).values():
+        recordings, self._recordings = self._recordings, {}
+        for recording in recordings.values():
             recording.close()
 
     def poses(self) -> SurveyPoses:
         """Eq. 1 (or true) poses of every depth frame, computed once per run."""
-        if "poses" not in self.memo:
-            shared = copy.copy(self.survey)  # the same survey, handing out this run's open recordings
-            shared.open_recording = lambda arm: contextlib.nullcontext(self.recording(arm))  # type: ignore[method-assign]
-            poses = recover_survey_poses(shared, self.calibration, calibration_path=self.calibration_path)
+        if self._poses is None:
+            poses = recover_survey_poses(  # with this run's open recordings
+                self.survey, self.calibration, calibration_path=self.calibration_path,
+                open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)))
             if self.truth_poses:
                 poses = with_truth_poses(poses, self.survey)
-            self.memo["poses"] = poses
-        return self.memo["poses"]
+            self._poses = poses
+        return self._poses
 
 
 @dataclass(frozen=True)

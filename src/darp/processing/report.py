@@ -80,9 +80,10 @@ def object_blocks(per: Sequence[dict[str, Any]]) -> list[Block]:
         kf, clouds, mesh = r.get("keyframes", {}), r.get("clouds", {}), r.get("mesh", {})
         cross = _cross_median(r.get("cross_arm"))
         truth = (r.get("truth") or {}).get("cloud", {}).get("accuracy", {})
+        area_cm2 = None if mesh.get("area_m2") is None else mesh["area_m2"] * 1e4
         rows.append((r["object"], r.get("pose_source", "-"), f"{_count(kf.get('fuse'))} / {_count(kf.get('heldout'))}",
                      _count(clouds.get("arm110")), _count(clouds.get("arm111")), _count(clouds.get("fused")),
-                     _count(mesh.get("triangles")), _mm(None if mesh.get("area_m2") is None else mesh["area_m2"] * 1e4, 1),
+                     _count(mesh.get("triangles")), _mm(area_cm2, 1),
                      _mm(r["heldout"]["aggregate"].get("median_mm")), _mm(cross), _mm(truth.get("median_mm"))))
     headers = ("object", "poses", "keyframes fuse / held-out", "arm110 pts", "arm111 pts", "fused pts",
                "mesh triangles", "mesh area [cm²]", "held-out median [mm]", "cross-arm median [mm]",
@@ -102,9 +103,9 @@ def cross_arm_blocks(per: Sequence[dict[str, Any]]) -> list[Block]:
     for r in per:
         for d in (r.get("cross_arm") or {}).get("directions", []):
             p2p, p2l = d["point_to_point"], d["point_to_plane"]
-            rows.append((r["object"], f"{d['source']} → {d['target']}", _count(d["points"]), _pct(d.get("co_observed_pct")),
-                         _mm(p2p.get("median_mm")), _mm(p2l.get("median_mm")), _mm(p2l.get("p90_mm")),
-                         _pct(p2l.get("within_5mm_pct"))))
+            rows.append((r["object"], f"{d['source']} → {d['target']}", _count(d["points"]),
+                         _pct(d.get("co_observed_pct")), _mm(p2p.get("median_mm")), _mm(p2l.get("median_mm")),
+                         _mm(p2l.get("p90_mm")), _pct(p2l.get("within_5mm_pct"))))
     headers = ("object", "direction", "points", "co-observed [%]", "point-to-point median [mm]",
                "point-to-plane median [mm]", "point-to-plane p90 [mm]", "within 5 mm [%]")
     return [Block("h2", "Cross-arm consistency"),
@@ -133,13 +134,13 @@ def truth_blocks(summary: dict[str, Any], per: Sequence[dict[str, Any]]) -> list
                      _mm(acc.get("median_mm")), _mm(acc.get("rmse_mm")),
                      _mm(acc.get("p90_mm")), _pct(comp.get("within_2mm_pct")), _pct(comp.get("within_5mm_pct")),
                      _pct(comp.get("within_10mm_pct")), _pct(f.get("2mm")), _pct(f.get("5mm")), _pct(f.get("10mm")),
-                     _mm((mesh.get("accuracy") or {}).get("median_mm")), _pct((mesh.get("fscore_pct") or {}).get("5mm")),
-                     _mm(pose_mm, 3)))
+                     _mm((mesh.get("accuracy") or {}).get("median_mm")),
+                     _pct((mesh.get("fscore_pct") or {}).get("5mm")), _mm(pose_mm, 3)))
     agg = truth.get("aggregate") or {}
     if agg:
         acc, comp, f = agg["accuracy"], agg["completeness"], agg["fscore_pct"]
-        rows.append(("**all (pooled)**", "", "", "", _mm(acc.get("median_mm")), _mm(acc.get("rmse_mm")), _mm(acc.get("p90_mm")),
-                     _pct(comp.get("within_2mm_pct")), _pct(comp.get("within_5mm_pct")),
+        rows.append(("**all (pooled)**", "", "", "", _mm(acc.get("median_mm")), _mm(acc.get("rmse_mm")),
+                     _mm(acc.get("p90_mm")), _pct(comp.get("within_2mm_pct")), _pct(comp.get("within_5mm_pct")),
                      _pct(comp.get("within_10mm_pct")), _pct(f.get("2mm")), _pct(f.get("5mm")), _pct(f.get("10mm")),
                      "", "", ""))
     headers = ("object", "poses", "world gauge [mm]", "accuracy, gauge removed, median [mm]",
@@ -149,8 +150,8 @@ def truth_blocks(summary: dict[str, Any], per: Sequence[dict[str, Any]]) -> list
     return [Block("h2", "Ground truth (digital twin)"),
             Block("p", "Fused cloud against the true object surface: accuracy (cloud → truth), completeness (seen "
                        "true surface → cloud) and F-score; the mesh's accuracy and F-score; how far the keyframes' "
-                       "poses were from the true camera poses. The twin draws its truth in the world as the rig defines "
-                       "it and a calibration realises it (midway between the bases, x base to base, z up), so "
+                       "poses were from the true camera poses. The twin draws its truth in the world as the rig "
+                       "defines it and a calibration realises it (midway between the bases, x base to base, z up), so "
                        "accuracy includes the calibration's error in placing the world. The 'world gauge' is the "
                        "part of it that is one rigid offset of the whole world frame at the object (Kabsch fit of "
                        "the keyframes' camera centres to the true ones), invisible to held-out and cross-arm "
@@ -174,7 +175,7 @@ def figure_blocks(out: Path, folders: Sequence[Path], per: Sequence[dict[str, An
                 "partial_fused": "arm110 partial, arm111 partial and fused clouds",
                 "heldout": "held-out point-to-mesh distances"}
     blocks = [Block("h2", "Figures")]
-    for folder, r in zip(folders, per):
+    for folder, r in zip(folders, per, strict=True):
         blocks.append(Block("h3", r["object"]))
         for kind, caption in captions.items():
             rel = (r.get("figures") or {}).get(kind)
@@ -188,7 +189,7 @@ def observation_block(out: Path, folders: Sequence[Path], per: Sequence[dict[str
     from darp.evaluation.observations import observations_figure, survey_observations
 
     rows = []
-    for folder, r in zip(folders, per):
+    for folder, r in zip(folders, per, strict=True):
         found = survey_observations(folder)
         if found:
             rows.append((r["object"], found))

@@ -4,7 +4,8 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
 
     survey, object, pose_source ("calibration" | "truth"), calibration {epoch, path}
     composition     the release-composition row (radius, height, standoff, rows, duration, depth frames, size)
-    envelope        the object cylinder used: {source: "manip_envelope.json" | "estimated", center_m, radius_m, height_m}
+    envelope        the object cylinder used:
+                    {source: "manip_envelope.json" | "estimated", center_m, radius_m, height_m}
     keyframes       {total, fuse, heldout, arms: {arm: {frames, posed, settled, in_view, views, keyframes, heldout}}}
     clouds          {arm110, arm111, fused}: points per cloud;  mesh {vertices, triangles, area_m2, radii_m}
     heldout         {object, keyframes, aggregate, arms}: count, median/mean/rmse/p90/max in mm, % within 5/10 mm
@@ -115,8 +116,8 @@ def read_results(path: str | Path) -> dict[str, Any]:
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise FormatError(f"invalid JSON: {err}", file) from err
     if not isinstance(data, dict) or data.get("schema") not in (SCHEMA, SUMMARY_SCHEMA):
-        raise FormatError(f"not a darp results file (schema {data.get('schema') if isinstance(data, dict) else None!r})",
-                          file)
+        schema = data.get("schema") if isinstance(data, dict) else None
+        raise FormatError(f"not a darp results file (schema {schema!r})", file)
     return data
 
 
@@ -160,19 +161,19 @@ def _pooled_truth(folders: Sequence[Path]) -> dict[str, Any] | None:
 
 def aggregate_results(folders: Sequence[str | Path]) -> dict[str, Any]:
     """The summary across processed surveys (pooled held-out points, per-object rows, truth)."""
-    folders = [Path(f) for f in folders]
-    if not folders:
+    paths = [Path(f) for f in folders]
+    if not paths:
         raise EvaluationError("no processed surveys to aggregate")
-    per = [read_results(f) for f in folders]
-    summary = HeldoutSummary(tuple(_heldout_result(f, r) for f, r in zip(folders, per)))
+    per = [read_results(f) for f in paths]
+    summary = HeldoutSummary(tuple(_heldout_result(f, r) for f, r in zip(paths, per, strict=True)))
     truth_rows = {r["survey"]: r["truth"] for r in per if r.get("truth")}
     return {
         "schema": SUMMARY_SCHEMA,
         "surveys": [{"name": r["survey"], "object": r.get("object"), "pose_source": r.get("pose_source"),
-                     "folder": f.name} for f, r in zip(folders, per)],
+                     "folder": f.name} for f, r in zip(paths, per, strict=True)],
         "heldout": summary.to_dict(),
         "cross_arm": {r["survey"]: r.get("cross_arm") for r in per},
-        "truth": None if not truth_rows else {"objects": truth_rows, "aggregate": _pooled_truth(folders)},
+        "truth": None if not truth_rows else {"objects": truth_rows, "aggregate": _pooled_truth(paths)},
         "paper": PAPER_HELDOUT,
     }
 

@@ -52,7 +52,8 @@ class ProcessSettings:
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
 
     def to_dict(self) -> dict[str, Any]:
-        return json.loads(json.dumps(dataclasses.asdict(self)))
+        plain: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(self)))
+        return plain
 
     def fingerprint(self, *groups: str) -> str:
         """Short hash of the given groups' values (all when none): changes when any of them changes."""

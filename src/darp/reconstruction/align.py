@@ -28,7 +28,7 @@ import numpy as np
 
 from darp.errors import ReconstructionError
 from darp.formats.realsense.types import Intrinsics
-from darp.reconstruction.backproject import check_pose, depth_to_metres, pixel_rays
+from darp.reconstruction.backproject import check_pose, depth_pixel_rays, depth_to_metres
 
 DEFAULT_OCCLUSION_TOLERANCE_M = 0.01  # deeper than the z-buffer by more than this (+1 % of z): hidden
 _MODIFIED_MODELS = ("inverse brown conrady", "modified brown conrady")
@@ -83,11 +83,7 @@ def colour_pixel_of_depth(depth_m: np.ndarray, depth_intrinsics: Intrinsics, col
                           T_colour_depth: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """For the pixels with depth: their flat indices, colour-camera depth and colour pixel ``(u_c, v_c)``."""
     T = check_pose(T_colour_depth, "T_colour_depth")
-    rays = pixel_rays(depth_intrinsics)
-    if depth_m.shape != rays.shape[:2]:
-        raise ReconstructionError(
-            f"depth image is {depth_m.shape[1]}x{depth_m.shape[0]} but its intrinsics are "
-            f"{depth_intrinsics.width}x{depth_intrinsics.height}")
+    rays = depth_pixel_rays(depth_m, depth_intrinsics)
     flat = np.flatnonzero(depth_m > 0)
     z = depth_m.reshape(-1)[flat].astype(np.float64)
     ray_x, ray_y = (rays[..., i].reshape(-1)[flat].astype(np.float64) for i in (0, 1))
@@ -127,7 +123,7 @@ def align_colour_to_depth(depth: np.ndarray, depth_scale: float, depth_intrinsic
     flat, z_c, ui, vi = flat[ok], z_c[ok], ui[ok].astype(np.int64), vi[ok].astype(np.int64)
     target = vi * colour_intrinsics.width + ui
     if occlusion and flat.size:
-        zbuf = np.full(colour_intrinsics.height * colour_intrinsics.width, np.inf, np.float32)
+        zbuf: np.ndarray = np.full(colour_intrinsics.height * colour_intrinsics.width, np.inf, np.float32)
         np.minimum.at(zbuf, target, z_c.astype(np.float32))
         zbuf = cv2.erode(zbuf.reshape(colour_intrinsics.height, colour_intrinsics.width),
                          np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf).reshape(-1)

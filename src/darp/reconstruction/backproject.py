@@ -168,12 +168,13 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
 
 def camera_points(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     """(H, W, 3) float32 camera-frame points of a metric depth image (z = 0 where there is no depth)."""
-    rays = _rays_for(depth_m, intrinsics)
+    rays = depth_pixel_rays(depth_m, intrinsics)
     z = depth_m.astype(np.float32, copy=False)
     return np.stack([rays[..., 0] * z, rays[..., 1] * z, z], axis=-1)
 
 
-def _rays_for(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+def depth_pixel_rays(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """:func:`pixel_rays` of ``intrinsics``, after checking that they are the depth image's size."""
     rays = pixel_rays(intrinsics)
     if depth_m.shape != rays.shape[:2]:
         raise ReconstructionError(
@@ -212,7 +213,7 @@ def _to_world(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.
 def world_points(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray,
                  pixel_index: np.ndarray) -> np.ndarray:
     """World points (N, 3) float32 of the given flat pixel indices of a metric depth image."""
-    rays = _rays_for(depth_m, intrinsics).reshape(-1, 2)
+    rays = depth_pixel_rays(depth_m, intrinsics).reshape(-1, 2)
     z = depth_m.reshape(-1)[pixel_index]
     return _to_world(T_world_cam, rays[pixel_index, 0] * z, rays[pixel_index, 1] * z, z)
 
@@ -235,7 +236,7 @@ def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
     depth = np.asarray(frame.depth)
     if depth.ndim != 2:
         raise ReconstructionError(f"depth image must be 2-D, got shape {depth.shape}")
-    rays = _rays_for(depth, frame.intrinsics)
+    rays = depth_pixel_rays(depth, frame.intrinsics)
     h, w = depth.shape
     colour = None if frame.colour is None else np.asarray(frame.colour)
     if colour is not None and (colour.ndim != 3 or colour.shape[:2] != (h, w) or colour.shape[2] < 3):
@@ -336,6 +337,7 @@ __all__ = [
     "camera_points",
     "check_pose",
     "depth_normals",
+    "depth_pixel_rays",
     "depth_to_metres",
     "edge_free_mask",
     "pixel_rays",

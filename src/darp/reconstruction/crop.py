@@ -57,9 +57,9 @@ class EnvelopeCrop:
             raise ReconstructionError(
                 "the survey envelope has no centre/radius/height; cannot crop to the object")
         assert envelope.center_m is not None and envelope.radius_m is not None and envelope.height_m is not None
-        centre = tuple(float(c) for c in envelope.center_m)
-        table = centre[2] - 0.5 * envelope.height_m if table_z_m is None else float(table_z_m)
-        return cls(center_m=centre, radius_m=float(envelope.radius_m),  # type: ignore[arg-type]
+        cx, cy, cz = (float(c) for c in envelope.center_m)
+        table = cz - 0.5 * envelope.height_m if table_z_m is None else float(table_z_m)
+        return cls(center_m=(cx, cy, cz), radius_m=float(envelope.radius_m),
                    height_m=float(envelope.height_m), table_z_m=table, margin_m=margin_m,
                    table_margin_m=table_margin_m)
 

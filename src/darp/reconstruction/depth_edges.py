@@ -123,7 +123,8 @@ def edge_free_mask(depth_m: np.ndarray, valid: np.ndarray, settings: DepthFilter
     bad |= near_edge_hole
     if settings.hole_margin_px > 0:
         bad |= _grow(~valid & ~edge_hole, settings.hole_margin_px)
-    return ~bad & valid
+    good: np.ndarray = ~bad & valid
+    return good
 
 
 def _grow(mask: np.ndarray, margin: int) -> np.ndarray:

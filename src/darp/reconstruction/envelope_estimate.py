@@ -63,6 +63,7 @@ from scipy.spatial import cKDTree
 from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
 from darp.formats.realsense.recording import Recording
+from darp.formats.realsense.types import Intrinsics
 from darp.geometry import min_enclosing_circle
 from darp.reconstruction.backproject import DepthFilterSettings, PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop
@@ -162,7 +163,7 @@ def still_view_poses(trajectories: Mapping[str, Any], settings: KeyframeSettings
         posed = np.all(np.isfinite(T.reshape(len(T), 16)), axis=1)
         settled = settled_mask(traj.poses.t_s[order], traj.poses.joint_speed_rad_s[order], settings) & posed
         edges = np.diff(np.concatenate(([0], settled.view(np.int8), [0])))
-        for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)):
+        for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
             pose = T[(start + stop - 1) // 2]
             if not any(np.linalg.norm(pose[:3, 3] - p[:3, 3]) < same_m
                        and float(pose[:3, 2] @ p[:3, 2]) > math.cos(math.radians(same_deg)) for p in poses):
@@ -256,7 +257,8 @@ def object_cluster(stats: VoxelStats, table_z_m: float, look_at_m: np.ndarray, n
     members = mean[label == best]
     member_ijk = ijk[label == best]
     neighbours = cKDTree(member_ijk).query_ball_point(member_ijk, reach, p=np.inf, return_length=True) - 1
-    return members[neighbours >= settings.min_neighbours]
+    kept: np.ndarray = members[neighbours >= settings.min_neighbours]
+    return kept
 
 
 def fit_cylinder(points_m: np.ndarray, table_z_m: float) -> tuple[np.ndarray, float, float]:
@@ -332,10 +334,12 @@ def estimate_survey_envelope(poses: Any, recording: Callable[[str], Recording], 
     region = search_region(look_at, base_xy_m, settings)
     picking = dataclasses.replace(keyframe_settings, per_view=settings.frames_per_view,
                                   max_views=settings.views_per_arm)
-    intrinsics = {arm: recording(arm).stream("depth").intrinsics for arm in poses.trajectories}
-    for arm, intr in intrinsics.items():
+    found = {arm: recording(arm).stream("depth").intrinsics for arm in poses.trajectories}
+    intrinsics: dict[str, Intrinsics] = {}
+    for arm, intr in found.items():
         if intr is None:
             raise ReconstructionError(f"{arm}'s depth stream has no intrinsics: cannot estimate the envelope", path)
+        intrinsics[arm] = intr
     selection = select_survey_keyframes(poses.trajectories, look_at, picking, intrinsics)
 
     def frames() -> Iterable[PosedDepth]:

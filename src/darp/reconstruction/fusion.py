@@ -138,7 +138,8 @@ def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float) 
     tree = cKDTree(points)
     dist, _ = tree.query(points, k=neighbours + 1, workers=-1)  # the first neighbour is the point itself
     mean_d = dist[:, 1:].mean(axis=1)
-    return mean_d <= mean_d.mean() + std_ratio * mean_d.std()
+    inliers: np.ndarray = mean_d <= mean_d.mean() + std_ratio * mean_d.std()
+    return inliers
 
 
 def fit_to_local_surface(points: np.ndarray, normals: np.ndarray, weights: np.ndarray, radius_m: float,
@@ -160,7 +161,8 @@ def fit_to_local_surface(points: np.ndarray, normals: np.ndarray, weights: np.nd
     w = np.where(found, weights[idx].astype(np.float64), 0.0)
     offsets = np.einsum("ikj,ij->ik", p[idx] - p[:, None, :], normals.astype(np.float64))
     shift = (w * offsets).sum(axis=1) / w.sum(axis=1)  # the point itself is always found (w > 0)
-    return (p + shift[:, None] * normals).astype(np.float32)
+    fitted: np.ndarray = (p + shift[:, None] * normals).astype(np.float32)
+    return fitted
 
 
 def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],

@@ -37,8 +37,8 @@ from __future__ import annotations
 
 import json
 import zipfile
-from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -63,8 +63,8 @@ KEYFRAME_ARRAYS = ("rgb", "depth", "ir_left", "ir_right", "support_mask", "intri
 
 
 @dataclass(frozen=True, eq=False)
-class Keyframe:
-    """One exported keyframe: images, calibration and pose (see the module docstring)."""
+class KeyframeMeta:
+    """What a keyframe is and where it was taken (see the module docstring), without its pixels."""
 
     arm: str
     serial: str
@@ -73,6 +73,13 @@ class Keyframe:
     t_s: float
     split: str
     view: int
+    T_world_cam: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Keyframe(KeyframeMeta):
+    """One exported keyframe: images, calibration and pose (see the module docstring)."""
+
     rgb: np.ndarray
     depth: np.ndarray
     ir_left: np.ndarray
@@ -80,7 +87,6 @@ class Keyframe:
     support_mask: np.ndarray
     intrinsics: Intrinsics
     depth_scale: float
-    T_world_cam: np.ndarray
     streams: tuple[str, ...] = ("depth", "color", "ir1", "ir2")
 
     @property
@@ -93,20 +99,17 @@ class Keyframe:
         return PosedDepth(self.arm, self.frame_number, self.depth, self.depth_scale, self.intrinsics,
                           self.T_world_cam, self.rgb if colour else None)
 
+    def index_entry(self, file: str) -> KeyframeInfo:
+        """Its entry in ``keyframes.json``, for the file ``file`` (relative to the keyframes folder)."""
+        meta = {f.name: getattr(self, f.name) for f in fields(KeyframeMeta)}
+        return KeyframeInfo(**meta, file=file)
+
 
 @dataclass(frozen=True, eq=False)
-class KeyframeInfo:
+class KeyframeInfo(KeyframeMeta):
     """One index entry: where a keyframe's file is and what it is, without its pixels."""
 
     file: str  # relative to the keyframes folder
-    arm: str
-    serial: str
-    frame_number: int
-    timestamp_ms: float
-    t_s: float
-    split: str
-    view: int
-    T_world_cam: np.ndarray
 
     def to_dict(self) -> dict[str, Any]:
         return {"file": self.file, "arm": self.arm, "serial": self.serial, "frame_number": self.frame_number,
@@ -145,7 +148,7 @@ def write_keyframe(path: str | Path, kf: Keyframe) -> Path:
     """Write one keyframe ``.npz`` atomically (compressed)."""
     path = Path(path)
     i = kf.intrinsics
-    arrays = {
+    arrays: dict[str, np.ndarray | np.generic] = {
         "rgb": np.asarray(kf.rgb, np.uint8), "depth": np.asarray(kf.depth, np.uint16),
         "ir_left": np.asarray(kf.ir_left, np.uint8), "ir_right": np.asarray(kf.ir_right, np.uint8),
         "support_mask": np.asarray(kf.support_mask, bool),
@@ -165,7 +168,8 @@ def write_keyframe(path: str | Path, kf: Keyframe) -> Path:
     return path
 
 
-def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compresslevel: int = NPZ_COMPRESSLEVEL) -> Path:
+def save_npz(path: str | Path, arrays: Mapping[str, np.ndarray | np.generic],
+             compresslevel: int = NPZ_COMPRESSLEVEL) -> Path:
     """An ``np.savez_compressed``-compatible archive written atomically, at a chosen zlib level.
 
     Level 1 is about five times faster than numpy's default (6) on depth, colour and speckled IR
@@ -193,8 +197,11 @@ def read_keyframe(path: str | Path) -> Keyframe:
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
         raise FormatError(f"not a readable keyframe .npz: {err}", path) from err
     w, h, fx, fy, ppx, ppy = (float(v) for v in a["intrinsics"])
-    intrinsics = Intrinsics(int(w), int(h), fx, fy, ppx, ppy, str(a["distortion_model"]),
-                            tuple(float(c) for c in a["distortion_coeffs"]))  # type: ignore[arg-type]
+    coeffs = tuple(float(c) for c in a["distortion_coeffs"])
+    if len(coeffs) != 5:
+        raise FormatError(f"not a darp keyframe: distortion_coeffs has {len(coeffs)} values, not 5", path)
+    k1, k2, k3, k4, k5 = coeffs
+    intrinsics = Intrinsics(int(w), int(h), fx, fy, ppx, ppy, str(a["distortion_model"]), (k1, k2, k3, k4, k5))
     return Keyframe(
         arm=str(a["arm"]), serial=str(a["serial"]), frame_number=int(a["frame_number"]),
         timestamp_ms=float(a["timestamp_ms"]), t_s=float(a["t_s"]), split=str(a["split"]), view=int(a["view"]),
@@ -231,9 +238,10 @@ def read_keyframe_index(folder: str | Path) -> KeyframeIndex:
             T = np.array(entry["T_world_cam"], np.float64)
             if T.shape != (4, 4) or entry["split"] not in (FUSE, HELDOUT):
                 raise ValueError("bad pose or split")
-            entries.append(KeyframeInfo(str(entry["file"]), str(entry["arm"]), str(entry["serial"]),
-                                        int(entry["frame_number"]), float(entry["timestamp_ms"]),
-                                        float(entry["t_s"]), entry["split"], int(entry["view"]), T))
+            entries.append(KeyframeInfo(file=str(entry["file"]), arm=str(entry["arm"]), serial=str(entry["serial"]),
+                                        frame_number=int(entry["frame_number"]),
+                                        timestamp_ms=float(entry["timestamp_ms"]), t_s=float(entry["t_s"]),
+                                        split=entry["split"], view=int(entry["view"]), T_world_cam=T))
         except (KeyError, TypeError, ValueError) as err:
             raise FormatError(f"keyframes[{n}]: {err}", path) from None
     known = {"schema", "survey", "object", "pose_source", "format", "settings", "arms", "keyframes"}
@@ -308,8 +316,8 @@ def keyframe_from_frameset(frameset: FrameSet, recording: Recording, *, arm: str
 
 def write_observation(path: str | Path, frameset: FrameSet, recording: Recording, arm: str) -> Path:
     """Save one raw frame set (unaligned RGB, depth, IR left/right) for the observations figure."""
-    arrays: dict[str, np.ndarray] = {"arm": np.array(arm), "serial": np.array(recording.device.serial),
-                                     "depth_scale": np.float64(recording.depth_scale)}
+    arrays: dict[str, np.ndarray | np.generic] = {"arm": np.array(arm), "serial": np.array(recording.device.serial),
+                                                  "depth_scale": np.float64(recording.depth_scale)}
     if frameset.depth is not None:
         arrays["depth"] = np.asarray(frameset.depth.data, np.uint16)
         arrays["frame_number"] = np.int64(frameset.depth.info.frame_number)
@@ -335,15 +343,14 @@ def export_arm_keyframes(recording: Recording, selection: ArmKeyframes, trajecto
     entries: list[KeyframeInfo] = []
     middle = len(selection) // 2
     for k, (index, view, held) in enumerate(zip(selection.indices.tolist(), selection.view_ids.tolist(),
-                                                selection.heldout.tolist())):
+                                                selection.heldout.tolist(), strict=True)):
         frameset = frameset_at(recording, index)
         T = trajectory.poses.T_world_cam[index]
         kf = keyframe_from_frameset(frameset, recording, arm=arm, serial=serial, t_s=trajectory.poses.t_s[index],
                                     split=HELDOUT if held else FUSE, view=view, T_world_cam=T, crop=crop)
         rel = f"{arm}/{kf.frame_number:06d}.npz"
         write_keyframe(out / rel, kf)
-        entries.append(KeyframeInfo(rel, arm, serial, kf.frame_number, kf.timestamp_ms, kf.t_s, kf.split, kf.view,
-                                    kf.T_world_cam))
+        entries.append(kf.index_entry(rel))
         if k == middle:
             write_observation(out / OBSERVATIONS_DIR / f"{arm}.npz", frameset, recording, arm)
         if progress is not None:
@@ -375,6 +382,7 @@ __all__ = [
     "Keyframe",
     "KeyframeIndex",
     "KeyframeInfo",
+    "KeyframeMeta",
     "export_arm_keyframes",
     "frameset_at",
     "iter_keyframes",

@@ -138,8 +138,9 @@ def centre_in_view(T_world_cam: np.ndarray, centre_m: np.ndarray, intrinsics: In
     with np.errstate(invalid="ignore", divide="ignore"):
         u = intrinsics.fx * cam[:, 0] / z + intrinsics.ppx
         v = intrinsics.fy * cam[:, 1] / z + intrinsics.ppy
-        return ((z > 0) & (u >= -0.5 + margin_px) & (u <= intrinsics.width - 0.5 - margin_px)
-                & (v >= -0.5 + margin_px) & (v <= intrinsics.height - 0.5 - margin_px))
+        inside: np.ndarray = ((z > 0) & (u >= -0.5 + margin_px) & (u <= intrinsics.width - 0.5 - margin_px)
+                              & (v >= -0.5 + margin_px) & (v <= intrinsics.height - 0.5 - margin_px))
+        return inside
 
 
 def look_at_point(T_world_cam: np.ndarray) -> np.ndarray:
@@ -179,7 +180,8 @@ def spread(indices: np.ndarray, k: int) -> np.ndarray:
 
 
 def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.degrees(np.arccos(np.clip(a @ b.T, -1.0, 1.0)))
+    angles: np.ndarray = np.degrees(np.arccos(np.clip(a @ b.T, -1.0, 1.0)))
+    return angles
 
 
 # -- selection ---------------------------------------------------------------------------------------
@@ -260,10 +262,11 @@ def _empty(arm: str, counts: dict[str, int]) -> ArmKeyframes:
 
 def select_survey_keyframes(trajectories: Mapping[str, Any], centre_m: np.ndarray | None,
                             settings: KeyframeSettings | None = None,
-                            intrinsics: Mapping[str, Intrinsics] | None = None) -> dict[str, ArmKeyframes]:
+                            intrinsics: Mapping[str, Intrinsics | None] | None = None) -> dict[str, ArmKeyframes]:
     """Keyframes of every arm of a pose recovery (``SurveyPoses.trajectories``: CameraTrajectory by arm).
 
-    Frames are taken in timestamp order; ``intrinsics`` (depth stream, by arm) enable the in-view test.
+    Frames are taken in timestamp order; ``intrinsics`` (depth stream, by arm) enable the in-view test
+    (an arm without them, missing or None, gets none).
     """
     out: dict[str, ArmKeyframes] = {}
     for arm, traj in trajectories.items():

@@ -113,7 +113,8 @@ def boundary_edges(triangles: np.ndarray) -> np.ndarray:
         return np.empty((0, 2), np.int64)
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
     uniq, counts = np.unique(edges, axis=0, return_counts=True)
-    return uniq[counts == 1]
+    rims: np.ndarray = uniq[counts == 1]
+    return rims
 
 
 def mesh_arrays(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:

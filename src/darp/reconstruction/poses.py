@@ -10,6 +10,7 @@ atomically; the survey folder is never written to.
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +21,7 @@ from darp.errors import FormatError, SurveyError
 from darp.formats.atomic import atomic_open, write_text_atomic
 from darp.formats.calibration import Calibration
 from darp.formats.envelope import Envelope
+from darp.formats.realsense.recording import Recording
 from darp.formats.schema import write_json_checked
 from darp.formats.survey import Survey
 from darp.kinematics.camera_poses import DEFAULT_MAX_GAP_S, STATUS_NAMES, CameraPoses, camera_poses
@@ -106,12 +108,16 @@ def recover_survey_poses(
     clock_offset_s: float = 0.0,
     wrist_frame: str = "flange",
     on_arm: Callable[[str], None] | None = None,
+    open_recording: Callable[[str], AbstractContextManager[Recording]] | None = None,
 ) -> SurveyPoses:
     """Eq. 1 at every ``stream`` frame of every camera of ``survey``.
 
     ``on_arm(arm)`` is called before each arm is processed (for progress display). A camera whose
     serial differs from the calibration's for its arm is refused: its poses would belong to another arm.
+    ``open_recording(arm)``: a context manager giving ``arm``'s recording (default: ``survey.open_recording``,
+    which opens and closes it; a caller that holds the recordings open passes its own).
     """
+    opener = open_recording if open_recording is not None else survey.open_recording
     log = survey.arm_poses()
     result = SurveyPoses(
         survey_path=survey.path,
@@ -137,7 +143,7 @@ def recover_survey_poses(
             raise SurveyError(
                 f"{arm}'s camera is {serial} but the calibration (epoch {calibration.epoch!r}) "
                 f"calibrated camera {cal.serial} on {arm}", survey.path)
-        with survey.open_recording(arm) as recording:
+        with opener(arm) as recording:
             infos = recording.frame_infos(recording.stream(stream).key)
         frame_numbers = np.array([i.frame_number for i in infos], dtype=np.int64)
         timestamps_ms = np.array([i.timestamp_ms for i in infos], dtype=np.float64)
@@ -173,7 +179,7 @@ def format_tum(timestamps_s: np.ndarray, T_world_cam: np.ndarray) -> str:
     lines = ["# timestamp tx ty tz qx qy qz qw  (T_world_cam; seconds, metres)"]
     if len(timestamps_s):
         quats = rotation_to_quaternion(T_world_cam[:, :3, :3])
-        for t, T, q in zip(timestamps_s, T_world_cam, quats):
+        for t, T, q in zip(timestamps_s, T_world_cam, quats, strict=True):
             x, y, z = T[:3, 3]
             lines.append(f"{t:.6f} {x:.9f} {y:.9f} {z:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
     return "\n".join(lines) + "\n"

@@ -194,7 +194,8 @@ def _spread_along_path(centres: np.ndarray, posed: np.ndarray, count: int) -> np
     if travelled[-1] < 1e-6:  # a camera that never moved: one axis is enough
         return idx[:1]
     marks = np.linspace(0.0, travelled[-1], count)
-    return idx[np.unique(np.searchsorted(travelled, marks).clip(0, idx.size - 1))]
+    spread: np.ndarray = idx[np.unique(np.searchsorted(travelled, marks).clip(0, idx.size - 1))]
+    return spread
 
 
 def plot_trajectories(
@@ -211,7 +212,7 @@ def plot_trajectories(
     fig, axes = plt.subplots(1, 2, figsize=(14, 6.0))
     planes = [("top view", (0, 1), "y (m)"), ("side view (from -y)", (0, 2), "z (m)")]
     envelope = _cylinder_outline(result.envelope)
-    for ax, (name, (i, j), ylabel) in zip(axes, planes):
+    for ax, (name, (i, j), ylabel) in zip(axes, planes, strict=True):
         if rig is not None:
             corners = rig.table.corners()
             if j == 1:
@@ -237,7 +238,9 @@ def plot_trajectories(
             if pick.size:
                 tips = centres[pick] + traj.poses.T_world_cam[pick, :3, 2] * AXIS_ARROW_M
                 segments = np.stack([centres[pick][:, [i, j]], tips[:, [i, j]]], axis=1)
-                ax.add_collection(LineCollection(segments, colors=colour, linewidths=0.9, alpha=0.8))
+                # matplotlib's stubs want a Sequence of segments; it takes an (N, 2, 2) array as well
+                ax.add_collection(LineCollection(segments, colors=colour, linewidths=0.9,  # type: ignore[arg-type]
+                                                 alpha=0.8))
                 ax.plot(centres[pick, i], centres[pick, j], ".", color=colour, ms=3)
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(True, lw=0.3)

@@ -43,7 +43,8 @@ def _view_bin_table() -> np.ndarray:
     azimuth = (np.arange(_LUT_AZIMUTH) + 0.5) * 2 * np.pi / _LUT_AZIMUTH - np.pi
     p, a = np.meshgrid(polar, azimuth, indexing="ij")
     d = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)], axis=-1).reshape(-1, 3)
-    return np.argmax(d @ VIEW_DIRECTIONS.T.astype(np.float64), axis=1).astype(np.uint8).reshape(p.shape)
+    table: np.ndarray = np.argmax(d @ VIEW_DIRECTIONS.T.astype(np.float64), axis=1).astype(np.uint8).reshape(p.shape)
+    return table
 
 
 _VIEW_BIN_TABLE = _view_bin_table()
@@ -61,7 +62,8 @@ def view_bins(directions: np.ndarray) -> np.ndarray:
     azimuth = np.arctan2(d[:, 1], d[:, 0])
     i = np.minimum((polar * (_LUT_POLAR / np.pi)).astype(np.int64), _LUT_POLAR - 1)
     j = np.minimum(((azimuth + np.pi) * (_LUT_AZIMUTH / (2 * np.pi))).astype(np.int64), _LUT_AZIMUTH - 1)
-    return _VIEW_BIN_TABLE[i, j]
+    bins: np.ndarray = _VIEW_BIN_TABLE[i, j]
+    return bins
 
 
 def voxel_indices(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
@@ -74,7 +76,8 @@ def pack_keys(ijk: np.ndarray) -> np.ndarray:
     if ijk.size and (ijk.min() < -_KEY_OFFSET or ijk.max() >= _KEY_OFFSET):
         raise ReconstructionError("points lie too far from the world origin for the voxel grid")
     shifted = ijk + _KEY_OFFSET
-    return (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
+    keys: np.ndarray = (shifted[:, 0] << (2 * _KEY_BITS)) | (shifted[:, 1] << _KEY_BITS) | shifted[:, 2]
+    return keys
 
 
 def unpack_keys(keys: np.ndarray) -> np.ndarray:
@@ -88,9 +91,11 @@ def popcount64(masks: np.ndarray) -> np.ndarray:
     """Number of set bits of each uint64, as int32."""
     masks = np.ascontiguousarray(masks, dtype=np.uint64)
     if hasattr(np, "bitwise_count"):
-        return np.bitwise_count(masks).astype(np.int32)
+        counts: np.ndarray = np.bitwise_count(masks).astype(np.int32)
+        return counts
     table = np.array([i.bit_count() for i in range(256)], np.int32)  # numpy < 2.0
-    return table[masks.view(np.uint8).reshape(-1, 8)].sum(axis=1).astype(np.int32)
+    counts = table[masks.view(np.uint8).reshape(-1, 8)].sum(axis=1).astype(np.int32)
+    return counts
 
 
 @dataclass
@@ -172,7 +177,7 @@ def merge_stats(parts: list[VoxelStats]) -> VoxelStats:
         n_points=reduce([p.n_points for p in parts]),
         sum_xyz=reduce([p.sum_xyz for p in parts]),
         sum_normal=reduce([p.sum_normal for p in parts]),
-        sum_rgb=reduce([p.sum_rgb for p in parts]) if with_colour else None,  # type: ignore[misc]
+        sum_rgb=reduce([p.sum_rgb for p in parts if p.sum_rgb is not None]) if with_colour else None,
         n_frames=reduce([p.n_frames for p in parts]),
         view_mask=reduce([p.view_mask for p in parts], np.bitwise_or),
         arm_mask=reduce([p.arm_mask for p in parts], np.bitwise_or),

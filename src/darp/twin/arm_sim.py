@@ -66,12 +66,12 @@ class QuinticMove:
         c = self.coeffs
         if order == 0:
             powers = np.stack([s ** k for k in range(6)], axis=1)
-            return powers @ c.T
-        if order == 1:
+        elif order == 1:
             powers = np.stack([k * s ** (k - 1) if k else np.zeros_like(s) for k in range(6)], axis=1)
-            return powers @ c.T
-        powers = np.stack([k * (k - 1) * s ** (k - 2) if k > 1 else np.zeros_like(s) for k in range(6)], axis=1)
-        return powers @ c.T
+        else:
+            powers = np.stack([k * (k - 1) * s ** (k - 2) if k > 1 else np.zeros_like(s) for k in range(6)], axis=1)
+        values: np.ndarray = powers @ c.T
+        return values
 
     def state(self, t_ns: np.ndarray | int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, qd, qdd), each (N, 6) (or (6,) for a scalar time), clamped to the move's span."""

@@ -112,9 +112,5 @@ class SimClock(Clock):
         if process is not None:
             process.active = False
 
-    def process_names(self) -> list[str]:
-        """Names of the processes still scheduled (for diagnostics)."""
-        return [p.name for p in self._processes.values()]
-
 
 __all__ = ["NS_PER_S", "ProcessFn", "SimClock", "s_to_ns"]

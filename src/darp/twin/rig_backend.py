@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -30,6 +30,11 @@ from darp.twin.settings import TwinSettings
 from darp.twin.truth import TrueRig, draw_true_rig
 from darp.twin.world import Contact, TwinWorld
 
+if TYPE_CHECKING:  # the renderer and the camera import MuJoCo's GL backend: only when the cameras are built
+    from darp.twin.camera.render import SceneRenderer
+    from darp.twin.camera.sensor import TwinCamera
+    from darp.twin.camera.spec import CameraSpec
+
 MAX_CONTACT_EVENTS = 10_000
 
 
@@ -43,6 +48,10 @@ class ContactEvent:
 
 class TwinRig(RigBackend):
     """The simulated rig. Use as a context manager; the cameras render only while recording."""
+
+    clock: SimClock
+    arms: dict[str, SimArm]
+    cameras: dict[str, TwinCameraBackend]
 
     def __init__(self, settings: TwinSettings | None = None, *, rig: Rig | None = None,
                  obj: Any | None = None, placement: Any | None = None, board: Any | None = None,
@@ -68,7 +77,7 @@ class TwinRig(RigBackend):
         self.world = TwinWorld(self.rig, self.true_rig.arms, parts=obj.parts if obj is not None else (),
                                T_world_object=T_world_object, board=board, T_world_board=T_world_board,
                                seed=s.seed)
-        self.arms: dict[str, SimArm] = {}
+        self.arms = {}
         for arm_id, true_arm in self.true_rig.arms.items():
             q0 = (q_initial_rad or {}).get(arm_id, self.rig.arms[arm_id].park_q_rad)
             self.arms[arm_id] = SimArm(
@@ -79,10 +88,10 @@ class TwinRig(RigBackend):
                 max_speed_rad_s=s.motion.max_speed_rad_s, max_accel_rad_s2=s.motion.max_accel_rad_s2,
                 settle_s=s.motion.settle_s)
         self._world_time_ns: int | None = None
-        self._renderer = None
+        self._renderer: SceneRenderer | None = None
         self._log_writer: ArmPoseWriter | None = None
         self._log_handle: int | None = None
-        self.cameras: dict[str, TwinCameraBackend] = {}
+        self.cameras = {}
         self._build_cameras(camera_workers)
         self._log_rng = s.rng("joint_log")
         self.contact_events: list[ContactEvent] = []
@@ -116,7 +125,7 @@ class TwinRig(RigBackend):
                 record_cam = None if workers else TwinCamera(model, spec, cam_settings, seed=seed,
                                                              renderer=self._renderer, dropout_geoms=dropouts)
 
-                def live(spec: Any = spec, seed: int = seed) -> Any:
+                def live(spec: CameraSpec = spec, seed: int = seed) -> TwinCamera:
                     return TwinCamera(model, spec, cam_settings, seed=seed + 1, renderer=self._renderer,
                                       dropout_geoms=dropouts)
 
@@ -207,19 +216,10 @@ class TwinRig(RigBackend):
                     self.contacts_dropped += 1
         return now_ns + self._monitor_period_ns
 
-    def clearance(self, arm_id: str) -> tuple[float, str, str]:
-        """Smallest distance from ``arm_id`` to the table, the object or the other arm now (m, geom, geom)."""
-        self.prepare_world(self.clock.elapsed_ns)
-        return self.world.clearance(arm_id)
-
     # -- poses --------------------------------------------------------------------------------------
     def park_q(self, arm_id: str) -> np.ndarray:
         """The rig file's park configuration (SDK angles)."""
         return np.array(self.rig.arms[arm_id].park_q_rad, dtype=float)
-
-    def T_world_cam_true(self, arm_id: str) -> np.ndarray:
-        """The camera's true pose now."""
-        return self.true_camera_poses(arm_id, np.array([self.clock.elapsed_ns]))[0]
 
     def close(self) -> None:
         """Abort unfinished recordings, close the log and free the renderer (idempotent)."""

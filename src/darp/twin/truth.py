@@ -82,7 +82,7 @@ class TrueRig:
         """True camera pose(s) for true joint angles (6,) or (N, 6): (4, 4) or (N, 4, 4)."""
         arm = self.arms[arm_id]
         Q = np.atleast_2d(q_true_rad)
-        poses = arm.T_world_base @ z1.fk_batch(Q, self.nominal.wrist_frame) @ arm.T_flange_cam
+        poses: np.ndarray = arm.T_world_base @ z1.fk_batch(Q, self.nominal.wrist_frame) @ arm.T_flange_cam
         return poses[0] if np.ndim(q_true_rad) == 1 else poses
 
     def calibration(self, settings: TwinSettings) -> Calibration:

@@ -349,7 +349,8 @@ class TwinWorld:
         if texture_dir is None:
             for mat in spec.materials:
                 mat.textures[int(mujoco.mjtTextureRole.mjTEXROLE_RGB)] = ""
-        return spec.to_xml()
+        xml: str = spec.to_xml()
+        return xml
 
     # -- state ------------------------------------------------------------------------------------
     def set_arm_q(self, arm_id: str, q_true_rad: np.ndarray) -> None:
@@ -383,8 +384,8 @@ class TwinWorld:
                 g1, g2, o1, o2 = g2, g1, o2, o1
             if o1 not in self.arm_ids:
                 continue
-            found.append(Contact(o1, self.model.geom(g1).name, o2, self.model.geom(g2).name, float(c.dist),
-                                 tuple(float(v) for v in c.pos)))
+            x, y, z = (float(v) for v in c.pos)
+            found.append(Contact(o1, self.model.geom(g1).name, o2, self.model.geom(g2).name, float(c.dist), (x, y, z)))
         return found
 
     def clearance(self, arm_id: str, distmax_m: float = 0.5) -> tuple[float, str, str]:

@@ -15,6 +15,7 @@ from collections import deque
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from types import TracebackType
+from typing import Self
 
 import numpy as np
 
@@ -162,7 +163,7 @@ class Recording(ABC):
             yield emit(waiting.popleft())
 
     # -- context manager ------------------------------------------------------------------------
-    def __enter__(self) -> Recording:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(

@@ -186,7 +186,6 @@ def encode_transform(T_target_source: np.ndarray) -> bytes:
 
 # -- deserialisation (buffer, offset of the message data, end of the message data) --------------------
 _LENGTH = struct.Struct("<I")
-_TWO_LENGTHS = struct.Struct("<II")
 
 
 def _read_string(buf: bytes | memoryview, pos: int) -> tuple[str, int]:
@@ -198,15 +197,13 @@ def _read_string(buf: bytes | memoryview, pos: int) -> tuple[str, int]:
 
 
 def decode_uint32(buf: bytes | memoryview, pos: int) -> int:
-    return struct.unpack_from("<I", buf, pos)[0]
+    (value,) = _LENGTH.unpack_from(buf, pos)
+    return int(value)
 
 
 def decode_float32(buf: bytes | memoryview, pos: int) -> float:
-    return struct.unpack_from("<f", buf, pos)[0]
-
-
-def decode_string(buf: bytes | memoryview, pos: int) -> str:
-    return _read_string(buf, pos)[0]
+    (value,) = struct.unpack_from("<f", buf, pos)
+    return float(value)
 
 
 def decode_key_value(buf: bytes | memoryview, pos: int) -> tuple[str, str]:
@@ -215,26 +212,15 @@ def decode_key_value(buf: bytes | memoryview, pos: int) -> tuple[str, str]:
     return key, value
 
 
-def decode_key_value_record(buf: bytes | memoryview, offset: int) -> tuple[str, str]:
-    """A KeyValue from the bag message record at ``offset`` (hot path: a frame's metadata)."""
-    (header_len,) = _LENGTH.unpack_from(buf, offset)
-    start = offset + 8 + header_len
-    (data_len, key_len) = _TWO_LENGTHS.unpack_from(buf, start - 4)
-    key_end = start + 4 + key_len
-    (value_len,) = _LENGTH.unpack_from(buf, key_end)
-    if key_end + 4 + value_len > start + data_len or start + data_len > len(buf):
-        raise ValueError(f"KeyValue record at offset {offset} runs past its message")
-    return str(buf[start + 4:key_end], "utf-8", "replace"), str(buf[key_end + 4:key_end + 4 + value_len], "utf-8",
-                                                                 "replace")
-
-
 def decode_stream_info(buf: bytes | memoryview, pos: int) -> tuple[int, str]:
     (fps,) = struct.unpack_from("<I", buf, pos)
     encoding, _ = _read_string(buf, pos + 4)
     return fps, encoding
 
 
-def decode_imu_intrinsic(buf: bytes | memoryview, pos: int) -> tuple[tuple[float, ...], ...]:
+def decode_imu_intrinsic(buf: bytes | memoryview, pos: int) -> tuple[tuple[float, ...], tuple[float, float, float],
+                                                                    tuple[float, float, float]]:
+    """(data: 12 values of the 3x4 matrix, noise variances, bias variances)."""
     values = struct.unpack_from("<18f", buf, pos)
     return values[:12], values[12:15], values[15:18]
 

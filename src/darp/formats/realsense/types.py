@@ -62,7 +62,7 @@ class Intrinsics:
     coeffs: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     @property
-    def K(self) -> np.ndarray:  # noqa: N802 (the conventional name)
+    def K(self) -> np.ndarray:  # the conventional name
         """3x3 camera matrix."""
         return np.array([[self.fx, 0.0, self.ppx], [0.0, self.fy, self.ppy], [0.0, 0.0, 1.0]])
 

@@ -20,17 +20,22 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypedDict
 
 import numpy as np
 
 from darp.backend import CameraBackend, LiveFrameSet
 from darp.errors import RecordingError, TwinError
 from darp.formats.realsense.bag.writer import BagWriter
-from darp.formats.realsense.types import DeviceInfo, Intrinsics
+from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
 from darp.twin.camera.spec import CameraSpec
 from darp.twin.clock import NS_PER_S, SimClock
 from darp.twin.truth import CameraPoseTruth
+
+if TYPE_CHECKING:  # imported for their types only: the sensor imports MuJoCo and OpenGL
+    from darp.twin.camera.imu import ImuSimulator
+    from darp.twin.camera.sensor import TwinCamera
+    from darp.twin.camera.worker import CameraWorker
 
 IMAGE_ORDER = ("depth", "ir1", "ir2", "color")
 FIRMWARE = "5.13.0.50"
@@ -38,6 +43,16 @@ PRODUCT_ID = "0B3A"  # D435i
 # LZ4 fast mode for the bags: 30 % less compression time than the default level for 3 % larger files
 # (the simulated images carry sensor noise and compress to about 74 % either way); same LZ4 frames.
 LZ4_ACCELERATION = 2
+
+
+class _BagOptions(TypedDict):
+    """Keyword arguments of the bag writer (in this process or in a worker)."""
+
+    depth_scale: float
+    extrinsics: dict[str, np.ndarray]
+    compression: str
+    lz4_acceleration: int
+    start_ms: float
 
 
 class CameraHost(Protocol):
@@ -57,8 +72,9 @@ class TwinCameraBackend(CameraBackend):
     """One simulated wrist camera on the rig's clock."""
 
     def __init__(self, arm_id: str, spec: CameraSpec, clock: SimClock, host: CameraHost, *,
-                 camera: Any | None, live_camera: Callable[[], Any], imu: Any | None = None, phase_ns: int = 0,
-                 clock_offset_ms: float = 0.0, compression: str = "lz4", worker: Any | None = None,
+                 camera: TwinCamera | None, live_camera: Callable[[], TwinCamera], imu: ImuSimulator | None = None,
+                 phase_ns: int = 0, clock_offset_ms: float = 0.0, compression: str = "lz4",
+                 worker: CameraWorker | None = None,
                  lz4_acceleration: int = LZ4_ACCELERATION) -> None:
         """``camera``: the :class:`~darp.twin.camera.sensor.TwinCamera` that renders recorded frames (None when a
         :class:`~darp.twin.camera.worker.CameraWorker` ``worker`` does); ``live_camera``: a factory of the
@@ -75,7 +91,7 @@ class TwinCameraBackend(CameraBackend):
         self.camera = camera
         self.worker = worker
         self._live_factory = live_camera
-        self._live: Any | None = None
+        self._live: TwinCamera | None = None
         self.imu = imu
         self.clock_offset_ms = float(clock_offset_ms)
         self.compression = compression
@@ -88,9 +104,7 @@ class TwinCameraBackend(CameraBackend):
         # Wall seconds of capture, IMU and writing; cpu: the worker's CPU seconds; *_cpu: CPU seconds of a stage.
         self.timings_s = {"capture": 0.0, "imu": 0.0, "write": 0.0, "cpu": 0.0, "imu_cpu": 0.0, "write_cpu": 0.0}
         self._imu_from_ns: int | None = None
-        self._imu_counters = {"accel": 0, "gyro": 0}
         self._tick = 0
-        self._on_frame: list[Callable[[int], None]] = []
         clock.add_process(f"{arm_id}:camera", self._frame_tick, first_due_ns=max(self.phase_ns, clock.elapsed_ns))
 
     # -- clock ------------------------------------------------------------------------------------
@@ -111,11 +125,7 @@ class TwinCameraBackend(CameraBackend):
         return self.frame_time_ns(self._tick)
 
     # -- recording --------------------------------------------------------------------------------
-    @property
-    def recording(self) -> bool:
-        return self._recording
-
-    def stream_profiles(self) -> list[Any]:
+    def stream_profiles(self) -> list[StreamProfile]:
         profiles = self.spec.stream_profiles()
         keys = [*IMAGE_ORDER, *(("accel", "gyro") if self.imu is not None else ())]
         return [profiles[k] for k in keys]
@@ -131,9 +141,9 @@ class TwinCameraBackend(CameraBackend):
         if self.imu is not None:
             extrinsics.update({key: self.spec.extrinsics("depth", key) for key in ("accel", "gyro")})
         args = (path, device, self.stream_profiles())
-        kwargs = {"depth_scale": self.spec.depth_unit_m, "extrinsics": extrinsics, "compression": self.compression,
-                  "lz4_acceleration": self.lz4_acceleration,
-                  "start_ms": self.timestamp_ms(self.clock.elapsed_ns) - 1.0}
+        kwargs: _BagOptions = {"depth_scale": self.spec.depth_unit_m, "extrinsics": extrinsics,
+                               "compression": self.compression, "lz4_acceleration": self.lz4_acceleration,
+                               "start_ms": self.timestamp_ms(self.clock.elapsed_ns) - 1.0}
         if self.worker is not None:
             for target in (path, path.with_name(path.name + ".partial")):
                 if target.exists():
@@ -181,7 +191,7 @@ class TwinCameraBackend(CameraBackend):
         if self.worker is not None:
             self.worker.frame(n, stamp_ms, data.qpos.copy(), T_world_cam, motion, IMAGE_ORDER)
         else:
-            assert self._writer is not None
+            assert self._writer is not None and self.camera is not None
             c0 = time.process_time()
             for key, values, stamp, index in motion:
                 self._writer.write_motion(key, values, stamp, index)
@@ -195,12 +205,10 @@ class TwinCameraBackend(CameraBackend):
             self.timings_s["write_cpu"] += (c1 - c0) + (time.process_time() - c2)
         self.truth.append(n, stamp_ms, self.clock.host_time_s(t_ns), T_world_cam, self.host.true_q(self.arm_id, t_ns))
         self.frames_recorded += 1
-        for callback in self._on_frame:
-            callback(n)
 
     def _imu_samples(self, until_ns: int) -> list[tuple[str, np.ndarray, float, int]]:
         """Accel and gyro samples in [last tick, ``until_ns``) on their own rates, in time order."""
-        assert self._imu_from_ns is not None
+        assert self._imu_from_ns is not None and self.imu is not None
         t0, c0 = time.perf_counter(), time.process_time()
         samples = []
         for key, rate in (("accel", self.spec.accel_hz), ("gyro", self.spec.gyro_hz)):
@@ -229,7 +237,11 @@ class TwinCameraBackend(CameraBackend):
         """CPU seconds spent so far per stage of the recorded frames: the camera's capture stages
         (``darp.twin.camera.sensor.CAPTURE_STAGES``; from a worker: as of its last finished recording), the
         bag writing and the IMU samples."""
-        capture = self.worker.stage_cpu_s if self.worker is not None else self.camera.stage_cpu_s
+        if self.worker is not None:
+            capture = self.worker.stage_cpu_s
+        else:
+            assert self.camera is not None
+            capture = self.camera.stage_cpu_s
         return {**capture, "write": self.timings_s["write_cpu"], "imu": self.timings_s["imu_cpu"]}
 
     # -- live frames ------------------------------------------------------------------------------
@@ -260,10 +272,6 @@ class TwinCameraBackend(CameraBackend):
     @property
     def depth_intrinsics(self) -> Intrinsics:
         return self.spec.depth
-
-    def add_frame_callback(self, callback: Callable[[int], None]) -> None:
-        """Call ``callback(frame_number)`` after every recorded frame (progress bars)."""
-        self._on_frame.append(callback)
 
     def close(self) -> None:
         """Abort an unfinished recording and free the cameras' resources (idempotent)."""

@@ -20,6 +20,7 @@ listed in docs/twin-camera.md. All randomness comes from the ``numpy.random.Gene
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -101,9 +102,9 @@ class DepthNoiseSettings:
             max_depth_m=1e9,
         )
 
-    def with_(self, **changes: float | bool) -> DepthNoiseSettings:
-        """A copy with some settings changed (validated)."""
-        return replace(self, **changes)  # type: ignore[arg-type]
+    def with_(self, **changes: Any) -> DepthNoiseSettings:
+        """A copy with some settings changed (numbers and flags by field name; validated)."""
+        return replace(self, **changes)
 
 
 def _window_min(x: np.ndarray, span: int, *, leftward: bool = False) -> np.ndarray:
@@ -165,7 +166,7 @@ def occluded_from_right_scanline(disparity_px: np.ndarray, *, mirrored: bool = F
     x_other = (cols[::-1] if mirrored else cols)[None, :] - d  # column in the other view (mirrored rows)
     d_max = float(np.fmax.reduce(d, axis=None))
     span = int(np.ceil(d_max)) + 2 if np.isfinite(d_max) else w  # inf: a surface at z ~ 0 hides all
-    hidden = np.greater_equal(x_other, _window_min(x_other, span, leftward=mirrored))  # at or left of it
+    hidden: np.ndarray = np.greater_equal(x_other, _window_min(x_other, span, leftward=mirrored))  # at or left of it
     hidden &= surface
     return hidden
 
@@ -203,7 +204,7 @@ def occluded_from_right_depth(
         borderValue=0.0,
     )
     limit = np.multiply(depth_m, np.float32(1.0 - tolerance), dtype=np.float32)
-    hidden = np.less(z_right, limit)
+    hidden: np.ndarray = np.less(z_right, limit)
     hidden &= z_right > 0
     hidden &= disparity_px > 0
     return hidden
@@ -376,7 +377,7 @@ class DepthModel:
         mask = prob > 0
         if not np.any(mask):
             return np.zeros(prob.shape, bool)
-        field = self._field(prob.shape, self.settings.dropout_correlation_px, rng)  # type: ignore[arg-type]
+        field = self._field(prob.shape, self.settings.dropout_correlation_px, rng)
         out = np.zeros(prob.shape, bool)
         out[mask] = field[mask] < ndtri(np.clip(prob[mask], 0.0, 1.0))
         return out
@@ -387,7 +388,7 @@ def depth_to_z16(depth_m: np.ndarray, depth_unit_m: float = 0.001) -> np.ndarray
 
     The division is done in float64 (what the 1 mm unit needs to round exactly), in one buffer.
     """
-    units = np.divide(np.asarray(depth_m), depth_unit_m, dtype=np.float64)
+    units: np.ndarray = np.divide(np.asarray(depth_m), depth_unit_m, dtype=np.float64)
     np.rint(units, out=units)
     if not (units.min(initial=0.0) >= 0.0 and units.max(initial=0.0) <= 65535.0):  # NaN fails too
         np.clip(units, 0, 65535, out=units)

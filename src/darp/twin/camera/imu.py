@@ -83,7 +83,8 @@ class ImuSimulator:
         p = [T[:, :3, 3] + T[:, :3, :3] @ lever for T in (T_prev, T_now, T_next)]
         a_world = (p[2] - 2.0 * p[1] + p[0]) / (h * h)
         f_world = a_world - np.asarray(self.settings.gravity_world, dtype=float)
-        return np.einsum("nji,nj->ni", T_now[:, :3, :3], f_world)  # R^T f
+        f_imu: np.ndarray = np.einsum("nji,nj->ni", T_now[:, :3, :3], f_world)  # R^T f
+        return f_imu
 
     def true_angular_velocity(self, t_s: np.ndarray, pose: PoseFunction) -> np.ndarray:
         """(N, 3) exact body angular velocity in the IMU (depth) axes, rad/s."""
@@ -92,18 +93,19 @@ class ImuSimulator:
         R_prev = _check_poses(pose(t - h), t.size)[:, :3, :3]
         R_next = _check_poses(pose(t + h), t.size)[:, :3, :3]
         R_rel = np.einsum("nji,njk->nik", R_prev, R_next)  # R_prev^T R_next: rotation in body axes
-        return Rotation.from_matrix(R_rel).as_rotvec() / (2.0 * h)
+        w: np.ndarray = Rotation.from_matrix(R_rel).as_rotvec() / (2.0 * h)
+        return w
 
     def accel(self, t_s: np.ndarray, pose: PoseFunction, rate_hz: float) -> np.ndarray:
         """(N, 3) accelerometer samples with bias and white noise for a stream at ``rate_hz``."""
         f = self.true_specific_force(t_s, pose)
-        sigma = self.settings.accel_noise_density * np.sqrt(rate_hz)
+        sigma = float(self.settings.accel_noise_density * np.sqrt(rate_hz))
         return f + self.accel_bias + self._rng.normal(0.0, 1.0, f.shape) * sigma
 
     def gyro(self, t_s: np.ndarray, pose: PoseFunction, rate_hz: float) -> np.ndarray:
         """(N, 3) gyroscope samples with bias and white noise for a stream at ``rate_hz``."""
         w = self.true_angular_velocity(t_s, pose)
-        sigma = self.settings.gyro_noise_density * np.sqrt(rate_hz)
+        sigma = float(self.settings.gyro_noise_density * np.sqrt(rate_hz))
         return w + self.gyro_bias + self._rng.normal(0.0, 1.0, w.shape) * sigma
 
     def sample(

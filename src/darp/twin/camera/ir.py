@@ -16,9 +16,11 @@ plus Gaussian read noise, then rounding and clipping to 8 bits.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from darp.errors import TwinError
 from darp.formats.realsense.types import Intrinsics
@@ -82,7 +84,7 @@ class DotPattern:
         tx = rng.uniform(-half_w, half_w, settings.dot_count)
         ty = rng.uniform(-half_h, half_h, settings.dot_count)
         brightness = rng.uniform(0.7, 1.0, settings.dot_count)  # spots differ a little in power
-        raster = np.zeros((self.height, self.width), np.float32)
+        raster: NDArray[np.float32] = np.zeros((self.height, self.width), np.float32)
         x = tx * self.focal_px + self.cx
         y = ty * self.focal_px + self.cy
         x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
@@ -96,7 +98,7 @@ class DotPattern:
             xi, yi = np.clip(x0 + dx, 0, self.width - 1), np.clip(y0 + dy, 0, self.height - 1)
             np.add.at(raster, (yi, xi), (brightness * wgt).astype(np.float32))
         sigma = settings.dot_sigma_rad * self.focal_px
-        raster = cv2.GaussianBlur(raster, (0, 0), sigma)
+        raster = cast("NDArray[np.float32]", cv2.GaussianBlur(raster, (0, 0), sigma))
         raster *= np.float32(2 * np.pi * sigma * sigma)  # an isolated unit dot peaks at 1
         self.raster = raster
         self._map_key: tuple[float, ...] | None = None
@@ -168,7 +170,8 @@ class IrModel:
             dots = self.pattern.lookup(inv_z, self.intr, projector_x_m)
             if s.projector_shadows:  # no dots where the projector cannot see: multiply by "lit" (0 or 1)
                 np.multiply(dots, ~self._projector_shadow(inv_z, projector_x_m), out=dots)
-            weight = cv2.max(signal, float(np.float32(255.0 * s.reflectance_floor)))  # reflectance proxy
+            # reflectance proxy; OpenCV takes a Python number as a scalar, its stubs accept only arrays
+            weight = cv2.max(signal, float(np.float32(255.0 * s.reflectance_floor)))  # type: ignore[call-overload]
             weight *= inv_z
             weight *= inv_z  # irradiance falls off as 1 / z^2; zero where there is no surface
             dots *= weight
@@ -182,7 +185,9 @@ class IrModel:
             np.sqrt(std, out=std)
             std *= self._noise.draw(rng)
             signal += std
-        return cv2.add(signal, 0.0, dtype=cv2.CV_8U)  # round and saturate to 8 bits
+        # round and saturate to 8 bits; OpenCV takes a Python number as a scalar, its stubs accept only arrays
+        y8: np.ndarray = cv2.add(signal, 0.0, dtype=cv2.CV_8U)  # type: ignore[call-overload]
+        return y8
 
     def _projector_shadow(self, inv_depth: np.ndarray, projector_x_m: float) -> np.ndarray:
         """Surface points hidden from the projector: stereo occlusion with the projector as second view."""

@@ -9,8 +9,11 @@ their offsets coincide (probability about 1/(H*W)).
 
 from __future__ import annotations
 
+from typing import cast
+
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 
 def correlated_normal(shape: tuple[int, int], sigma_px: float, rng: np.random.Generator) -> np.ndarray:
@@ -29,7 +32,7 @@ def correlated_normal(shape: tuple[int, int], sigma_px: float, rng: np.random.Ge
         white *= np.float32(np.sqrt(12.0))
     ksize = 2 * int(np.ceil(3.0 * sigma_px)) + 1
     g = cv2.getGaussianKernel(ksize, sigma_px, cv2.CV_64F).ravel()
-    field = cv2.sepFilter2D(white, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT)
+    field = cast("NDArray[np.float32]", cv2.sepFilter2D(white, cv2.CV_32F, g, g, borderType=cv2.BORDER_REFLECT))
     field *= np.float32(1.0 / float(np.sum(g * g)))  # separable: std scales by sum(g^2)
     return field
 

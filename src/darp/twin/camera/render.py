@@ -33,7 +33,7 @@ from darp.errors import TwinError
 from darp.formats.realsense.types import Intrinsics
 
 os.environ.setdefault("MUJOCO_GL", "egl")
-import mujoco  # MUJOCO_GL must be set before the first import
+import mujoco as mujoco  # MUJOCO_GL must be set before the first import; re-exported for that reason
 
 NO_GEOM = -1  # segmentation value of pixels that see no geom
 Region = tuple[int, int, int, int]  # image rectangle (u0, v0, u1, v1): columns u0..u1-1, rows v0..v1-1

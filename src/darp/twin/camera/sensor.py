@@ -90,6 +90,10 @@ class TwinCameraSettings:
         return cls(**base)
 
 
+GeomDropouts = Mapping[int, float] | Mapping[str, float] | Mapping[int | str, float]
+"""Depth dropout probability per geom, by geom id or name."""
+
+
 def dark_geom_dropouts(
     model: mujoco.MjModel,
     *,
@@ -124,7 +128,7 @@ class TwinCamera:
         *,
         seed: int = 0,
         renderer: SceneRenderer | None = None,
-        dropout_geoms: Mapping[int | str, float] | None = None,
+        dropout_geoms: GeomDropouts | None = None,
     ) -> None:
         self.model = model
         self.spec = spec
@@ -175,7 +179,7 @@ class TwinCamera:
         # CPU seconds (this process, all threads: llvmpipe's render threads included) per capture stage.
         self.stage_cpu_s = dict.fromkeys(CAPTURE_STAGES, 0.0)
 
-    def _build_dropout_lookup(self, dropout_geoms: Mapping[int | str, float]) -> np.ndarray | None:
+    def _build_dropout_lookup(self, dropout_geoms: GeomDropouts) -> np.ndarray | None:
         """Per-geom dropout probability indexed by geom id + 1 (index 0: no geom)."""
         if not dropout_geoms:
             return None
@@ -257,9 +261,9 @@ class TwinCamera:
             depth_m = self._stereo.depth(ir1, ir2)
         else:
             dropout = None
-            ids = geom_id if geom_id is not None else dropout_ids
-            if self._dropout_lookup is not None and ids is not None:
-                dropout = self._dropout_lookup[ids + 1]
+            seen_ids = geom_id if geom_id is not None else dropout_ids
+            if self._dropout_lookup is not None and seen_ids is not None:
+                dropout = self._dropout_lookup[seen_ids + 1]
             depth_m = self.depth_model.apply(
                 left.depth_m,
                 rng,

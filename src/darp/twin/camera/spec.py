@@ -75,6 +75,7 @@ def draw_unit(rng: np.random.Generator | int) -> UnitCalibration:
     rot_axis = g.normal(size=3)
     rot_axis /= np.linalg.norm(rot_axis)
     rot_angle = np.deg2rad(g.uniform(0.0, 0.4))
+    rx, ry, rz = (float(x) for x in rot_axis * rot_angle)
     return UnitCalibration(
         depth_fx=fx,
         depth_fy=float(np.clip(fx + g.uniform(-0.5, 0.5), 382.0, 385.0)),
@@ -86,7 +87,7 @@ def draw_unit(rng: np.random.Generator | int) -> UnitCalibration:
         color_ppy=g.uniform(237.0, 248.0),
         baseline_m=g.uniform(0.0497, 0.0503),
         t_color_depth_m=(g.uniform(0.0145, 0.0153), g.uniform(-0.0002, 0.0002), g.uniform(0.0, 0.0008)),
-        rotvec_color_depth_rad=tuple(float(x) for x in rot_axis * rot_angle),
+        rotvec_color_depth_rad=(rx, ry, rz),
         projector_x_m=g.uniform(0.020, 0.030),
     )
 
@@ -116,7 +117,8 @@ def _rotvec_to_matrix(rotvec: tuple[float, float, float]) -> np.ndarray:
         return np.eye(3)
     k = np.asarray(rotvec, dtype=float) / theta
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * kx @ kx
+    R: np.ndarray = np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * kx @ kx
+    return R
 
 
 @dataclass(frozen=True, eq=False)  # eq on numpy fields is ambiguous
@@ -160,7 +162,8 @@ class CameraSpec:
 
     def extrinsics(self, source: str, target: str) -> np.ndarray:
         """4x4 ``T_target_source`` between two streams, as ``Recording.extrinsics`` returns it."""
-        return np.linalg.inv(self.T_depth_stream(target)) @ self.T_depth_stream(source)
+        T: np.ndarray = np.linalg.inv(self.T_depth_stream(target)) @ self.T_depth_stream(source)
+        return T
 
     def stream_profiles(self) -> dict[str, StreamProfile]:
         """The six streams of a D435i recording as darp ``StreamProfile`` objects, by darp stream key."""

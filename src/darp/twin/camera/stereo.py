@@ -56,7 +56,7 @@ class StereoMatcher:
         self.fb = float(fx_px) * float(baseline_m)
         s = settings
         channels = 1
-        self._sgbm = cv2.StereoSGBM_create(
+        self._sgbm = cv2.StereoSGBM.create(
             minDisparity=s.min_disparity,
             numDisparities=s.num_disparities,
             blockSize=s.block_size,

@@ -67,7 +67,7 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
         data = mujoco.MjData(model)
         camera = TwinCamera(model, spec, cam_settings, seed=seed, dropout_geoms=dropouts)
         conn.send(("ready",))
-    except BaseException as err:  # noqa: BLE001 (reported to the parent, which raises)
+    except BaseException as err:  # reported to the parent, which raises
         conn.send(("error", f"{type(err).__name__}: {err}", traceback.format_exc()))
         return
     writer = None
@@ -82,6 +82,8 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
                 cpu_at_open = time.process_time()
             elif kind == "frame":
                 _, n, stamp_ms, qpos, T_world_cam, motion, keys = message
+                if writer is None:
+                    raise TwinError("a frame came before the recording was opened")
                 cpu0, t0 = time.process_time(), time.perf_counter()
                 for key, values, stamp, index in motion:
                     writer.write_motion(key, values, stamp, index)
@@ -105,7 +107,7 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
                 camera.close()
                 conn.send(("bye",))
                 return
-        except BaseException as err:  # noqa: BLE001
+        except BaseException as err:
             if writer is not None:
                 writer.abort()
                 writer = None
@@ -137,11 +139,11 @@ class CameraWorker:
         self.recording_cpu_s = 0.0  # the worker's CPU seconds from opening to closing its last recording
         self._expect("ready", READY_TIMEOUT_S)
 
-    def _expect(self, kind: str, timeout_s: float | None = None) -> tuple:
+    def _expect(self, kind: str, timeout_s: float | None = None) -> tuple[Any, ...]:
         if timeout_s is not None and not self._conn.poll(timeout_s):
             raise TwinError(f"camera worker did not answer within {timeout_s:.0f} s")
         try:
-            reply = self._conn.recv()
+            reply: tuple[Any, ...] = self._conn.recv()
         except EOFError:
             raise TwinError(f"camera worker exited (code {self._proc.exitcode})") from None
         if reply[0] == "error":

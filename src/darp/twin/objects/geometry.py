@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 
 CM = 0.01  # builders write their dimensions in centimetres, as the paper's table does
 
@@ -45,9 +46,8 @@ def concat(pieces: Sequence[Piece]) -> Piece:
     offsets = np.cumsum([0] + [len(p.vertices) for p in pieces[:-1]])
     vertices = np.vstack([p.vertices for p in pieces])
     faces = np.vstack([p.faces + o for p, o in zip(pieces, offsets, strict=True)])
-    uv = None
-    if all(p.uv is not None for p in pieces):
-        uv = np.vstack([p.uv for p in pieces])  # type: ignore[misc]
+    uvs = [p.uv for p in pieces if p.uv is not None]
+    uv = np.vstack(uvs) if len(uvs) == len(pieces) else None
     return Piece(vertices, faces, uv)
 
 
@@ -172,7 +172,7 @@ def rounded_block(size_xyz_cm: Sequence[float], corner_cm: float, *, subdivision
 
 
 def quads(corners: np.ndarray, quad_list: Sequence[tuple[int, int, int, int]],
-          outward: Sequence[Sequence[float]]) -> Piece:
+          outward: Sequence[ArrayLike]) -> Piece:
     """Triangulate planar quads, each wound so that its normal points along its ``outward`` vector."""
     corners = np.asarray(corners, dtype=float)
     faces = []

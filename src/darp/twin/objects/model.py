@@ -226,21 +226,27 @@ def sample_surface(obj: TwinObject, n_points: int, *, seed: int = 0) -> tuple[np
     if n_points < 1:
         raise TwinError(f"n_points must be >= 1, got {n_points}")
     mesh = obj.mesh
-    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=len(mesh.faces))
+    # trimesh.graph has no annotations
+    labels = trimesh.graph.connected_component_labels(  # type: ignore[no-untyped-call]
+        mesh.face_adjacency, node_count=len(mesh.faces))
     scenes = []
     for k in range(int(labels.max()) + 1):
         body = mesh.submesh([np.flatnonzero(labels == k)], append=True)
+        assert isinstance(body, trimesh.Trimesh)  # append=True: one mesh
         scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(np.asarray(body.vertices, np.float32)),
-                            o3d.core.Tensor(np.asarray(body.faces, np.uint32)))
+        # open3d's stubs make Tensor's dtype and device required; they default to the array's and the CPU
+        scene.add_triangles(o3d.core.Tensor(np.asarray(body.vertices, np.float32)),  # type: ignore[call-overload]
+                            o3d.core.Tensor(np.asarray(body.faces, np.uint32)))  # type: ignore[call-overload]
         scenes.append(scene)
-    points, normals, draw = [], [], 0
+    points: list[np.ndarray] = []
+    normals: list[np.ndarray] = []
+    draw = 0
     while sum(len(p) for p in points) < n_points:
         pts, face = trimesh.sample.sample_surface(mesh, 2 * n_points, seed=seed + draw)
         draw += 1
         hidden = np.zeros(len(pts), bool)
         if len(scenes) > 1:
-            query = o3d.core.Tensor(np.asarray(pts, np.float32))
+            query = o3d.core.Tensor(np.asarray(pts, np.float32))  # type: ignore[call-overload]  # (as above)
             for k, scene in enumerate(scenes):
                 hidden |= (scene.compute_occupancy(query).numpy() > 0) & (labels[face] != k)
         points.append(pts[~hidden])
@@ -297,7 +303,8 @@ def _up_to_z(up: str, path: Path) -> np.ndarray:
         T[:3, :3] = np.diag([1.0, -1.0, -1.0])
         return T
     axis = np.cross(a, z)
-    T[:3, :3] = trimesh.transformations.rotation_matrix(math.pi / 2, axis)[:3, :3]
+    # trimesh.transformations has no annotations
+    T[:3, :3] = trimesh.transformations.rotation_matrix(math.pi / 2, axis)[:3, :3]  # type: ignore[no-untyped-call]
     return T
 
 
@@ -305,14 +312,14 @@ def _part_from_loaded(mesh: trimesh.Trimesh) -> ObjectPart:
     """One part holding the loaded mesh, keeping a texture or its mean colour when the file had one."""
     piece = Piece(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces))
     visual = mesh.visual
-    if visual.kind == "texture" and getattr(visual, "uv", None) is not None:
+    if isinstance(visual, trimesh.visual.TextureVisuals) and visual.uv is not None:
         material = visual.material
         image = getattr(material, "image", None) or getattr(material, "baseColorTexture", None)
         if image is not None and len(visual.uv) == len(piece.vertices):
-            piece.uv = np.asarray(visual.uv, dtype=float)
+            piece.uv = np.asarray(visual.uv, dtype=np.float64)
             return make_part("body", piece, texture=np.asarray(image.convert("RGB")))
     rgba = (0.6, 0.6, 0.6, 1.0)
-    if visual.kind in ("face", "vertex"):
+    if isinstance(visual, trimesh.visual.ColorVisuals) and visual.kind in ("face", "vertex"):
         mean = np.asarray(visual.face_colors, dtype=float).mean(axis=0) / 255.0
         rgba = (float(mean[0]), float(mean[1]), float(mean[2]), float(mean[3]))
     return make_part("body", piece, rgba)

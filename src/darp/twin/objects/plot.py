@@ -113,7 +113,7 @@ def contact_sheet(path: Path, objects: Sequence[TwinObject], *, panel_px: int = 
         y = panel_px * 0.95
         ax.plot([panel_px * 0.05, panel_px * 0.05 + bar], [y, y], color="k", lw=2)
         ax.text(panel_px * 0.05, y - panel_px * 0.02, "5 cm", fontsize=7)
-        paper = ("paper: n/a" if obj.paper_radius_m is None else
+        paper = ("paper: n/a" if obj.paper_radius_m is None or obj.paper_height_m is None else
                  f"paper {obj.paper_radius_m * 100:.2f} / {obj.paper_height_m * 100:.2f}")
         ax.set_title(f"{obj.name}\nr {obj.radius_m * 100:.2f} / h {obj.height_m * 100:.2f} cm ({paper})",
                      fontsize=7)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from numpy.typing import ArrayLike
 from PIL import Image
 
 from darp.twin.objects import textures as tex
@@ -63,11 +64,13 @@ def make_part(name: str, piece: Piece, rgba: RGBA | None = None, texture: np.nda
     if texture is not None:
         if piece.uv is None:
             raise ValueError(f"part {name!r} has a texture but no UV")
-        visual = trimesh.visual.TextureVisuals(uv=piece.uv, image=Image.fromarray(texture))
+        # trimesh's TextureVisuals has no annotations
+        visual = trimesh.visual.TextureVisuals(uv=piece.uv, image=Image.fromarray(texture))  # type: ignore[no-untyped-call]
         mesh = trimesh.Trimesh(piece.vertices, piece.faces, visual=visual, process=False)
         mesh.merge_vertices()  # merges only vertices whose UV also match
         mesh.remove_unreferenced_vertices()
-        uv = np.asarray(mesh.visual.uv, dtype=float)
+        assert isinstance(mesh.visual, trimesh.visual.TextureVisuals)
+        uv = np.asarray(mesh.visual.uv, dtype=np.float64)
         colour = rgba if rgba is not None else tex.mean_rgba(texture)
     else:
         mesh = trimesh.Trimesh(piece.vertices, piece.faces, process=True)
@@ -188,7 +191,8 @@ def picture_frame(rng: RNG) -> list[ObjectPart]:
     ring = [(x, 0.0, z) for x, z in outer] + [(x, d, z) for x, z in outer] \
         + [(x, 0.0, z) for x, z in inner] + [(x, pocket, z) for x, z in inner]
     sides = [(0, 0, -1), (1, 0, 0), (0, 0, 1), (-1, 0, 0)]  # outward normals of edges 0-1, 1-2, 2-3, 3-0
-    qs, outs = [], []
+    qs: list[tuple[int, int, int, int]] = []
+    outs: list[ArrayLike] = []
     for i in range(4):
         j = (i + 1) % 4
         qs += [(i, j, 4 + j, 4 + i), (i, j, 8 + j, 8 + i), (8 + i, 8 + j, 12 + j, 12 + i)]

@@ -114,8 +114,8 @@ def frame_photo(rng: np.random.Generator | None = None) -> np.ndarray:
     """A landscape 'photo': sky gradient, sun, two mountain ridges and a lake."""
     h, w = 448, 512
     rows = np.linspace(0.0, 1.0, h)[:, None, None]
-    image = ((1 - rows) * np.array([90, 150, 230]) + rows * np.array([200, 225, 245])) * np.ones((1, w, 1))
-    image = image.astype(np.uint8)
+    shade: np.ndarray = ((1 - rows) * np.array([90, 150, 230]) + rows * np.array([200, 225, 245])) * np.ones((1, w, 1))
+    image = shade.astype(np.uint8)
     gen = rng if rng is not None else np.random.default_rng(7)
     sun = (int(gen.integers(60, w - 60)), int(gen.integers(50, 140)))
     cv2.circle(image, sun, 34, (255, 220, 90), -1, cv2.LINE_AA)
@@ -139,7 +139,7 @@ def marble(rng: np.random.Generator | None = None) -> np.ndarray:
     swirl = np.sin(2 * np.pi * (3 * u + 2 * v) + 2.5 * np.sin(2 * np.pi * (2 * u) + phase[0])
                    + 1.5 * np.sin(2 * np.pi * 5 * v + phase[1]))
     t = (0.5 + 0.5 * swirl)[..., None]
-    image = (1 - t) * np.array([20, 70, 120]) + t * np.array([120, 200, 200])
+    image: np.ndarray = (1 - t) * np.array([20, 70, 120]) + t * np.array([120, 200, 200])
     return image.astype(np.uint8)
 
 

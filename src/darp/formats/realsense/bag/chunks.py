@@ -1,4 +1,5 @@
-"""The uncompressed bytes of a bag's chunks, by chunk number, for :class:`~darp.formats.realsense.bag.reader.BagRecording`.
+"""The uncompressed bytes of a bag's chunks, by chunk number, for
+:class:`~darp.formats.realsense.bag.reader.BagRecording`.
 
 Uncompressed chunks are read in place: read-only views into the file mapping. LZ4 chunks are decoded
 (:mod:`darp.formats.realsense.rosbag1.lz4`) into pooled buffers, and the last few are cached. While frames are
@@ -64,7 +65,7 @@ class ChunkStore:
         self._view, self._chunks, self._path, self._verify = view, chunks, path, verify
         self._threads, self._cache_size = threads, cache_size
         self._cache: OrderedDict[int, tuple[ChunkBuffer, memoryview]] = OrderedDict()
-        self._pending: dict[int, Future] = {}
+        self._pending: dict[int, Future[tuple[ChunkBuffer, memoryview]]] = {}
         self._pool = _Pool()
         self._executor: ThreadPoolExecutor | None = None
         self._closed = False

@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from darp.formats.realsense.types import STREAM_KEYS, DeviceInfo, Intrinsics, Mo
 
 _KEY_OF = {rs: key for key, rs in STREAM_KEYS.items()}
 Message = Callable[[np.void], tuple[Any, int, int]]  # index entry -> (chunk bytes, data start, data end)
+_T = TypeVar("_T")
 
 
 @dataclass
@@ -60,12 +61,12 @@ class _Reader:
         if rm.FILE_VERSION_TOPIC not in self._topics:
             raise RecordingError("not a RealSense recording: the bag has no /file_version topic", self.path)
         file_version = self._first(rm.FILE_VERSION_TOPIC, rm.decode_uint32)
-        info = {k: v for k, v in self._all(rm.DEVICE_INFO_TOPIC, rm.decode_key_value)}
+        info = dict(self._all(rm.DEVICE_INFO_TOPIC, rm.decode_key_value))
         device = DeviceInfo(info.get("Name", ""), info.get("Serial Number", ""), info.get("Firmware Version", ""),
                             info.get("Product Id", ""), info)
         sensor_names: dict[int, str] = {}
         depth_units: dict[int, float] = {}
-        found: dict[tuple[str, int], dict] = {}
+        found: dict[tuple[str, int], dict[str, str]] = {}  # (stream key, sensor) -> part of the topic -> topic
         for topic in self._topics:
             if match := rm.SENSOR_INFO_TOPIC.match(topic):
                 names = dict(self._all(topic, rm.decode_key_value))
@@ -104,12 +105,13 @@ class _Reader:
         width = height = 0
         if "info/camera_info" in parts:
             ci = self._first(parts["info/camera_info"], rm.decode_camera_info)
-            coeffs = tuple(float(c) for c in (tuple(ci.D) + (0.0,) * 5)[:5])
+            d = [float(c) for c in (*ci.D, 0.0, 0.0, 0.0, 0.0, 0.0)[:5]]
+            coeffs = (d[0], d[1], d[2], d[3], d[4])
             width, height = ci.width, ci.height
             intrinsics = Intrinsics(ci.width, ci.height, ci.K[0], ci.K[4], ci.K[2], ci.K[5], ci.model, coeffs)
         if "imu_intrinsic" in parts:
             data, noise, bias = self._first(parts["imu_intrinsic"], rm.decode_imu_intrinsic)
-            motion = MotionIntrinsics(tuple(data), tuple(noise), tuple(bias))
+            motion = MotionIntrinsics(data, noise, bias)
         return StreamProfile(key, stream_type, index, sensor, fmt, fps, width, height, intrinsics, motion)
 
     def _depth_scale(self, depth_units: dict[int, float]) -> tuple[float, str]:
@@ -137,14 +139,14 @@ class _Reader:
     def _entry(self, entry: np.void) -> tuple[Any, int, int]:
         return self._message(entry)
 
-    def _first(self, topic: str, decode: Callable) -> Any:
+    def _first(self, topic: str, decode: Callable[[Any, int], _T]) -> _T:
         entries = self._topics.get(topic)
         if entries is None or entries.size == 0:
             raise RecordingError(f"topic {topic} has no message", self.path)
         buf, start, _ = self._entry(entries[0])
         return decode(buf, start)
 
-    def _all(self, topic: str, decode: Callable) -> list:
+    def _all(self, topic: str, decode: Callable[[Any, int], _T]) -> list[_T]:
         out = []
         for entry in self._topics.get(topic, np.empty(0, ENTRY_DTYPE)):
             buf, start, _ = self._entry(entry)

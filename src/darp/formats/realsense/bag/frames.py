@@ -9,8 +9,8 @@ parsed only when :attr:`BagFrame.metadata` is first read. Images of one stream s
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable
-from typing import Any
+from collections.abc import Callable, Iterable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class ImageDecoder:
 
     def __init__(self) -> None:
         self._layout: bytes = b""  # frame id .. data length, as in the last message decoded the slow way
-        self._dtype: np.dtype | None = None
+        self._dtype: np.dtype[Any] = np.dtype(np.uint8)  # meaningful once _layout is set
         self._shape: tuple[int, ...] = ()
         self._data_len = 0
 
@@ -67,7 +67,7 @@ class ImageDecoder:
             self._layout = b""
         return head.seq, head.timestamp_ms, pixels
 
-    def layout(self) -> tuple[bytes, int, np.dtype, tuple[int, ...]] | None:
+    def layout(self) -> tuple[bytes, int, np.dtype[Any], tuple[int, ...]] | None:
         """(layout bytes, pixel bytes, dtype, shape) of the stream as last decoded, or None (none known):
         what :mod:`darp.formats.realsense.bag.stream` compares a message with to view its pixels directly."""
         return (self._layout, self._data_len, self._dtype, self._shape) if self._layout else None
@@ -106,7 +106,7 @@ class MetadataSource:
     def domain(self) -> str:
         """The ``timestamp_domain`` item (usually among the first few), or librealsense's default."""
         buffers = self.buffers
-        for chunk, offset in zip(self.chunks, self.offsets):
+        for chunk, offset in zip(self.chunks, self.offsets, strict=True):
             buf = buffers[chunk]
             key, value_start, value_end = key_value(buf, offset)
             if key == DOMAIN_KEY:
@@ -117,7 +117,7 @@ class MetadataSource:
         """The metadata dict of messages ``lo:hi`` (all by default)."""
         buffers = self.buffers
         return _metadata_dict((buffers[chunk], offset)
-                              for chunk, offset in zip(self.chunks[lo:hi], self.offsets[lo:hi]))
+                              for chunk, offset in zip(self.chunks[lo:hi], self.offsets[lo:hi], strict=True))
 
 
 class ChunkMetadata:
@@ -145,6 +145,14 @@ def _metadata_dict(records: Iterable[tuple[memoryview, int]]) -> dict[str, str]:
     return metadata
 
 
+class MetadataReader(Protocol):
+    """Where a frame's metadata is parsed from (:class:`MetadataSource`, :class:`ChunkMetadata`)."""
+
+    def read(self, lo: int = 0, hi: int | None = None) -> dict[str, str]: ...
+
+
+MetadataError = Callable[[FrameInfo, Exception], Exception]  # a metadata parsing error -> the reader's error
+
 _new = object.__new__
 
 
@@ -155,16 +163,22 @@ class BagFrame(Frame):
     low-level parsing error into the reader's :class:`~darp.errors.RecordingError`.
     """
 
+    _metadata: dict[str, str] | None
+    _source: MetadataReader | None
+    _on_error: MetadataError | None
+    _lo: int
+    _hi: int | None
+
     def __init__(self, info: FrameInfo, data: np.ndarray, metadata: dict[str, str] | None = None, *,
-                 source: MetadataSource | None = None, on_error: Any = None) -> None:
+                 source: MetadataReader | None = None, on_error: MetadataError | None = None) -> None:
         self.info, self.data = info, data
         self._metadata, self._source, self._on_error, self._lo, self._hi = metadata, source, on_error, 0, None
         if metadata is None and source is None:
             self._metadata = {}
 
     @classmethod
-    def lazy(cls, info: FrameInfo, data: np.ndarray, source: Any, lo: int, hi: int | None,
-             on_error: Any) -> BagFrame:
+    def lazy(cls, info: FrameInfo, data: np.ndarray, source: MetadataReader, lo: int, hi: int | None,
+             on_error: MetadataError | None) -> BagFrame:
         """A frame whose metadata is ``source.read(lo, hi)``, parsed when first read (the streaming path's
         constructor: one object per frame, no keyword handling)."""
         frame = _new(cls)
@@ -172,9 +186,10 @@ class BagFrame(Frame):
         frame._lo, frame._hi, frame._on_error = lo, hi, on_error
         return frame
 
-    @property  # type: ignore[override]
+    @property
     def metadata(self) -> dict[str, str]:
         if self._metadata is None:
+            assert self._source is not None  # no metadata yet: there is a source to parse it from
             try:
                 self._metadata = self._source.read(self._lo, self._hi)
             except (struct.error, ValueError, KeyError, IndexError) as err:
@@ -188,5 +203,5 @@ class BagFrame(Frame):
     def metadata(self, value: dict[str, str]) -> None:
         self._metadata, self._source = value, None
 
-    def __reduce__(self) -> tuple:
+    def __reduce__(self) -> tuple[type[Frame], tuple[FrameInfo, np.ndarray, dict[str, str]]]:
         return Frame, (self.info, self.data, self.metadata)

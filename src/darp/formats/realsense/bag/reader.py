@@ -3,22 +3,23 @@
 Opening maps the file and parses its index and the small static messages (device, streams,
 extrinsics, depth units); pixels are decoded on demand. Uncompressed chunks are read in place through
 ``mmap`` (frames are zero-copy views); LZ4 chunks are decoded into pooled buffers, ahead of the consumer
-on worker threads while frames are streamed (:mod:`darp.formats.realsense.bag.chunks`), so iterating a recording
-uses memory that does not grow with its length. A frame's metadata dict is parsed only when it is read.
-Streaming takes each usual message inline (:mod:`darp.formats.realsense.bag.stream`: a few microseconds a frame)
-and anything unusual the general way (:meth:`BagRecording._frame`). A bag without a usable index (an
-interrupted write, a cut copy) is read by scanning up to its last complete chunk and flagged
-``truncated``.
+on worker threads while frames are streamed (:mod:`darp.formats.realsense.bag.chunks`), so iterating a
+recording uses memory that does not grow with its length. A frame's metadata dict is parsed only when it is
+read. Streaming takes each usual message inline (:mod:`darp.formats.realsense.bag.stream`: a few
+microseconds a frame) and anything unusual the general way (:meth:`BagRecording._frame`). A bag without a
+usable index (an interrupted write, a cut copy) is read by scanning up to its last complete chunk and
+flagged ``truncated``.
 
 Frame arrays are read-only views (into the file or a decoded chunk); copy one to modify it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import BinaryIO
@@ -142,8 +143,7 @@ class BagRecording(Recording):
     # -- frames ---------------------------------------------------------------------------------
     def _walk(self, keys: list[str], positions: list[np.ndarray], file_order: bool = False) -> Walk:
         """The chosen data messages (with their metadata) in recording order, or file order."""
-        self._check_open()
-        return Walk(self._chunks, [self._data[k] for k in keys], positions,
+        return Walk(self._check_open(), [self._data[k] for k in keys], positions,
                     [self._metadata_entries[k] for k in keys], file_order, self._before_chunk)
 
     def _before_chunk(self, chunk: int) -> None:
@@ -173,8 +173,8 @@ class BagRecording(Recording):
                         on_error=self._metadata_error)
 
     def _bad_record(self, err: CorruptMessage) -> RecordingError:
-        return RecordingError(f"corrupt message record in the chunk at byte offset {self._index.chunks[err.chunk].pos}: "
-                              f"{err}", self.path)
+        return RecordingError(f"corrupt message record in the chunk at byte offset "
+                              f"{self._index.chunks[err.chunk].pos}: {err}", self.path)
 
     def _check_streaming(self) -> None:
         if self._view is None:
@@ -182,6 +182,7 @@ class BagRecording(Recording):
 
     def _stream(self, keys: list[str], positions: list[np.ndarray]) -> Iterator[BagFrame]:
         walk = self._walk(keys, positions)
+        frames: Generator[BagFrame, None, None]
         if self._inline:
             frames = bag_stream.frames(walk, keys, self._decoders, self._frame, self._check_streaming,
                                        self._metadata_error)
@@ -202,7 +203,7 @@ class BagRecording(Recording):
         :mod:`darp.formats.realsense.bag.stream` are tested against)."""
         current, buf = -1, memoryview(b"")
         for block in walk.blocks():
-            for i, (chunk, step) in enumerate(zip(block.chunks, block.steps)):
+            for i, (chunk, step) in enumerate(zip(block.chunks, block.steps, strict=True)):
                 if chunk != current:
                     buf, current = walk.enter(chunk, step), chunk
                 visit = walk.visit(block, i, buf)
@@ -247,7 +248,7 @@ class BagRecording(Recording):
             finally:
                 if self._chunks is not None:
                     self._chunks.cancel()
-            for key, (numbers, stamps, domains) in zip(missing, columns):
+            for key, (numbers, stamps, domains) in zip(missing, columns, strict=True):
                 self._tables[key] = {"frame_number": numbers, "timestamp_ms": stamps, "domain": domains}
         return self._tables
 
@@ -264,7 +265,7 @@ class BagRecording(Recording):
             self._infos[stream] = [
                 FrameInfo(stream, i, n, t, d, r) for i, (n, t, d, r) in enumerate(zip(
                     row["frame_number"].tolist(), row["timestamp_ms"].tolist(), row["domain"].tolist(),
-                    times.tolist()))
+                    times.tolist(), strict=True))
             ]
         return list(self._infos[stream])
 
@@ -285,13 +286,13 @@ class BagRecording(Recording):
         return (max(int(t.max()) for t in times) - min(int(t.min()) for t in times)) / 1e9
 
     def read_frame(self, stream: str, index: int) -> BagFrame:
-        self._check_open()
+        chunks = self._check_open()
         self.stream(stream)
         count = self._data[stream].size
         if not 0 <= index < count:
             raise RecordingError(f"frame {index} of stream {stream!r} does not exist ({count} frames)", self.path)
         try:
-            visit = visit_one(self._chunks, self._data[stream], index, self._metadata_entries[stream])
+            visit = visit_one(chunks, self._data[stream], index, self._metadata_entries[stream])
         except CorruptMessage as err:
             raise self._bad_record(err) from err
         return self._frame(stream, visit)
@@ -341,15 +342,18 @@ class BagRecording(Recording):
 
     def topics(self) -> list[TopicInfo]:
         """Every topic of the bag with its message type and message count."""
-        return [TopicInfo(topic, self._types.get(topic, ""), int(entries.size)) for topic, entries in self._topics.items()]
+        return [TopicInfo(topic, self._types.get(topic, ""), int(entries.size))
+                for topic, entries in self._topics.items()]
 
     @property
     def size_bytes(self) -> int:
         return self._size
 
-    def _check_open(self) -> None:
-        if self._view is None:
+    def _check_open(self) -> ChunkStore:
+        """The chunk store of the open recording; :class:`RecordingError` once it is closed."""
+        if self._view is None or self._chunks is None:
             raise RecordingError("recording is closed", self.path)
+        return self._chunks
 
     def close(self) -> None:
         """Stop the decoding workers and release the mapping. Frames still holding views keep their
@@ -358,16 +362,12 @@ class BagRecording(Recording):
             self._chunks.close()
             self._chunks = None
         if self._view is not None:
-            try:
+            with contextlib.suppress(BufferError):
                 self._view.release()
-            except BufferError:
-                pass
             self._view = None
         if self._mm is not None:
-            try:
+            with contextlib.suppress(BufferError):  # frame arrays still view the mapping; it goes with the last
                 self._mm.close()
-            except BufferError:  # frame arrays still view the mapping; it goes with the last of them
-                pass
             self._mm = None
 
     def __repr__(self) -> str:

@@ -14,7 +14,7 @@ down the general path, which gives exactly the frame, or raises exactly the erro
 from __future__ import annotations
 
 import struct
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
 
 import numpy as np
 
@@ -24,6 +24,7 @@ from darp.formats.realsense.bag.frames import (
     BagFrame,
     ChunkMetadata,
     ImageDecoder,
+    MetadataError,
     MetadataSource,
 )
 from darp.formats.realsense.bag.walk import Visit, Walk, metadata_source
@@ -86,7 +87,7 @@ def _domain_across(source: MetadataSource, texts: dict[bytes, str]) -> str | Non
 
 def frames(walk: Walk, keys: list[str], decoders: dict[str, ImageDecoder],
            general: Callable[[str, Visit], BagFrame], check_open: Callable[[], None],
-           on_error: Callable) -> Iterator[BagFrame]:
+           on_error: MetadataError) -> Generator[BagFrame, None, None]:
     """The frames of ``walk``'s messages (streams ``keys``): the usual ones inline, the others through
     ``general(key, visit)``. ``check_open`` runs before each frame; ``on_error`` turns a metadata parsing
     error into the reader's error when a frame's metadata is read."""
@@ -98,7 +99,7 @@ def frames(walk: Walk, keys: list[str], decoders: dict[str, ImageDecoder],
         metadata = block.metadata
         for i, (code, position, time_ns, chunk, offset, lo, hi, step) in enumerate(zip(
                 block.codes, block.positions, block.times, block.chunks, block.offsets, block.lo, block.hi,
-                block.steps)):
+                block.steps, strict=True)):
             check_open()
             if chunk != current:
                 buf = walk.enter(chunk, step)
@@ -148,7 +149,8 @@ def table(walk: Walk, columns: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
     for block in walk.blocks():
         metadata = block.metadata
         for i, (code, position, chunk, offset, lo, hi, step) in enumerate(zip(
-                block.codes, block.positions, block.chunks, block.offsets, block.lo, block.hi, block.steps)):
+                block.codes, block.positions, block.chunks, block.offsets, block.lo, block.hi, block.steps,
+                strict=True)):
             if chunk != current:
                 buf = walk.enter(chunk, step)
                 current, size = chunk, len(buf)

@@ -80,7 +80,7 @@ class Walk:
         self._store, self._metadata, self._before_chunk = store, metadata, before_chunk
         self.get = store.get
         self._announced = -1
-        entries = [d[p] for d, p in zip(data, positions)]
+        entries = [d[p] for d, p in zip(data, positions, strict=True)]
         self.size = sum(e.size for e in entries)
         if self.size == 0:
             return
@@ -140,7 +140,7 @@ class Walk:
 def _metadata_lists(metadata: list[np.ndarray], codes: np.ndarray, lo: np.ndarray,
                     hi: np.ndarray) -> list[tuple[int, list[int], list[int]]]:
     """Per stream: (first metadata message used, chunk and offset lists from there) for a block of visits."""
-    lists = []
+    lists: list[tuple[int, list[int], list[int]]] = []
     for k, meta in enumerate(metadata):
         mine = (codes == k) & (hi > lo)
         if not mine.any():

@@ -21,7 +21,7 @@ import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import TracebackType
-from typing import BinaryIO, Self
+from typing import BinaryIO, Self, cast
 
 import lz4.frame
 import numpy as np
@@ -75,7 +75,7 @@ class BagWriter:
         self.depth_scale = float(depth_scale)
         self._origin_ms = start_ms
         self._last: dict[str, tuple[float, int]] = {}
-        self.frames_written = {key: 0 for key in self.streams}
+        self.frames_written = dict.fromkeys(self.streams, 0)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._handle = open(self.partial_path, "wb")  # noqa: SIM115 (closed in close/abort)
@@ -192,6 +192,7 @@ class BagWriter:
             self._static(f"{prefix}/info", rm.STREAM_INFO, rm.encode_stream_info(p.fps, encoding))
             if p.is_image:
                 k = p.intrinsics
+                assert k is not None  # _check_setup requires intrinsics of image streams
                 payload = rm.encode_camera_info(k.width, k.height, k.fx, k.fy, k.ppx, k.ppy, k.model, k.coeffs)
                 self._static(f"{prefix}/info/camera_info", rm.CAMERA_INFO, payload)
             else:
@@ -214,7 +215,7 @@ class BagWriter:
             raise RecordingError(f"{stream_key}: image is {pixels.dtype} {pixels.shape}, the {p.format} stream "
                                  f"takes {np.dtype(dtype)} {shape}", self.path)
         time_ns = self._times(stream_key, timestamp_ms, frame_number, timestamp_domain, recording_time_ns)
-        flat = memoryview(np.ascontiguousarray(pixels).reshape(-1).view(np.uint8))
+        flat = np.ascontiguousarray(pixels).reshape(-1).view(np.uint8).data  # a memoryview of the pixels
         head = rm.encode_image_head(int(frame_number), timestamp_ms, p.width, p.height, encoding,
                                     p.width * channels * pixels.itemsize, flat.nbytes)
         trailer = rm.encode_float32(self.depth_scale if stream_key == "depth" else 0.0)
@@ -233,7 +234,8 @@ class BagWriter:
         if values.shape != (3,) or not np.isfinite(values).all():
             raise RecordingError(f"{stream_key}: a motion sample is 3 finite numbers, not {values.tolist()}", self.path)
         time_ns = self._times(stream_key, timestamp_ms, frame_number, timestamp_domain, recording_time_ns)
-        sample = tuple(float(v) for v in values.astype(np.float32))
+        x, y, z = (float(v) for v in values.astype(np.float32))
+        sample = (x, y, z)
         zero = (0.0, 0.0, 0.0)
         payload = rm.encode_imu(int(frame_number), timestamp_ms, sample if p.key == "gyro" else zero,
                                 sample if p.key == "accel" else zero)
@@ -242,8 +244,9 @@ class BagWriter:
                     system_time_ms, metadata)
         self.frames_written[stream_key] += 1
 
-    def _frame(self, base: str, msgtype: rm.MessageType, time_ns: int, parts: tuple, timestamp_ms: float,
-               frame_number: int, domain: str, system_time_ms: float | None, metadata: Mapping[str, int] | None) -> None:
+    def _frame(self, base: str, msgtype: rm.MessageType, time_ns: int, parts: tuple[bytes | memoryview, ...],
+               timestamp_ms: float, frame_number: int, domain: str, system_time_ms: float | None,
+               metadata: Mapping[str, int] | None) -> None:
         """The frame's data message, then its metadata KeyValues at the same bag time."""
         items = {"system_time": f"{timestamp_ms if system_time_ms is None else system_time_ms:.6f}",
                  "timestamp_domain": domain, "Frame Counter": str(int(frame_number)),
@@ -309,8 +312,9 @@ def _compress_lz4_fast(raw: bytes | bytearray, level: int) -> bytes:
     """An LZ4 frame in LZ4's fast mode (``level`` < 0), with the frame options librealsense reads (as in
     ``rosbag1.compress_lz4``: independent blocks of at most 4 MiB, which the LZ4 library shrinks to the
     smallest size that holds the chunk; content checksum; no stored size)."""
-    return lz4.frame.compress(raw, block_size=lz4.frame.BLOCKSIZE_MAX4MB, block_linked=False,
-                              content_checksum=True, store_size=False, compression_level=level)
+    return cast(bytes, lz4.frame.compress(raw, block_size=lz4.frame.BLOCKSIZE_MAX4MB, block_linked=False,
+                                          content_checksum=True, store_size=False,
+                                          compression_level=level))  # python-lz4 has no type information
 
 
 class _ChunkedBag:
@@ -353,6 +357,7 @@ class _ChunkedBag:
         """Close the open chunk: write it and its index-data records."""
         if not self._chunk_index:
             return
+        data: bytes | bytearray
         if self._compression != "lz4":
             data = self._chunk
         elif self._lz4_level == 0:

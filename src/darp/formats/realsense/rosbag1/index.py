@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from darp.errors import RecordingError
-from darp.formats.realsense.rosbag1.records import (  # noqa: F401 (re-exported: the record level of the format)
+from darp.formats.realsense.rosbag1.records import (  # re-exported: the record level of the format
     ENTRY_DTYPE,
     INDEX_HEAD,
     BagIndex,
@@ -40,9 +40,9 @@ from darp.formats.realsense.rosbag1.records import (  # noqa: F401 (re-exported:
     record_at,
     record_op,
 )
-from darp.formats.realsense.rosbag1.scan import parse_chunk, scan  # noqa: F401
+from darp.formats.realsense.rosbag1.scan import parse_chunk, scan
 from darp.formats.realsense.rosbag1.usual import run_sums, usual_index
-from darp.formats.realsense.rosbag1.write import (  # noqa: F401 (re-exported: the writer side of the format)
+from darp.formats.realsense.rosbag1.write import (  # re-exported: the writer side of the format
     BAG_HEADER_RECORD_LENGTH,
     MAGIC,
     OP_BAG_HEADER,
@@ -65,6 +65,7 @@ from darp.formats.realsense.rosbag1.write import (  # noqa: F401 (re-exported: t
 )
 
 _U32 = struct.Struct("<I")
+
 
 def load_index(source: ByteSource | memoryview, path: Path) -> BagIndex:
     """Parse the bag header and the index; rebuild the index by scanning when it is missing or cut."""
@@ -121,14 +122,15 @@ def _chunk_info_pairs(tail: bytes, infos: list[tuple[int, int, int]]) -> tuple[n
 def _indexed_general(src: ByteSource, path: Path, connections: dict[int, Connection],
                      infos: list[tuple[int, int, int]], pairs: np.ndarray, pairs_per_chunk: np.ndarray) -> BagIndex:
     """Any layout: per chunk, parse its head and its index-data records one by one."""
+    messages_per_chunk = run_sums(pairs[:, 1], pairs_per_chunk)
     guesses = [count * INDEX_HEAD.size + 12 * messages
-               for count, messages in zip(pairs_per_chunk.tolist(), run_sums(pairs[:, 1], pairs_per_chunk), strict=True)]
+               for count, messages in zip(pairs_per_chunk.tolist(), messages_per_chunk, strict=True)]
     rows: list[tuple[int, int, int, bytes]] = []  # (conn, chunk number, count, raw rows) per index-data record
     chunks: list[Chunk] = []
     ahead, ahead_pos = b"", 0  # bytes already read, from file offset ahead_pos: the next chunk's header
     for number, ((chunk_pos, _, conn_in_chunk), guess) in enumerate(zip(infos, guesses, strict=True)):
         skip = chunk_pos - ahead_pos
-        head = ahead[skip:] if 0 <= skip and skip + _HEAD_HINT <= len(ahead) else src.read(chunk_pos, _HEAD_HINT)
+        head = ahead[skip:] if skip >= 0 and skip + _HEAD_HINT <= len(ahead) else src.read(chunk_pos, _HEAD_HINT)
         chunks.append(_chunk_at(src, head, chunk_pos, path))
         # the index-data records after the chunk: their usual size is known from the chunk info, and in the
         # usual layout they end where the next chunk starts, so the same read fetches that chunk's header
@@ -142,7 +144,8 @@ def _indexed_general(src: ByteSource, path: Path, connections: dict[int, Connect
                 for _ in range(conn_in_chunk):
                     conn, count, start, length = index_record(region, pos, len(region))
                     if count * 12 > length:
-                        raise ValueError(f"index-data record at byte offset {index_start + pos} is shorter than its count")
+                        raise ValueError(
+                            f"index-data record at byte offset {index_start + pos} is shorter than its count")
                     found.append((conn, number, count, region[start:start + 12 * count]))
                     pos = start + length
                 rows += found
@@ -154,7 +157,7 @@ def _indexed_general(src: ByteSource, path: Path, connections: dict[int, Connect
         ahead, ahead_pos = region, index_start
     if not rows:
         return BagIndex(connections, chunks, {})
-    conns, numbers, counts, raw = zip(*rows)
+    conns, numbers, counts, raw = zip(*rows, strict=True)
     table = np.frombuffer(b"".join(raw), "<u4").reshape(-1, 3)
     return BagIndex(connections, chunks, _entries_from_table(table, np.repeat(np.array(conns, np.int64), counts),
                                                              np.repeat(np.array(numbers, np.int32), counts)))
@@ -241,3 +244,46 @@ def _chunk_at(src: ByteSource, head: bytes, pos: int, path: Path) -> Chunk:
             return Chunk(pos, data_start, data_len, compression, size)
     fields, data_start, data_len, _ = record_at(src, pos, with_data=False, hint=_HEAD_HINT)
     return chunk_from(fields, pos, data_start, data_len, path)
+
+
+__all__ = [  # the record level of the format, its writer side and the index reader
+    "BAG_HEADER_RECORD_LENGTH",
+    "BagIndex",
+    "ByteSource",
+    "Chunk",
+    "Connection",
+    "ENTRY_DTYPE",
+    "INDEX_HEAD",
+    "Incomplete",
+    "MAGIC",
+    "OP_BAG_HEADER",
+    "OP_CHUNK",
+    "OP_CHUNK_INFO",
+    "OP_CONNECTION",
+    "OP_INDEX_DATA",
+    "OP_MESSAGE",
+    "bag_header_record",
+    "check_compression",
+    "chunk_data",
+    "chunk_from",
+    "chunk_head",
+    "chunk_info_record",
+    "compress_lz4",
+    "connection_from",
+    "connection_record",
+    "decode_header",
+    "encode_header",
+    "field_u32",
+    "index_data_record",
+    "index_record",
+    "load_index",
+    "message_head",
+    "pack_time",
+    "parse_chunk",
+    "read_record",
+    "record",
+    "record_at",
+    "record_head",
+    "record_op",
+    "scan",
+]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import ctypes
 import struct
 import sys
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import lz4.block
@@ -32,9 +33,10 @@ class Lz4Error(ValueError):
 
 @dataclass(frozen=True)
 class _Native:
-    decompress: ctypes._CFuncPtr  # LZ4_decompress_safe(src, dst, src_size, dst_capacity) -> size or < 0
-    decompress_with_dict: ctypes._CFuncPtr  # LZ4_decompress_safe_usingDict(..., dict, dict_size)
-    xxh32: ctypes._CFuncPtr  # XXH32(data, length, seed) -> hash
+    # ctypes function pointers; their restype (c_int, c_uint) makes each call return a Python int
+    decompress: Callable[..., int]  # LZ4_decompress_safe(src, dst, src_size, dst_capacity) -> size or < 0
+    decompress_with_dict: Callable[..., int]  # LZ4_decompress_safe_usingDict(..., dict, dict_size)
+    xxh32: Callable[..., int]  # XXH32(data, length, seed) -> hash
 
 
 def _load_native() -> _Native | None:
@@ -126,46 +128,65 @@ def _frame_header(source: bytes | memoryview, native: _Native | None) -> tuple[i
     return flags, 1 << (8 + 2 * block_id), end + 1
 
 
+class _Blocks:
+    """The data blocks of an LZ4 frame from offset ``pos`` (just past the frame header), in order, as
+    ``(offset, length, stored)``: ``stored`` blocks are uncompressed. Both decoders walk the frame with
+    it; they differ in what they do with each block (the native one decodes straight into the chunk
+    buffer and checks block checksums, the portable one goes through python-lz4's API). After the end
+    mark, :attr:`end` is the offset past it (where the content checksum is, if any)."""
+
+    def __init__(self, source: bytes | memoryview, pos: int, block_sums: bool) -> None:
+        self.source, self.pos, self.block_sums = source, pos, block_sums
+        self.end = -1
+
+    def __iter__(self) -> Iterator[tuple[int, int, bool]]:
+        source, pos, n, tail = self.source, self.pos, len(self.source), 4 * self.block_sums
+        while True:
+            if pos + 4 > n:
+                raise Lz4Error("the LZ4 frame ends inside a block header")
+            (length,) = _U32.unpack_from(source, pos)
+            pos += 4
+            if length == 0:
+                break
+            stored, length = bool(length >> 31), length & 0x7FFFFFFF
+            if pos + length + tail > n:
+                raise Lz4Error("an LZ4 block runs past the end of the frame")
+            yield pos, length, stored
+            pos += length + tail
+        self.end = pos
+
+
 def _decode_native(native: _Native, source: bytes | memoryview, out: ChunkBuffer, size: int, verify: bool) -> None:
     flags, block_max, pos = _frame_header(source, native if verify else None)
     independent, block_sums = bool(flags & 0x20), bool(flags & 0x10)
     src = np.frombuffer(source, np.uint8)  # holds the source (a file mapping) while C code reads it
     base, n = src.ctypes.data, len(source)
     written = 0
-    while True:
-        if pos + 4 > n:
-            raise Lz4Error("the LZ4 frame ends inside a block header")
-        (length,) = _U32.unpack_from(source, pos)
-        pos += 4
-        if length == 0:
-            break
-        stored, length = length >> 31, length & 0x7FFFFFFF
-        if pos + length + 4 * block_sums > n:
-            raise Lz4Error("an LZ4 block runs past the end of the frame")
-        if verify and block_sums and native.xxh32(base + pos, length, 0) != _U32.unpack_from(source, pos + length)[0]:
+    blocks = _Blocks(source, pos, block_sums)
+    for at, length, stored in blocks:
+        if verify and block_sums and native.xxh32(base + at, length, 0) != _U32.unpack_from(source, at + length)[0]:
             raise Lz4Error("LZ4 block checksum mismatch")
         room = min(block_max, size - written)
         if stored:
             if length > room:
                 raise Lz4Error("more data than the chunk size")
-            out.data[written:written + length] = source[pos:pos + length]
+            out.data[written:written + length] = source[at:at + length]
             got = length
         elif independent or written == 0:
-            got = native.decompress(base + pos, out.address + written, length, room)
+            got = native.decompress(base + at, out.address + written, length, room)
         else:  # linked blocks: the previous 64 KiB of output are the dictionary
             window = min(written, 65536)
-            got = native.decompress_with_dict(base + pos, out.address + written, length, room,
+            got = native.decompress_with_dict(base + at, out.address + written, length, room,
                                               out.address + written - window, window)
         if got < 0:
             raise Lz4Error("malformed LZ4 block (or more data than the chunk size)")
         written += got
-        pos += length + 4 * block_sums
     if written != size:
         raise Lz4Error(f"{written} bytes decompressed, the chunk header says {size}")
     if flags & 0x04:
-        if pos + 4 > n:
+        if blocks.end + 4 > n:
             raise Lz4Error("the LZ4 content checksum is missing")
-        if verify and native.xxh32(out.address, size, 0) != _U32.unpack_from(source, pos)[0]:
+        if verify and native.xxh32(out.address, size, 0) != _U32.unpack_from(source, blocks.end)[0]:
             raise Lz4Error("LZ4 content checksum mismatch")
     del src
 
@@ -180,23 +201,16 @@ def _decode_portable(source: bytes | memoryview, out: ChunkBuffer, size: int, ve
             if not complete:
                 raise Lz4Error("the LZ4 frame ends early")
         else:
-            parts, remaining, n = [], size, len(source)
-            while True:
-                if pos + 4 > n:
-                    raise Lz4Error("the LZ4 frame ends inside a block header")
-                (length,) = _U32.unpack_from(source, pos)
-                pos += 4
-                if length == 0:
-                    break
-                stored, length = length >> 31, length & 0x7FFFFFFF
-                block = source[pos:pos + length]
+            parts: list[bytes] = []
+            remaining = size
+            for at, length, stored in _Blocks(source, pos, bool(flags & 0x10)):
+                block = source[at:at + length]
                 room = min(block_max, remaining)
                 try:
                     parts.append(bytes(block) if stored else lz4.block.decompress(block, uncompressed_size=room))
                 except lz4.block.LZ4BlockError as err:
                     raise Lz4Error("malformed LZ4 block (or more data than the chunk size)") from err
                 remaining -= len(parts[-1])
-                pos += length + 4 * bool(flags & 0x10)
             data = b"".join(parts)
     except (RuntimeError, lz4.block.LZ4BlockError) as err:
         raise Lz4Error(str(err)) from err
@@ -214,4 +228,4 @@ def native() -> _Native | None:
     global NATIVE
     if NATIVE is _UNSET:
         NATIVE = _load_native()
-    return NATIVE  # type: ignore[return-value]
+    return NATIVE if isinstance(NATIVE, _Native) else None

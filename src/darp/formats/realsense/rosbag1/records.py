@@ -1,6 +1,6 @@
 """ROS1 bag format 2.0, reading side: the records (header fields, chunk, connection and index-data
-records), chunk bytes, and small reads from a bag file. Used by :mod:`darp.formats.realsense.rosbag1.index` (the index)
-and :mod:`darp.formats.realsense.rosbag1.scan` (rebuilding a missing index).
+records), chunk bytes, and small reads from a bag file. Used by :mod:`darp.formats.realsense.rosbag1.index`
+(the index) and :mod:`darp.formats.realsense.rosbag1.scan` (rebuilding a missing index).
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from darp.formats.realsense.rosbag1.write import OP_CHUNK, OP_INDEX_DATA
 
 _U32 = struct.Struct("<I")
 ENTRY_DTYPE = np.dtype([("time", "<i8"), ("chunk", "<i4"), ("offset", "<u4")])
-_U32 = struct.Struct("<I")
 
 
 @dataclass(frozen=True)
@@ -104,10 +103,12 @@ def record_op(fields: dict[str, bytes]) -> int:
 
 
 def field_u32(fields: dict[str, bytes], name: str) -> int:
-    return _U32.unpack(fields[name])[0]
+    (value,) = _U32.unpack(fields[name])
+    return int(value)
 
 
-def connection_from(fields: dict[str, bytes], buf: bytes | memoryview | mmap.mmap, start: int, length: int) -> Connection:
+def connection_from(fields: dict[str, bytes], buf: bytes | memoryview | mmap.mmap, start: int,
+                    length: int) -> Connection:
     info = decode_header(buf, start, start + length)
     text = {k: v.decode("utf-8", errors="replace") for k, v in info.items()}
     return Connection(field_u32(fields, "conn"), fields["topic"].decode("utf-8", errors="replace"),
@@ -188,7 +189,7 @@ INDEX_HEAD = struct.Struct("<II5sII6sII3sBI4sII")
 INDEX_FIXED = (47, 9, b"conn=", 10, b"count=", 4, b"op=", OP_INDEX_DATA, 8, b"ver=")
 
 
-def index_record(view: memoryview, pos: int, size: int) -> tuple[int, int, int, int]:
+def index_record(view: bytes | memoryview, pos: int, size: int) -> tuple[int, int, int, int]:
     """(conn, count, data start, data length) of the index-data record at ``pos``; a fast path for the
     usual layout (one struct unpack), the generic header parser otherwise."""
     if pos + INDEX_HEAD.size <= size:

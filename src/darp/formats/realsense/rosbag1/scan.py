@@ -31,7 +31,7 @@ from darp.formats.realsense.rosbag1.write import OP_CHUNK, OP_CONNECTION, OP_IND
 _Parts = dict[int, list[tuple[int, np.ndarray]]]  # conn -> [(chunk number, uint32 rows of sec, nsec, offset)]
 
 
-def _add_index_data(parts: _Parts, conn: int, count: int, view: memoryview, start: int, length: int,
+def _add_index_data(parts: _Parts, conn: int, count: int, view: bytes | memoryview, start: int, length: int,
                     chunk_number: int) -> None:
     if count * 12 > length:
         raise ValueError(f"index-data record at byte offset {start} is shorter than its count")
@@ -121,8 +121,8 @@ def scan(src: ByteSource, path: Path, pos: int, reason: str) -> BagIndex:
                 pending = {}
                 chunks.append(chunk_from(fields, pos, start, length, path))
             elif op == OP_INDEX_DATA and chunks:
-                _add_index_data(pending, field_u32(fields, "conn"), field_u32(fields, "count"), src.read(start, length), 0,
-                                length, len(chunks) - 1)
+                _add_index_data(pending, field_u32(fields, "conn"), field_u32(fields, "count"),
+                                src.read(start, length), 0, length, len(chunks) - 1)
             elif op == OP_CONNECTION:
                 conn = connection_from(fields, src.read(start, length), 0, length)
                 connections.setdefault(conn.conn_id, conn)

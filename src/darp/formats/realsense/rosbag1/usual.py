@@ -4,8 +4,8 @@ records in chunk-info order, ending where the next chunk starts), read with one 
 checked and parsed with numpy instead of per-record Python.
 
 Every assumption is checked on the bytes read; if any fails, :func:`usual_index` answers ``None`` and
-the caller takes the general path (:func:`darp.formats.realsense.rosbag1.index._indexed_general`), so the result, and
-any error, is that of the general path.
+the caller takes the general path (:func:`darp.formats.realsense.rosbag1.index._indexed_general`), so the
+result, and any error, is that of the general path.
 """
 
 from __future__ import annotations
@@ -71,7 +71,10 @@ def usual_index(src: ByteSource, chunk_positions: list[int], pairs: np.ndarray,
     if (index_start[:-1] < 0).any():
         return None
     fd = src._fd
-    read = (lambda length, at: os.pread(fd, length, at)) if fd is not None else (lambda length, at: src.read(at, length))
+
+    def read(length: int, at: int) -> bytes:
+        return os.pread(fd, length, at) if fd is not None else src.read(at, length)
+
     parts = [read(HEAD_SIZE, int(chunk_pos[0]))]
     parts += [read(int(size) + HEAD_SIZE, int(start))
               for start, size in zip(index_start[:-1].tolist(), index_size[:-1].tolist(), strict=True)]

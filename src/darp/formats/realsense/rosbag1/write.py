@@ -11,6 +11,7 @@ Header fields are written in name order, like rosbag's C++ writer (and librealse
 from __future__ import annotations
 
 import struct
+from typing import cast
 
 import lz4.frame
 
@@ -59,7 +60,7 @@ def chunk_head(compression: str, size: int, data_len: int) -> bytes:
 
 
 def compress_lz4(raw: bytes | bytearray) -> bytes:
-    return lz4.frame.compress(raw, **_LZ4_OPTIONS)
+    return cast(bytes, lz4.frame.compress(raw, **_LZ4_OPTIONS))  # python-lz4 has no type information
 
 
 def index_data_record(conn_id: int, items: list[tuple[int, int]]) -> bytes:
