@@ -1,12 +1,26 @@
-"""The root typer application and the error boundary shared by every command."""
+"""The root typer application and the error boundary shared by every command.
+
+Every error reaches the user as one line on stderr, ``darp: error: <message>``, with exit code 2: a bad
+argument (click's usage errors, and the ``typer.BadParameter`` a parser or a command raises) as well as a
+library error (:class:`darp.errors.DarpError`) or a file that cannot be opened.
+"""
 
 from __future__ import annotations
 
 import sys
+from typing import Protocol, cast
 
 import typer
 
 from darp.errors import DarpError
+
+
+class _ClickError(Protocol):
+    exit_code: int
+
+    def format_message(self) -> str: ...
+
+    def show(self, file: object = None) -> None: ...
 
 
 def _click_error_types() -> tuple[type[BaseException], ...]:
@@ -34,21 +48,20 @@ app = typer.Typer(
 )
 
 
-def fail(message: str) -> typer.Exit:
-    """Print one error line and return the exit exception (code 2) for the caller to raise."""
+def error(message: str) -> None:
+    """Print one ``darp: error:`` line on stderr."""
     typer.echo(f"darp: error: {message}", err=True)
-    return typer.Exit(code=2)
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Run the app, mapping DarpError (and bad files) to one line and exit code 2."""
+    """Run the app, mapping every error to one line and exit code 2 (130 when interrupted)."""
     import darp.cli  # noqa: F401  (registers the command modules)
 
     try:
         # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
-        rc = app(args=argv, standalone_mode=False)
+        rc = app(args=argv, prog_name="darp", standalone_mode=False)
     except DarpError as err:
-        typer.echo(f"darp: error: {err}", err=True)
+        error(str(err))
         return 2
     except typer.Exit as err:
         return int(err.exit_code or 0)
@@ -59,9 +72,13 @@ def run(argv: list[str] | None = None) -> int:
         typer.echo("darp: interrupted", err=True)
         return 130
     except (FileNotFoundError, IsADirectoryError, PermissionError) as err:
-        typer.echo(f"darp: error: {err.filename}: {err.strerror}", err=True)
+        error(f"{err.filename}: {err.strerror}")
         return 2
-    except _CLICK_ERRORS as err:  # usage errors: unknown option, missing argument, bad value
-        err.show(file=sys.stderr)
-        return int(getattr(err, "exit_code", 2))
+    except _CLICK_ERRORS as exc:  # bad arguments: unknown option, missing argument, bad value
+        usage = cast(_ClickError, exc)
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a group called alone: its help
+            usage.show(file=sys.stderr)
+        else:
+            error(usage.format_message())
+        return int(getattr(usage, "exit_code", 2))
     return int(rc or 0) if isinstance(rc, int) else 0
