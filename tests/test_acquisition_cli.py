@@ -13,12 +13,12 @@ FAST = ["--fps", "6", "--resolution", "424x240", "--quiet"]
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["collect", "s"], "choose exactly one of --twin and --hardware"),
-    (["collect", "s", "--twin", "--hardware", "rig.yaml"], "choose exactly one of --twin and --hardware"),
-    (["collect", "s", "--hardware", "rig.yaml"], "--hardware needs --calibration FILE"),
+    (["collect", "s"], "'--twin' / '--hardware': choose exactly one"),
+    (["collect", "s", "--twin", "--hardware"], "'--twin' / '--hardware': choose exactly one"),
+    (["collect", "s", "--hardware"], "'--calibration': required with --hardware"),
     (["collect", "a/b", "--twin"], "must be a plain folder name"),
-    (["collect", "s", "--twin", "--placement", "1,2"], "--placement expects x,y,yaw_deg"),
-    (["collect", "s", "--twin", "--resolution", "big"], "--resolution expects WIDTHxHEIGHT"),
+    (["collect", "s", "--twin", "--placement", "1,2"], "'--placement': expected x,y,yaw_deg"),
+    (["collect", "s", "--twin", "--resolution", "big"], "'--resolution': expected WIDTHxHEIGHT"),
     (["collect", "s", "--twin", "--object", "teapot"], "unknown object 'teapot'"),
     (["collect", "s", "--twin", "--calibration", "missing.json"], "missing.json"),
 ])
@@ -51,7 +51,7 @@ def test_twin_survey_is_accepted(tmp_path: Path, capsys: pytest.CaptureFixture[s
     from darp.formats.survey import open_survey
 
     argv = ["collect", "mug", "--twin", "--object", "mug", "--placement", "0.04,-0.06,30", "--seed", "3",
-            "--calibration", "truth", "--out", str(tmp_path), *FAST]
+            "--truth-calibration", "--out", str(tmp_path), *FAST]
     assert run(argv) == 0
     out = capsys.readouterr().out
     assert out.startswith(f"accepted: {tmp_path / 'mug'}")
@@ -81,7 +81,7 @@ def test_hardware_branch_runs_the_same_procedure(tmp_path: Path, monkeypatch: py
     monkeypatch.setattr(hardware_rig.HardwareRig, "open", staticmethod(open_fake))
     cal_path = tmp_path / "cal.json"
     write_calibration(cal_path, load_rig().nominal_calibration())
-    argv = ["collect", "real", "--hardware", str(default_rig_path()), "--calibration", str(cal_path),
+    argv = ["collect", "real", "--hardware", "--rig", str(default_rig_path()), "--calibration", str(cal_path),
             "--out", str(tmp_path), "--quiet"]
     assert run(argv) == 0
     assert opened == [default_rig_path()] and fake.closed

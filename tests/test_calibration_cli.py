@@ -79,7 +79,7 @@ def test_check_passes_for_an_unchanged_rig_even_with_the_board_moved(solved, tmp
     root, truth, T_wb = solved
     moved_board = make_transform(axis_angle_to_rotation([0, 0, 1], np.radians(12)), [0.04, -0.03, 0.0]) @ T_wb
     caps = _new_captures(tmp_path / "new", truth, moved_board, seed=11)
-    assert run(["calib", "check", str(root / "cal.json"), str(caps), "--json", str(tmp_path / "c.json")]) == 0
+    assert run(["calib", "check", str(caps), "-c", str(root / "cal.json"), "--out", str(tmp_path / "c.json")]) == 0
     out = capsys.readouterr().out
     assert "calibration holds" in out and "arm110: ok" in out
     result = json.loads((tmp_path / "c.json").read_text())
@@ -88,7 +88,7 @@ def test_check_passes_for_an_unchanged_rig_even_with_the_board_moved(solved, tmp
     # the refitted board is where it was put
     assert np.allclose(np.array(result["T_world_board"])[:3, 3], moved_board[:3, 3], atol=3e-3)
     # ... but told that the board did not move, the check sees the 4 cm shift
-    assert run(["calib", "check", str(root / "cal.json"), str(caps), "--board-unmoved"]) == 1
+    assert run(["calib", "check", str(caps), "-c", str(root / "cal.json"), "--board-unmoved"]) == 1
 
 
 def test_check_flags_a_knocked_camera_mount(solved, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -98,7 +98,7 @@ def test_check_flags_a_knocked_camera_mount(solved, tmp_path: Path, capsys: pyte
     arms["arm110"] = dataclasses.replace(arms["arm110"], T_flange_cam=knock @ arms["arm110"].T_flange_cam)
     knocked = dataclasses.replace(truth, arms=arms)
     caps = _new_captures(tmp_path / "knocked", knocked, T_wb, seed=12)
-    assert run(["calib", "check", str(root / "cal.json"), str(caps)]) == 1
+    assert run(["calib", "check", str(caps), "-c", str(root / "cal.json")]) == 1
     out = capsys.readouterr().out
     assert "arm110: STALE" in out and "calibration is stale" in out
     result = check_calibration(read_calibration(root / "cal.json"), read_captures(caps))
@@ -113,17 +113,17 @@ def test_solve_and_check_errors_are_one_line(solved, tmp_path: Path, capsys: pyt
     root, _, _ = solved
     assert run(["calib", "solve", str(tmp_path / "none"), "--out", str(tmp_path / "c.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "not a capture folder" in err[0]
-    assert run(["calib", "check", str(tmp_path / "missing.json"), str(root / "caps")]) == 2
+    assert len(err) == 1 and "none' does not exist" in err[0]
+    assert run(["calib", "check", str(root / "caps"), "-c", str(tmp_path / "missing.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "missing.json: no such file" in err[0]
+    assert len(err) == 1 and "missing.json' does not exist" in err[0]
     cal = json.loads((root / "cal.json").read_text())
     cal["arms"]["arm110"]["serial"] = "999"
     (tmp_path / "wrong.json").write_text(json.dumps(cal))
-    assert run(["calib", "check", str(tmp_path / "wrong.json"), str(root / "caps")]) == 2
+    assert run(["calib", "check", str(root / "caps"), "-c", str(tmp_path / "wrong.json")]) == 2
     assert "captures are from camera 348522076490 but the calibration is for camera 999" in capsys.readouterr().err
     assert run(["calib", "capture", "--out", str(tmp_path / "x")]) == 2
-    assert "exactly one of --twin or --hardware" in capsys.readouterr().err
+    assert "'--twin' / '--hardware': choose exactly one" in capsys.readouterr().err
 
 
 def test_too_few_usable_captures_is_refused(solved, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -137,7 +137,7 @@ def test_too_few_usable_captures_is_refused(solved, tmp_path: Path, capsys: pyte
 
 
 def test_plan_command_writes_a_plan(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    assert run(["calib", "plan", "--out", str(tmp_path / "plan.json"), "--n", "4", "--seed", "1",
+    assert run(["calib", "plan", "--out", str(tmp_path / "plan.json"), "--captures", "4", "--seed", "1",
                 "--candidates", "40"]) == 0
     data = json.loads((tmp_path / "plan.json").read_text())
     assert data["schema"] == "darp-calib-plan/1" and {len(v) for v in data["poses"].values()} == {4}

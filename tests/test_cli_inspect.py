@@ -220,7 +220,7 @@ def test_cli_camera_mapping_override(tmp_path: Path, capsys: pytest.CaptureFixtu
 @pytest.mark.parametrize(
     ("setup", "expected"),
     [
-        (lambda root: None, "no such survey folder"),
+        (lambda root: None, "does not exist"),
         (lambda root: root.mkdir(), "not a survey folder and holds no survey folders"),
         (lambda root: root.write_text("x"), "not a folder"),
     ],
@@ -251,4 +251,4 @@ def test_cli_exit_code_2_on_incomplete_or_corrupt_survey(
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "cam348522076490.bag" in err
     assert run(["inspect", str(root), "--camera", "nonsense"]) == 2
-    assert "--camera expects SERIAL=ARM" in capsys.readouterr().err
+    assert "'--camera': expected SERIAL=ARM" in capsys.readouterr().err

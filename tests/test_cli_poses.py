@@ -174,7 +174,7 @@ def test_clock_offset_moves_frames_against_the_log(survey, tmp_path: Path) -> No
     out = tmp_path / "offset"
     # camera clock 0.2 s ahead: every arm110 frame is sampled 0.2 s earlier on the host clock
     assert run(["poses", str(folder), "-c", str(cal_path), "--out", str(out), "--no-figure",
-                "--clock-offset", "0.2"]) == 0
+                "--clock-offset-s", "0.2"]) == 0
     data = np.load(out / f"cam{SERIALS['arm110']}_arm110.npz")
     host_rel = data["timestamps_ms"] / 1000.0 - 0.2 - T0_S
     assert np.count_nonzero(data["status"] == 1) == np.count_nonzero(host_rel < 0)  # before_log

@@ -20,7 +20,7 @@ def one_error_line(capsys, must_contain: str) -> None:
 
 def test_missing_survey_folder(tmp_path: Path, capsys) -> None:
     assert run(["process", str(tmp_path / "nope"), "--out", str(tmp_path / "out"), "-c", str(tmp_path / "c.json")]) == 2
-    one_error_line(capsys, "no such survey folder")
+    one_error_line(capsys, "does not exist")
 
 
 def test_folder_without_surveys(tmp_path: Path, capsys) -> None:
@@ -53,7 +53,7 @@ def test_bad_settings_and_calibration(survey_path: Path, tmp_path: Path, capsys)
                 "--settings", str(settings)]) == 2
     one_error_line(capsys, "per_view")
     assert run(["process", str(survey_path), "--out", str(tmp_path / "o")]) == 2
-    one_error_line(capsys, "--calibration is required")
+    one_error_line(capsys, "'--calibration': required")
     bad = tmp_path / "cal.json"
     bad.write_text("{}")
     assert run(["process", str(survey_path), "--out", str(tmp_path / "o"), "-c", str(bad)]) == 2

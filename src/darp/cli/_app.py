@@ -1,15 +1,28 @@
-"""The root typer application and the error boundary shared by every command."""
+"""The root typer application and the error boundary shared by every command.
+
+Every error reaches the user as one line on stderr, ``darp: error: <message>``, with exit code 2: a bad
+argument (click's usage errors, and the ``typer.BadParameter`` a parser or a command raises) as well as a
+library error (:class:`darp.errors.DarpError`) or a file that cannot be opened.
+"""
 
 from __future__ import annotations
 
 import sys
 import warnings
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol, cast
 
 import typer
 
 from darp.errors import DarpError, DarpWarning
+
+
+class _ClickError(Protocol):
+    exit_code: int
+
+    def format_message(self) -> str: ...
+
+    def show(self, file: object = None) -> None: ...
 
 
 def _click_error_types() -> tuple[type[BaseException], ...]:
@@ -37,10 +50,9 @@ app = typer.Typer(
 )
 
 
-def fail(message: str) -> typer.Exit:
-    """Print one error line and return the exit exception (code 2) for the caller to raise."""
+def error(message: str) -> None:
+    """Print one ``darp: error:`` line on stderr."""
     typer.echo(f"darp: error: {message}", err=True)
-    return typer.Exit(code=2)
 
 
 def _warning_printer(fallback: Callable[..., Any]) -> Callable[..., None]:
@@ -63,8 +75,8 @@ def _warning_printer(fallback: Callable[..., Any]) -> Callable[..., None]:
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Run the app, mapping DarpError (and bad files) to one line and exit code 2, and DarpWarnings to one
-    ``darp: warning:`` line each."""
+    """Run the app, mapping every error to one line and exit code 2 (130 when interrupted), and each
+    DarpWarning to one ``darp: warning:`` line."""
     import darp.cli  # noqa: F401  (registers the command modules)
 
     with warnings.catch_warnings():
@@ -76,9 +88,9 @@ def run(argv: list[str] | None = None) -> int:
 def _run(argv: list[str] | None) -> int:
     try:
         # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
-        rc = app(args=argv, standalone_mode=False)
+        rc = app(args=argv, prog_name="darp", standalone_mode=False)
     except DarpError as err:
-        typer.echo(f"darp: error: {err}", err=True)
+        error(str(err))
         return 2
     except typer.Exit as err:
         return int(err.exit_code or 0)
@@ -89,9 +101,13 @@ def _run(argv: list[str] | None) -> int:
         typer.echo("darp: interrupted", err=True)
         return 130
     except (FileNotFoundError, IsADirectoryError, PermissionError) as err:
-        typer.echo(f"darp: error: {err.filename}: {err.strerror}", err=True)
+        error(f"{err.filename}: {err.strerror}")
         return 2
-    except _CLICK_ERRORS as err:  # usage errors: unknown option, missing argument, bad value
-        err.show(file=sys.stderr)
-        return int(getattr(err, "exit_code", 2))
+    except _CLICK_ERRORS as exc:  # bad arguments: unknown option, missing argument, bad value
+        usage = cast(_ClickError, exc)
+        if type(exc).__name__ == "NoArgsIsHelpError":  # a group called alone: its help
+            usage.show(file=sys.stderr)
+        else:
+            error(usage.format_message())
+        return int(getattr(usage, "exit_code", 2))
     return int(rc or 0) if isinstance(rc, int) else 0

@@ -50,10 +50,11 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
     settings = TwinSettings.from_profile(profile, seed=seed).with_camera(width=resolution[0], height=resolution[1],
                                                                          imu=False)
     true_rig = moved_rig(nominal, mount_offsets) if mount_offsets else nominal
+    offsets = {a: np.asarray(T).tolist() for a, T in (mount_offsets or {}).items()}
     writer = CaptureWriter(out, board, source=f"twin:{profile}:seed{seed}", overwrite=overwrite,
-                           notes={"profile": profile, "seed": seed, "plan_seed": plan.seed,
-                                  "mount_offsets": {a: np.asarray(T).tolist() for a, T in (mount_offsets or {}).items()}})
-    with TwinRig(settings, rig=true_rig, board=board, T_world_board=T_world_board) as twin:
+                           notes={"profile": profile, "seed": seed, "plan_seed": plan.seed, "mount_offsets": offsets})
+    twin = TwinRig(settings, rig=true_rig, board=board, T_world_board=T_world_board)
+    with twin:
         park = {a: twin.park_q(a) for a in twin.arms}
         run_capture_plan(twin, plan, writer, park_q=park, settings=CaptureRunSettings(stream=stream, joint_reads=10),
                          on_capture=on_capture)

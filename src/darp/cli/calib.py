@@ -1,12 +1,12 @@
 """``darp calib``: ChArUco calibration of the rig (board, plan, capture, solve, check).
 
-    darp calib board --out board.pdf [--squares-x 10 --squares-y 7 --square-mm 30 --marker-mm 22
+    darp calib board -o board.pdf [--squares-x 10 --squares-y 7 --square-mm 30 --marker-mm 22
                      --dictionary DICT_5X5_100 --paper auto]
-    darp calib plan --out plan.json [--rig FILE] [--n 30] [--seed 0] [--board-yaw-deg 0] [--candidates 300]
-    darp calib capture (--twin [--seed N --profile realistic --n 30] | --hardware RIG.yaml) --out DIR
-                       [--plan plan.json] [--stream color|ir1] [--overwrite]
-    darp calib solve CAPTURES --out calibration.json [--report DIR] [--folds 5] [--truth FILE] [--epoch NAME]
-    darp calib check CALIBRATION CAPTURES [--board-unmoved] [--json FILE]
+    darp calib plan -o plan.json [--rig RIG.yaml] [--captures 30] [--seed 0] [--board-yaw-deg 0] [--candidates 300]
+    darp calib capture (--twin [--seed N --profile realistic --captures 30] | --hardware) [--rig RIG.yaml]
+                       -o DIR [--plan plan.json] [--stream color|ir1] [--overwrite]
+    darp calib solve CAPTURES -o calibration.json [--report DIR] [--folds 5] [--truth FILE] [--epoch NAME]
+    darp calib check CAPTURES -c calibration.json [--board-unmoved] [-o result.json] [--json]
 
 ``check`` exits 0 when the calibration still holds and 1 when it is stale. See docs/calibration.md.
 """
@@ -18,7 +18,19 @@ from typing import Annotated, Any
 
 import typer
 
-from darp.cli._app import app, fail
+from darp.cli._app import app
+from darp.cli._options import (
+    CaptureStream,
+    Dictionary,
+    Paper,
+    Profile,
+    ProfileOption,
+    Quiet,
+    RigFile,
+    calibration_option,
+    input_argument,
+    out_option,
+)
 
 calib_app = typer.Typer(help="Calibrate the rig with a ChArUco board: hand-eye, bases, joint-zero offsets.",
                         no_args_is_help=True)
@@ -28,13 +40,16 @@ SquaresX = Annotated[int, typer.Option("--squares-x", help="Squares along the bo
 SquaresY = Annotated[int, typer.Option("--squares-y", help="Squares along the board's y.")]
 SquareMm = Annotated[float, typer.Option("--square-mm", help="Square side, millimetres.")]
 MarkerMm = Annotated[float, typer.Option("--marker-mm", help="ArUco marker side, millimetres.")]
-Dictionary = Annotated[str, typer.Option("--dictionary", help="OpenCV ArUco dictionary.")]
+DictionaryOption = Annotated[Dictionary, typer.Option("--dictionary", help="OpenCV ArUco dictionary.")]
+Captures = Annotated[int, typer.Option("--captures", min=1, help="Captures per arm (when planning).")]
+Seed = Annotated[int, typer.Option("--seed", help="Seed of the random candidates (and, on the twin, of its "
+                                   "true rig errors).")]
 
 
-def _board(squares_x: int, squares_y: int, square_mm: float, marker_mm: float, dictionary: str) -> Any:
+def _board(squares_x: int, squares_y: int, square_mm: float, marker_mm: float, dictionary: Dictionary) -> Any:
     from darp.calibration.board import make_board_spec
 
-    return make_board_spec(squares_x, squares_y, square_mm / 1e3, marker_mm / 1e3, dictionary)
+    return make_board_spec(squares_x, squares_y, square_mm / 1e3, marker_mm / 1e3, dictionary.value)
 
 
 def _progress(quiet: bool) -> Any:
@@ -47,30 +62,31 @@ def _progress(quiet: bool) -> Any:
 
 @calib_app.command("board")
 def board_command(
-    out: Annotated[Path, typer.Option(help="PDF to write.", show_default=False)],
+    out: Annotated[Path, out_option("PDF to write.")],
     squares_x: SquaresX = 10, squares_y: SquaresY = 7, square_mm: SquareMm = 30.0, marker_mm: MarkerMm = 22.0,
-    dictionary: Dictionary = "DICT_5X5_100",
-    paper: Annotated[str, typer.Option(help="Paper: auto, A4, A3, A2, A1, A0, letter, tabloid.")] = "auto",
+    dictionary: DictionaryOption = Dictionary.DICT_5X5_100,
+    paper: Annotated[Paper, typer.Option("--paper", help="Paper size (auto: the smallest that fits).")] = Paper.auto,
 ) -> None:
     """Write a printable board at true scale (print at 100 %, check the 100 mm ruler)."""
     from darp.calibration.board import spec_text, write_board_pdf
 
     board = _board(squares_x, squares_y, square_mm, marker_mm, dictionary)
-    layout = write_board_pdf(board, out, paper=paper)
+    layout = write_board_pdf(board, out, paper=paper.value)
     typer.echo(f"wrote {out} ({layout['paper']}, {layout['page_mm'][0]:.0f} x {layout['page_mm'][1]:.0f} mm): "
                f"{spec_text(board)}")
 
 
 @calib_app.command("plan")
 def plan_command(
-    out: Annotated[Path, typer.Option(help="Plan JSON to write.", show_default=False)],
-    rig_file: Annotated[Path | None, typer.Option("--rig", help="Rig YAML (default: packaged).", show_default=False)] = None,
-    n: Annotated[int, typer.Option(help="Captures per arm.")] = 30,
-    seed: Annotated[int, typer.Option(help="Seed of the random candidates.")] = 0,
-    board_yaw_deg: Annotated[float, typer.Option(help="Board yaw on the table (centred on the workspace).")] = 0.0,
-    candidates: Annotated[int, typer.Option(help="Random candidate poses tried per arm.")] = 300,
+    out: Annotated[Path, out_option("Plan JSON to write.")],
+    rig_file: RigFile = None,
+    captures: Captures = 30,
+    seed: Seed = 0,
+    board_yaw_deg: Annotated[float, typer.Option("--board-yaw-deg", help="Board yaw on the table (centred on the "
+                                                 "workspace), degrees.")] = 0.0,
+    candidates: Annotated[int, typer.Option("--candidates", help="Random candidate poses tried per arm.")] = 300,
     squares_x: SquaresX = 10, squares_y: SquaresY = 7, square_mm: SquareMm = 30.0, marker_mm: MarkerMm = 22.0,
-    dictionary: Dictionary = "DICT_5X5_100",
+    dictionary: DictionaryOption = Dictionary.DICT_5X5_100,
 ) -> None:
     """Plan diverse, feasible, collision-free capture poses for both arms (nominal rig)."""
     import numpy as np
@@ -81,7 +97,7 @@ def plan_command(
     rig = load_rig(rig_file)
     board = _board(squares_x, squares_y, square_mm, marker_mm, dictionary)
     plan = plan_captures(rig, board, default_board_pose(rig, board, np.radians(board_yaw_deg)),
-                         settings=PlanSettings(n_per_arm=n, n_candidates=max(candidates, n)), seed=seed)
+                         settings=PlanSettings(n_per_arm=captures, n_candidates=max(candidates, captures)), seed=seed)
     plan.save(out)
     counts = ", ".join(f"{a}: {len(p)} ({sum(x.via_park for x in p)} via park)" for a, p in plan.poses.items())
     typer.echo(f"wrote {out}: {counts}")
@@ -89,26 +105,28 @@ def plan_command(
 
 @calib_app.command("capture")
 def capture_command(
-    out: Annotated[Path, typer.Option(help="Capture folder to create.", show_default=False)],
+    out: Annotated[Path, out_option("Capture folder to create.")],
     twin: Annotated[bool, typer.Option("--twin", help="Capture on the digital twin.")] = False,
-    hardware: Annotated[Path | None, typer.Option("--hardware", help="Capture on the real rig described by this "
-                                                  "rig YAML.", show_default=False)] = None,
+    hardware: Annotated[bool, typer.Option("--hardware", help="Capture on the real rig (--rig, with its "
+                                           "hardware: section).")] = False,
+    rig_file: RigFile = None,
     plan_file: Annotated[Path | None, typer.Option("--plan", help="Plan from `darp calib plan` (default: plan now).",
-                                                   show_default=False)] = None,
-    seed: Annotated[int, typer.Option(help="Twin seed (true rig errors) and plan seed.")] = 0,
-    profile: Annotated[str, typer.Option(help="Twin error profile: ideal or realistic.")] = "realistic",
-    n: Annotated[int, typer.Option(help="Captures per arm when planning now.")] = 30,
-    stream: Annotated[str, typer.Option(help="Image stream: color or ir1.")] = "color",
-    overwrite: Annotated[bool, typer.Option(help="Replace captures already in --out.")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+                                                   exists=True, dir_okay=False, show_default=False)] = None,
+    seed: Seed = 0,
+    profile: ProfileOption = Profile.realistic,
+    captures: Captures = 30,
+    stream: Annotated[CaptureStream, typer.Option("--stream", help="Image stream the board is detected in.")] = (
+        CaptureStream.color),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace captures already in --out.")] = False,
+    quiet: Quiet = False,
 ) -> None:
     """Take calibration captures (one arm moving at a time) on the twin or the real rig."""
-    if twin == (hardware is not None):
-        raise fail("give exactly one of --twin or --hardware RIG.yaml")
+    if twin == hardware:
+        raise typer.BadParameter("choose exactly one", param_hint="'--twin' / '--hardware'")
     from darp.calibration.plan import CapturePlan
 
     plan = CapturePlan.load(plan_file) if plan_file is not None else None
-    total = sum(len(p) for p in plan.poses.values()) if plan is not None else 2 * n
+    total = sum(len(p) for p in plan.poses.values()) if plan is not None else 2 * captures
     with _progress(quiet) as bar:
         task = bar.add_task("capturing", total=total)
 
@@ -117,17 +135,19 @@ def capture_command(
 
         if twin:
             from darp.cli._calib_twin import capture_twin
+            from darp.kinematics.rig import load_rig
 
-            caps = capture_twin(out, seed=seed, profile=profile, n_per_arm=n, plan=plan, stream=stream,
+            caps = capture_twin(out, seed=seed, profile=profile.value, n_per_arm=captures, plan=plan,
+                                stream=stream.value, rig=load_rig(rig_file) if rig_file is not None else None,
                                 overwrite=overwrite, on_capture=tick)
         else:
-            caps = _capture_hardware(hardware, out, plan, n, seed, stream, overwrite, tick)  # type: ignore[arg-type]
+            caps = _capture_hardware(rig_file, out, plan, captures, seed, stream.value, overwrite, tick)
     counts = ", ".join(f"{a}: {len(caps.for_arm(a))}" for a in caps.arms)
     typer.echo(f"wrote {out} ({counts})")
 
 
-def _capture_hardware(rig_file: Path, out: Path, plan: Any, n: int, seed: int, stream: str, overwrite: bool,
-                      tick: Any) -> Any:
+def _capture_hardware(rig_file: Path | None, out: Path, plan: Any, n: int, seed: int, stream: str,
+                      overwrite: bool, tick: Any) -> Any:
     """Captures on the real rig through the hardware backend (``darp.hardware.open_rig``)."""
     from darp.calibration.board import DEFAULT_BOARD
     from darp.calibration.capture_run import CaptureRunSettings, run_capture_plan
@@ -149,15 +169,19 @@ def _capture_hardware(rig_file: Path, out: Path, plan: Any, n: int, seed: int, s
 
 @calib_app.command("solve")
 def solve_command(
-    captures: Annotated[Path, typer.Argument(help="Capture folder.", show_default=False)],
-    out: Annotated[Path, typer.Option(help="Calibration JSON to write.", show_default=False)],
-    report: Annotated[Path | None, typer.Option(help="Report folder (figures, summary.md).", show_default=False)] = None,
-    folds: Annotated[int, typer.Option(help="k of the k-fold held-out evaluation (0: none).")] = 5,
-    truth: Annotated[Path | None, typer.Option(help="True calibration to compare with (default: the captures' "
-                                               "truth/calibration.json when present).", show_default=False)] = None,
-    epoch: Annotated[str | None, typer.Option(help="Epoch label (default calib-<date>).", show_default=False)] = None,
-    compare: Annotated[bool, typer.Option(help="Also solve with OpenCV alone, for the comparison table.")] = True,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    captures: Annotated[Path, input_argument("Capture folder.")],
+    out: Annotated[Path, out_option("Calibration JSON to write.")],
+    report: Annotated[Path | None, typer.Option("--report", help="Report folder to write (figures, summary.md).",
+                                                show_default=False)] = None,
+    folds: Annotated[int, typer.Option("--folds", help="k of the k-fold held-out evaluation (0: none).")] = 5,
+    truth: Annotated[Path | None, typer.Option("--truth", help="True calibration to compare with (default: the "
+                                               "captures' truth/calibration.json when present).", exists=True,
+                                               dir_okay=False, show_default=False)] = None,
+    epoch: Annotated[str | None, typer.Option("--epoch", help="Epoch label (default calib-<date>).",
+                                              show_default=False)] = None,
+    compare: Annotated[bool, typer.Option("--compare/--no-compare", help="Also solve with OpenCV alone, for the "
+                                          "comparison table.")] = True,
+    quiet: Quiet = False,
 ) -> None:
     """Calibrate from captures: hand-eye per arm, bases in one world frame, joint-zero offsets."""
     from darp.calibration.captures import read_captures
@@ -191,35 +215,49 @@ def solve_command(
     if outcome.truth is not None:
         t = outcome.truth["darp"]
         he = max(v["hand_eye"]["translation_mm"] for v in t["arms"].values())
-        typer.echo(f"  against truth: hand-eye <= {he:.3f} mm, base-to-base {t['base_to_base']['translation_mm']:.3f} mm"
-                   f" / {t['base_to_base']['rotation_deg']:.4f} deg")
+        b2b = t["base_to_base"]
+        typer.echo(f"  against truth: hand-eye <= {he:.3f} mm, base-to-base {b2b['translation_mm']:.3f} mm"
+                   f" / {b2b['rotation_deg']:.4f} deg")
 
 
 @calib_app.command("check")
 def check_command(
-    calibration: Annotated[Path, typer.Argument(help="Calibration JSON.", show_default=False)],
-    captures: Annotated[Path, typer.Argument(help="Folder of a few new captures.", show_default=False)],
-    board_unmoved: Annotated[bool, typer.Option(help="The board is where it was at calibration (stricter).")] = False,
-    json_out: Annotated[Path | None, typer.Option("--json", help="Write the result as JSON.", show_default=False)] = None,
+    captures: Annotated[Path, input_argument("Folder of a few new captures.")],
+    calibration: Annotated[Path, calibration_option("Calibration JSON to check.")],
+    board_unmoved: Annotated[bool, typer.Option("--board-unmoved", help="The board is where it was at "
+                                                "calibration (stricter).")] = False,
+    out: Annotated[Path | None, out_option("Write the result to this JSON file.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the result as JSON instead of the summary.")] = False,
 ) -> None:
     """Tell whether a calibration still holds (exit 0) or is stale (exit 1) from a few new captures."""
+    import json
+
     from darp.calibration.captures import read_captures
     from darp.calibration.check import CheckSettings, check_calibration
     from darp.formats.calibration import read_calibration
-    from darp.formats.schema import write_json_checked
+    from darp.formats.schema import to_jsonable, write_json_checked
 
     result = check_calibration(read_calibration(calibration), read_captures(captures),
                                CheckSettings(board_unmoved=board_unmoved))
-    if json_out is not None:
-        write_json_checked(json_out, result.to_dict())
-    for arm, r in result.arms.items():
-        state = "ok" if r.ok else "STALE"
-        typer.echo(f"{arm}: {state}: {r.n_captures} captures, median 3-D corner error {r.corner_3d_mm['median']:.3f} mm "
-                   f"(limit {r.limit_mm:.3f}), reprojection {r.reprojection_px['median']:.3f} px "
-                   f"(limit {r.limit_px:.3f})" + ("" if r.ok else f": {'; '.join(r.reasons)}"))
-    if result.board_disagreement is not None:
-        d = result.board_disagreement
-        typer.echo(f"board seen by the two arms differs by {d['translation_mm']:.2f} mm / {d['rotation_deg']:.3f} deg")
-    typer.echo("calibration holds" if result.ok else "calibration is stale: recalibrate")
+    if out is not None:
+        write_json_checked(out, result.to_dict())
+    if as_json:
+        typer.echo(json.dumps(to_jsonable(result.to_dict()), indent=2))
+    else:
+        _print_check(result)
     if not result.ok:
         raise typer.Exit(code=1)
+
+
+def _print_check(result: Any) -> None:
+    for arm, r in result.arms.items():
+        state = "ok" if r.ok else "STALE"
+        typer.echo(f"{arm}: {state}: {r.n_captures} captures, median 3-D corner error "
+                   f"{r.corner_3d_mm['median']:.3f} mm (limit {r.limit_mm:.3f}), reprojection "
+                   f"{r.reprojection_px['median']:.3f} px (limit {r.limit_px:.3f})"
+                   + ("" if r.ok else f": {'; '.join(r.reasons)}"))
+    if result.board_disagreement is not None:
+        d = result.board_disagreement
+        typer.echo(f"board seen by the two arms differs by {d['translation_mm']:.2f} mm / "
+                   f"{d['rotation_deg']:.3f} deg")
+    typer.echo("calibration holds" if result.ok else "calibration is stale: recalibrate")

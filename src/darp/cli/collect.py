@@ -1,9 +1,9 @@
 """``darp collect``: one autonomous object survey, on the digital twin or on the real rig.
 
-    darp collect NAME --twin [--object mug|PATH] [--scale S] [--placement x,y,yaw_deg] [--seed N]
+    darp collect NAME --twin [--object mug|PATH|none] [--scale S] [--placement x,y,yaw_deg] [--seed N]
                       [--profile ideal|realistic] [--fps 30] [--resolution 640x480]
-                      [--calibration FILE|truth] [--rig FILE] [--out DIR] [--overwrite] [--quiet]
-    darp collect NAME --hardware rig.yaml --calibration FILE [--out DIR] [--overwrite] [--quiet]
+                      [-c FILE | --truth-calibration] [--rig RIG.yaml] [-o DIR] [--overwrite] [--quiet]
+    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [-o DIR] [--overwrite] [--quiet]
 
 The survey folder is ``<out>/NAME`` when accepted, ``<out>/NAME.rejected`` when rejected (REJECTED.txt
 says why) and ``<out>/NAME.partial`` after an interruption (PARTIAL.txt). Exit codes: 0 accepted,
@@ -17,47 +17,23 @@ from typing import Annotated, Any
 
 import typer
 
-from darp.cli._app import app, fail
+from darp.cli._app import app
+from darp.cli._options import (
+    Placement,
+    Profile,
+    ProfileOption,
+    Quiet,
+    Resolution,
+    RigFile,
+    calibration_option,
+    out_option,
+    parse_placement,
+    parse_resolution,
+)
+from darp.cli.twin import PLACEMENT_HELP
 
-MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 PHASES = {"localise": "localising", "confirm": "confirming", "plan": "planning", "record": "recording",
           "verify": "verifying", "done": "done"}
-
-
-def _object(spec: str, scale: float) -> Any:
-    from darp.twin.objects.model import load_mesh_object, make_object
-
-    path = Path(spec)
-    if path.suffix.lower() in MESH_SUFFIXES or path.exists():
-        return load_mesh_object(path, scale=scale)
-    return make_object(spec, scale=scale)
-
-
-def _placement(text: str | None, obj: Any, rig: Any, seed: int) -> Any:
-    import numpy as np
-
-    from darp.twin.objects.model import ObjectPlacement, RectRegion, random_placement
-
-    z = rig.table.height_m
-    if text is not None:
-        parts = [p for p in text.replace(",", " ").split() if p]
-        try:
-            x, y, yaw_deg = (float(p) for p in parts)
-        except ValueError:
-            raise fail(f"--placement expects x,y,yaw_deg (metres, metres, degrees), got {text!r}") from None
-        return ObjectPlacement(x, y, float(np.deg2rad(yaw_deg)), z)
-    ws = rig.workspace
-    region = RectRegion(ws.x_range_m[0], ws.x_range_m[1], ws.y_range_m[0], ws.y_range_m[1], z)
-    clearance = min(obj.radius_m, 0.5 * (ws.x_range_m[1] - ws.x_range_m[0]) - 1e-3)
-    return random_placement(np.random.default_rng([seed, 0x9A1]), region, clearance_m=clearance)
-
-
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise fail(f"--resolution expects WIDTHxHEIGHT, e.g. 640x480, got {text!r}") from None
-    return w, h
 
 
 def _run_with_progress(quiet: bool, title: str, run: Any) -> Any:
@@ -93,104 +69,95 @@ def _report(outcome: Any) -> None:
 def collect_command(
     name: Annotated[str, typer.Argument(help="Survey name: the folder created under --out.", show_default=False)],
     twin: Annotated[bool, typer.Option("--twin", help="Run on the digital twin.")] = False,
-    hardware: Annotated[Path | None, typer.Option("--hardware", help="Run on the real rig described by this rig "
-                                                  "YAML (with its hardware: section).", show_default=False)] = None,
-    obj_name: Annotated[str, typer.Option("--object", "-o", help="Twin: object name, mesh file, or 'none' (an "
-                                          "empty table).")] = "mug",
-    scale: Annotated[float, typer.Option(help="Twin: object scale (0.001 for a mesh in millimetres).")] = 1.0,
-    placement: Annotated[str | None, typer.Option(help="Twin: x,y,yaw_deg on the table (default: random, seeded).",
-                                                  show_default=False)] = None,
-    seed: Annotated[int, typer.Option(help="Twin: seed of every random draw.")] = 0,
-    profile: Annotated[str, typer.Option(help="Twin: error profile, ideal or realistic.")] = "realistic",
-    fps: Annotated[int, typer.Option(help="Twin: camera frame rate.")] = 30,
-    resolution: Annotated[str, typer.Option(help="Twin: image size WIDTHxHEIGHT.")] = "640x480",
-    calibration: Annotated[str | None, typer.Option(help="Calibration file for live decisions; on the twin also "
-                                                    "'truth' (its true calibration). Default on the twin: the rig's "
-                                                    "nominal values.", show_default=False)] = None,
-    rig_file: Annotated[Path | None, typer.Option("--rig", help="Twin: rig YAML (default: the packaged rig).",
-                                                  show_default=False)] = None,
-    out: Annotated[Path, typer.Option(help="Folder that receives the survey folder.")] = Path("."),
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing NAME (and NAME.partial/.rejected).")] = False,
-    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")] = False,
+    hardware: Annotated[bool, typer.Option("--hardware", help="Run on the real rig (--rig, with its hardware: "
+                                           "section).")] = False,
+    rig_file: RigFile = None,
+    obj_name: Annotated[str, typer.Option("--object", help="Twin: object name, mesh file, or 'none' (an empty "
+                                          "table).")] = "mug",
+    scale: Annotated[float, typer.Option("--scale", help="Twin: object scale (0.001 for a mesh in "
+                                         "millimetres).")] = 1.0,
+    placement: Annotated[Placement | None, typer.Option(
+        "--placement", parser=parse_placement, metavar="X,Y,YAW_DEG",
+        help=f"Twin: {PLACEMENT_HELP} (default: random, seeded).", show_default=False)] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Twin: seed of every random draw.")] = 0,
+    profile: ProfileOption = Profile.realistic,
+    fps: Annotated[int, typer.Option("--fps", min=1, help="Twin: camera frame rate.")] = 30,
+    resolution: Annotated[Resolution, typer.Option("--resolution", parser=parse_resolution, metavar="WIDTHxHEIGHT",
+                                                   help="Twin: image size.")] = Resolution(640, 480),
+    calibration: Annotated[Path | None, calibration_option(
+        "Calibration for live decisions (required with --hardware; default on the twin: the rig's nominal "
+        "values).")] = None,
+    truth_calibration: Annotated[bool, typer.Option("--truth-calibration", help="Twin: decide with the twin's true "
+                                                    "calibration instead of --calibration.")] = False,
+    out: Annotated[Path, out_option("Folder that receives the survey folder.", show_default=True)] = Path("."),
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing NAME (and "
+                                            "NAME.partial/.rejected).")] = False,
+    quiet: Quiet = False,
 ) -> None:
     """Survey one object autonomously: localise, confirm, plan, record both cameras, verify."""
-    if twin == (hardware is not None):
-        raise fail("choose exactly one of --twin and --hardware RIG.yaml")
+    if twin == hardware:
+        raise typer.BadParameter("choose exactly one", param_hint="'--twin' / '--hardware'")
+    if truth_calibration and (hardware or calibration is not None):
+        raise typer.BadParameter("the twin's true calibration is for --twin without --calibration",
+                                 param_hint="'--truth-calibration'")
+    if hardware and calibration is None:
+        raise typer.BadParameter("required with --hardware (the rig's current calibration epoch)",
+                                 param_hint="'--calibration'")
     from darp.acquisition.episode import check_name
 
     check_name(name)
-    if hardware is not None:
-        _collect_hardware(name, hardware, calibration, out, overwrite, quiet)
+    if hardware:
+        assert calibration is not None
+        _collect_hardware(name, rig_file, calibration, out, overwrite, quiet)
     else:
-        _collect_twin(name, obj_name, scale, placement, seed, profile, fps, resolution, calibration, rig_file, out,
-                      overwrite, quiet)
+        _collect_twin(name, obj_name, scale, placement, seed, profile, fps, resolution, calibration,
+                      truth_calibration, rig_file, out, overwrite, quiet)
 
 
-def _read_calibration(spec: str) -> Any:
-    from darp.formats.calibration import read_calibration
-
-    return read_calibration(Path(spec))
-
-
-def _collect_hardware(name: str, rig_yaml: Path, calibration: str | None, out: Path, overwrite: bool,
+def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: Path, overwrite: bool,
                       quiet: bool) -> None:
-    if calibration is None or calibration == "truth":
-        raise fail("--hardware needs --calibration FILE (the rig's current calibration epoch)")
-    cal = _read_calibration(calibration)
     from darp.acquisition.survey import run_survey
+    from darp.formats.calibration import read_calibration
     from darp.hardware.rig import HardwareRig
 
-    with HardwareRig.open(rig_yaml) as rig_backend:
+    cal = read_calibration(calibration)
+    rig_backend = HardwareRig.open(rig_file)
+    with rig_backend:
         outcome = _run_with_progress(quiet, name, lambda progress: run_survey(
             rig_backend, rig_backend.rig, out, name, calibration=cal, overwrite=overwrite, progress=progress))
     _report(outcome)
 
 
-def _collect_twin(name: str, obj_name: str, scale: float, placement: str | None, seed: int, profile: str, fps: int,
-                  resolution: str, calibration: str | None, rig_file: Path | None, out: Path, overwrite: bool,
-                  quiet: bool) -> None:
+def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, seed: int, profile: Profile,
+                  fps: int, resolution: Resolution, calibration: Path | None, truth_calibration: bool,
+                  rig_file: Path | None, out: Path, overwrite: bool, quiet: bool) -> None:
+    """Decisions use ``calibration``, the twin's true one (``truth_calibration``) or else the rig's nominal."""
     from darp.acquisition.survey import run_survey
-    from darp.formats.atomic import write_json_atomic
-    from darp.formats.truth import TRUTH_DIR
+    from darp.cli.twin import load_object, place_object
+    from darp.formats.calibration import read_calibration
     from darp.kinematics.rig import load_rig
-    from darp.twin.objects.model import to_world
+    from darp.twin.record import write_twin_truth
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
-    from darp.twin.truth import write_truth
 
     rig = load_rig(rig_file)
-    w, h = _resolution(resolution)
-    settings = TwinSettings.from_profile(profile, seed=seed).with_camera(fps=fps, width=w, height=h)
+    settings = TwinSettings.from_profile(profile.value, seed=seed).with_camera(
+        fps=fps, width=resolution.width, height=resolution.height)
     empty = obj_name.strip().lower() == "none"  # an empty table: the survey must end cleanly
-    obj = None if empty else _object(obj_name, scale)
-    place = None if obj is None else _placement(placement, obj, rig, seed)
-    cal = None if calibration in (None, "truth") else _read_calibration(calibration)
-    with TwinRig(settings, rig=rig, obj=obj, placement=place) as twin_rig:
-        if calibration == "truth":
+    obj = None if empty else load_object(obj_name, scale)
+    place = None if obj is None else place_object(placement, obj, rig, seed)
+    cal = read_calibration(calibration) if calibration is not None else None
+    twin_rig = TwinRig(settings, rig=rig, obj=obj, placement=place)
+    with twin_rig:
+        if truth_calibration:
             cal = twin_rig.true_rig.calibration(settings)
 
-        def write_twin_truth(folder: Path) -> None:
-            if obj is None or place is None:
-                write_truth(folder, true_rig=twin_rig.true_rig, settings=settings,
-                            camera_poses={a: c.truth for a, c in twin_rig.cameras.items()})
-                return
-            info = {"name": obj.name, "source": obj.source, "scale": scale,
-                    "T_world_object": place.T_world_object.tolist(),
-                    "placement": {"x_m": place.x_m, "y_m": place.y_m, "yaw_rad": place.yaw_rad,
-                                  "table_z_m": place.table_z_m},
-                    "center_m": [place.x_m, place.y_m, place.table_z_m + 0.5 * obj.height_m],
-                    "radius_m": obj.radius_m, "height_m": obj.height_m}
-            write_truth(folder, true_rig=twin_rig.true_rig, settings=settings,
-                        camera_poses={a: c.truth for a, c in twin_rig.cameras.items()}, object_info=info,
-                        object_mesh_world=to_world(obj, place))
-            write_json_atomic(folder / TRUTH_DIR / "contacts.json", [
-                {"time_s": e.time_s, "arm": e.contact.arm_id, "arm_geom": e.contact.arm_geom,
-                 "other": e.contact.other, "other_geom": e.contact.other_geom, "distance_m": e.contact.distance_m}
-                for e in twin_rig.contact_events])
+        def write_truth(folder: Path) -> None:
+            write_twin_truth(folder, twin_rig, obj, place, scale)
 
         outcome = _run_with_progress(quiet, name, lambda progress: run_survey(
             twin_rig, rig, out, name, calibration=cal, overwrite=overwrite, progress=progress,
-            object_name=None if obj is None else obj.name, before_finalise=write_twin_truth))
+            object_name=None if obj is None else obj.name, before_finalise=write_truth))
         contacts = list(twin_rig.contact_events)
     if contacts:
         first = contacts[0]

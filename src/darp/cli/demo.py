@@ -12,14 +12,15 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import typer
 
 from darp.cli._app import app, run
+from darp.cli._options import Profile, ProfileOption, TwinObject, out_option
 from darp.errors import DarpError
 
-DEFAULT_OBJECTS = "mug,ketchup,dumbbell"
+DEFAULT_OBJECTS = (TwinObject.mug, TwinObject.ketchup, TwinObject.dumbbell)
 
 # The paper's numbers on the real DARP release (held-out table, calibration section).
 PAPER_HELDOUT_MM = {"median": 2.13, "rmse": 4.04, "p90": 6.38}
@@ -31,28 +32,29 @@ def _step(title: str) -> None:
     typer.secho(f"\n== {title}", bold=True)
 
 
-def _call(args: list[str]) -> None:
+def _call(args: list[Any]) -> None:
     """Run a darp command; stop the demo with its error if it fails."""
-    code = run([str(a) for a in args])
+    argv = [str(a) for a in args]
+    code = run(argv)
     if code != 0:
-        raise DarpError(f"step failed (exit {code}): darp {' '.join(str(a) for a in args)}")
+        raise DarpError(f"step failed (exit {code}): darp {' '.join(argv)}")
 
 
 @app.command("demo")
 def demo_command(
-    out: Path = typer.Option(Path("demo_out"), "--out", "-o", help="Folder for everything the demo makes."),
-    objects: str = typer.Option(DEFAULT_OBJECTS, "--objects",
-                                help="Comma-separated twin objects to survey (see `darp twin objects`)."),
-    seed: int = typer.Option(0, "--seed", help="Seed of the twin (true rig errors, placements, noise)."),
-    fps: int = typer.Option(6, "--fps", help="Camera frame rate of the demo surveys: 6, 15 or 30 (the real rig records 30)."),
-    captures: int = typer.Option(20, "--captures", help="Calibration captures per arm."),
-    profile: str = typer.Option("realistic", "--profile", help="Twin error profile: ideal or realistic."),
+    out: Annotated[Path, out_option("Folder for everything the demo makes.", show_default=True)] = Path("demo_out"),
+    objects: Annotated[list[TwinObject] | None, typer.Option(
+        "--object", help="Twin object to survey; repeat per object (default: mug, ketchup, dumbbell).",
+        show_default=False)] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the twin (true rig errors, placements, noise).")] = 0,
+    fps: Annotated[int, typer.Option("--fps", min=1, help="Camera frame rate of the demo surveys: 6, 15 or 30 "
+                                     "(the real rig records 30).")] = 6,
+    captures: Annotated[int, typer.Option("--captures", min=1, help="Calibration captures per arm.")] = 20,
+    profile: ProfileOption = Profile.realistic,
 ) -> None:
     """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores)."""
     started = time.monotonic()
-    names = [name.strip() for name in objects.split(",") if name.strip()]
-    if not names:
-        raise DarpError("--objects: give at least one object")
+    names = list(dict.fromkeys(o.value for o in (objects or DEFAULT_OBJECTS)))
     out.mkdir(parents=True, exist_ok=True)
     calib_dir = out / "calibration"
     captures_dir = calib_dir / "captures"
@@ -62,7 +64,7 @@ def demo_command(
 
     _step(f"1/4 calibration: {captures} ChArUco captures per arm on the twin ({profile}, seed {seed})")
     if not (captures_dir / "captures.json").exists():
-        _call(["calib", "capture", "--twin", "--seed", seed, "--profile", profile, "--n", captures,
+        _call(["calib", "capture", "--twin", "--seed", seed, "--profile", profile.value, "--captures", captures,
                "--out", captures_dir, "--overwrite"])
     if not calibration.exists():
         _call(["calib", "solve", captures_dir, "--out", calibration, "--report", calib_dir / "report",
@@ -74,7 +76,7 @@ def demo_command(
         folder = surveys_dir / name
         if not folder.exists():
             # The same seed as the calibration: the same true rig (its errors), another placement.
-            _call(["collect", name, "--twin", "--object", name, "--seed", seed, "--profile", profile,
+            _call(["collect", name, "--twin", "--object", name, "--seed", seed, "--profile", profile.value,
                    "--fps", fps, "--calibration", calibration, "--out", surveys_dir,
                    "--placement", f"{x_m:.4f},{y_m:.4f},{yaw_deg:.1f}"])
         surveys.append(folder)
@@ -101,9 +103,10 @@ def _placements(seed: int, count: int) -> list[tuple[float, float, float]]:
 
 def _load(path: Path) -> dict[str, Any]:
     try:
-        return json.loads(path.read_text())
+        data: dict[str, Any] = json.loads(path.read_text())
     except (OSError, ValueError) as err:
         raise DarpError(f"cannot read demo results: {err}", path) from err
+    return data
 
 
 def _print_summary(calib_dir: Path, processed: Path) -> None:

@@ -1,4 +1,4 @@
-"""``darp hardware check RIG_YAML [--json]``: pre-flight check of the real rig; reads, never moves.
+"""``darp hardware check [--rig RIG.yaml] [--json]``: pre-flight check of the real rig; reads, never moves.
 
 Prints a table of checks (ok / warning / FAIL with the reason), then one ``darp: error:`` line per
 failure on stderr. Exit codes: 0 when nothing required failed, 2 otherwise (a bad rig file, a missing
@@ -9,11 +9,12 @@ camera or stream profile, an unreachable arm, a joint outside its limits). The l
 from __future__ import annotations
 
 import json
-from pathlib import Path
+from typing import Annotated, Any
 
 import typer
 
-from darp.cli._app import app
+from darp.cli._app import app, error
+from darp.cli._options import RigFile
 
 hardware_app = typer.Typer(help="The real rig: pre-flight checks (nothing moves).", no_args_is_help=True)
 app.add_typer(hardware_app, name="hardware")
@@ -21,7 +22,7 @@ app.add_typer(hardware_app, name="hardware")
 STYLE = {"ok": "green", "warning": "yellow", "FAIL": "bold red"}
 
 
-def _print_table(report) -> None:
+def _print_table(report: Any) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -49,20 +50,24 @@ def _print_table(report) -> None:
 
 @hardware_app.command("check")
 def check(
-    rig_file: Path = typer.Argument(..., help="Rig YAML file (geometry and its hardware: section)."),
-    as_json: bool = typer.Option(False, "--json", help="Print the report as JSON instead of tables."),
-    timeout_s: float = typer.Option(3.0, "--timeout", help="Seconds each arm's controller may take to answer."),
-    park_tol_rad: float = typer.Option(0.05, "--park-tolerance", help="Radians from the park pose still 'at park'."),
+    rig_file: RigFile = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the report as JSON instead of tables.")] = False,
+    timeout_s: Annotated[float, typer.Option("--timeout-s", min=0.0, help="Seconds each arm's controller may take "
+                                             "to answer.")] = 3.0,
+    park_tolerance_rad: Annotated[float, typer.Option("--park-tolerance-rad", min=0.0, help="Radians from the park "
+                                                      "pose still 'at park'.")] = 0.05,
 ) -> None:
     """Check cameras, streams and arms of the real rig without moving anything; exit 2 if something required fails."""
     from darp.hardware.check import check_rig
+    from darp.kinematics.rig import default_rig_path
 
-    report = check_rig(rig_file, arm_timeout_s=timeout_s, park_tol_rad=park_tol_rad)
+    report = check_rig(rig_file if rig_file is not None else default_rig_path(), arm_timeout_s=timeout_s,
+                       park_tol_rad=park_tolerance_rad)
     if as_json:
         typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
         _print_table(report)
     for failure in report.failures:
-        typer.echo(f"darp: error: {failure.name}: {failure.detail}", err=True)
+        error(f"{failure.name}: {failure.detail}")
     if report.failures:
         raise typer.Exit(code=2)

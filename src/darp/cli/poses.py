@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
 from darp.cli._app import app
+from darp.cli._options import ImageStream, RigFile, calibration_option, input_argument, out_option
 from darp.kinematics.camera_poses import DEFAULT_MAX_GAP_S
 
 
@@ -17,21 +19,22 @@ def warn(message: str) -> None:
 
 @app.command("poses")
 def poses(
-    survey: Path = typer.Argument(..., help="Survey folder (cam<serial>.bag x2, arm_poses.csv, ...)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder (created; files replaced atomically)."),
-    calibration: Path | None = typer.Option(
-        None, "--calibration", "-c", help="Calibration JSON of the rig epoch (default: the rig's nominal values)."),
-    rig_file: Path | None = typer.Option(None, "--rig", help="Rig YAML (nominal fallback, table in the figure)."),
-    stream: str = typer.Option("depth", "--stream", help="Stream whose frames get poses: depth, color, ir1, ir2."),
-    max_gap_s: float = typer.Option(
-        DEFAULT_MAX_GAP_S, "--max-gap", min=1e-6, help="Longest joint-log gap (s) interpolated across."),
-    clock_offset_s: float = typer.Option(
-        0.0, "--clock-offset", help="Camera clock minus host clock (s): camera time = host time + offset."),
-    figure: bool = typer.Option(True, "--figure/--no-figure", help="Write trajectories.png."),
+    survey: Annotated[Path, input_argument("Survey folder (cam<serial>.bag x2, arm_poses.csv, ...).")],
+    out: Annotated[Path, out_option("Output folder (created; files replaced atomically).")],
+    calibration: Annotated[Path | None, calibration_option(
+        "Calibration JSON of the rig epoch (default: the rig's nominal values).")] = None,
+    rig_file: RigFile = None,
+    stream: Annotated[ImageStream, typer.Option("--stream", help="Stream whose frames get poses.")] = (
+        ImageStream.depth),
+    max_gap_s: Annotated[float, typer.Option("--max-gap-s", min=1e-6, help="Longest joint-log gap interpolated "
+                                             "across, seconds.")] = DEFAULT_MAX_GAP_S,
+    clock_offset_s: Annotated[float, typer.Option("--clock-offset-s", help="Camera clock minus host clock, seconds: "
+                                                  "camera time = host time + offset.")] = 0.0,
+    figure: Annotated[bool, typer.Option("--figure/--no-figure", help="Write trajectories.png.")] = True,
 ) -> None:
     """Camera pose at every frame of both cameras: TUM files, .npz arrays, summary.json, a figure.
 
-    Frames outside the joint log, or inside a log gap longer than --max-gap, get no pose.
+    Frames outside the joint log, or inside a log gap longer than --max-gap-s, get no pose.
     """
     from rich.console import Console
     from rich.progress import BarColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
@@ -60,7 +63,7 @@ def poses(
             progress.advance(task)
 
         result = recover_survey_poses(
-            opened, cal, calibration_path=calibration, stream=stream, max_gap_s=max_gap_s,
+            opened, cal, calibration_path=calibration, stream=stream.value, max_gap_s=max_gap_s,
             clock_offset_s=clock_offset_s, wrist_frame=rig.wrist_frame, on_arm=on_arm,
         )
         progress.update(task, description="writing trajectories")

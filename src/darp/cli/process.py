@@ -3,11 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import typer
 
 from darp.cli._app import app
+from darp.cli._options import calibration_option, input_argument, out_option
+
+CALIBRATION_HELP = "Calibration JSON of the rig epoch."
+SETTINGS_HELP = "Processing settings YAML/JSON (docs/processing-pipeline.md)."
+TruthPoses = Annotated[bool, typer.Option("--truth-poses", help="Twin surveys: the true camera poses (truth/) "
+                                          "instead of eq. 1 (the accuracy floor).")]
+SettingsFile = Annotated[Path | None, typer.Option("--settings", help=SETTINGS_HELP, exists=True, dir_okay=False,
+                                                   show_default=False)]
 
 
 def _warn(message: str) -> None:
@@ -32,24 +40,27 @@ def _settings(path: Path | None) -> Any:
 def _job(survey_path: Path, out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
          progress: Any = None) -> Any:
     """Open the survey with the calibration's serial mapping; the twin's true calibration with --truth-poses."""
-    from darp.errors import DarpError
     from darp.formats.calibration import read_calibration
     from darp.formats.survey import open_survey
     from darp.processing.pipeline import SurveyJob
 
     if calibration is not None:
         cal = read_calibration(calibration)
-    elif truth_poses:
+    else:
         from darp.twin.truth import read_truth
 
         cal = read_truth(survey_path).calibration
-    else:
-        raise DarpError("--calibration is required (only --truth-poses on a twin survey can do without)")
     survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in cal.arms.items()})
     for note in survey.notes:
         _warn(f"{survey.name}: {note}")
     return SurveyJob(survey=survey, out=out, calibration=cal, calibration_path=calibration, settings=settings,
                      truth_poses=truth_poses, progress=progress)
+
+
+def _need_calibration(calibration: Path | None, truth_poses: bool) -> None:
+    if calibration is None and not truth_poses:
+        raise typer.BadParameter("required (only --truth-poses on a twin survey can do without)",
+                                 param_hint="'--calibration'")
 
 
 def _progress_bars() -> Any:
@@ -80,13 +91,15 @@ def _stage_callback(progress: Any, label: str) -> Any:
 
 @app.command("keyframes")
 def keyframes(
-    survey: Path = typer.Argument(..., help="Survey folder (cam<serial>.bag x2, arm_poses.csv, manip_envelope.json)."),
-    out: Path = typer.Option(..., "--out", "-o", help="Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/)."),
-    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Calibration JSON of the rig epoch."),
-    truth_poses: bool = typer.Option(False, "--truth-poses", help="Use the twin's true camera poses (truth/)."),
-    settings_file: Path | None = typer.Option(None, "--settings", help="Settings YAML/JSON (keyframes, fusion groups)."),
+    survey: Annotated[Path, input_argument("Survey folder (cam<serial>.bag x2, arm_poses.csv, "
+                                           "manip_envelope.json).")],
+    out: Annotated[Path, out_option("Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/).")],
+    calibration: Annotated[Path | None, calibration_option(CALIBRATION_HELP)] = None,
+    truth_poses: TruthPoses = False,
+    settings_file: SettingsFile = None,
 ) -> None:
     """Select settled, view-diverse keyframes per arm and export them (aligned RGB, depth, IR, mask, pose)."""
+    _need_calibration(calibration, truth_poses)
     from rich.console import Console
     from rich.table import Table
 
@@ -104,8 +117,9 @@ def keyframes(
     table = Table(title=f"{job.survey.name}: keyframes")
     for column in ("arm", "frames", "settled", "in view", "views", "keyframes", "held out"):
         table.add_column(column, justify="right")
+    keys = ("frames", "settled", "in_view", "views", "keyframes", "heldout")
     for arm, c in summary["arms"].items():
-        table.add_row(arm, *(str(c.get(k, 0)) for k in ("frames", "settled", "in_view", "views", "keyframes", "heldout")))
+        table.add_row(arm, *(str(c.get(k, 0)) for k in keys))
     Console().print(table)
     _warn_estimated_envelope(job.survey.name, summary.get("envelope"))
     typer.echo(f"wrote {out}")
@@ -113,19 +127,19 @@ def keyframes(
 
 @app.command("process")
 def process(
-    surveys: list[Path] = typer.Argument(..., help="Survey folders, or folders holding survey folders."),
-    out: Path = typer.Option(..., "--out", "-o", help="Output folder: <out>/<survey>/ per survey, results.json."),
-    calibration: Path | None = typer.Option(None, "--calibration", "-c", help="Calibration JSON of the rig epoch."),
-    truth_poses: bool = typer.Option(False, "--truth-poses",
-                                     help="Twin surveys: the true camera poses instead of eq. 1 (the accuracy floor)."),
-    settings_file: Path | None = typer.Option(None, "--settings", help="Settings YAML/JSON (docs/processing-pipeline.md)."),
-    resume: bool = typer.Option(False, "--resume", help="Skip stages already done with the same inputs and settings."),
+    surveys: Annotated[list[Path], input_argument("Survey folders, or folders holding survey folders.")],
+    out: Annotated[Path, out_option("Output folder: <out>/<survey>/ per survey, results.json.")],
+    calibration: Annotated[Path | None, calibration_option(CALIBRATION_HELP)] = None,
+    truth_poses: TruthPoses = False,
+    settings_file: SettingsFile = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Skip stages already done with the same inputs and "
+                                         "settings.")] = False,
 ) -> None:
     """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall."""
+    _need_calibration(calibration, truth_poses)
     from rich.console import Console
     from rich.table import Table
 
-    from darp.errors import DarpError
     from darp.formats.survey import find_survey_folders
     from darp.processing.pipeline import process_survey
     from darp.processing.results import PROCESS_STAGES, write_summary
@@ -135,7 +149,8 @@ def process(
     names = [f.name for f in folders]
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:
-        raise DarpError(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide")
+        raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
+                                 param_hint="'SURVEYS...'")
     done: list[Path] = []
     with _progress_bars() as progress:
         overall = progress.add_task("surveys", total=len(folders))
@@ -175,11 +190,11 @@ def process(
 
 @app.command("report")
 def report(
-    out: Path = typer.Argument(..., help="Output folder of darp process."),
+    processed: Annotated[Path, input_argument("Output folder of darp process.")],
 ) -> None:
     """Write report.md and report.html (every table and figure across the processed surveys)."""
     from darp.processing.report import write_report
 
-    md_path, html_path = write_report(out)
+    md_path, html_path = write_report(processed)
     typer.echo(f"wrote {md_path}")
     typer.echo(f"wrote {html_path}")

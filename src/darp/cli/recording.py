@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -18,15 +18,16 @@ import numpy as np
 import typer
 
 from darp.cli._app import app
+from darp.cli._options import ExportStream, input_argument, out_option
 from darp.errors import RecordingError
 
 recording_app = typer.Typer(help="Inspect and export RealSense recordings (.bag, .db3).", no_args_is_help=True)
 app.add_typer(recording_app, name="recording")
 
-EXPORT_STREAMS = ("depth", "color", "ir1", "ir2", "imu")
+RecordingFile = Annotated[Path, input_argument("A RealSense recording (.bag or .db3).")]
 
 
-class ExportFormat(str, Enum):
+class ExportFormat(StrEnum):
     png = "png"
     npy = "npy"
 
@@ -34,8 +35,9 @@ class ExportFormat(str, Enum):
 # -- info ---------------------------------------------------------------------------------------------
 def _compression(recording: Any) -> str:
     """The .db3 reader says ``compression`` (png/none); the .bag reader lists its chunks' ``compressions``."""
-    if isinstance(getattr(recording, "compression", None), str):
-        return recording.compression
+    compression = getattr(recording, "compression", None)
+    if isinstance(compression, str):
+        return compression
     return ", ".join(getattr(recording, "compressions", None) or ["unknown"])
 
 
@@ -144,7 +146,7 @@ def _print_summary(summary: dict[str, Any]) -> None:
 
 @recording_app.command("info")
 def info_command(
-    file: Annotated[Path, typer.Argument(help="A RealSense recording (.bag or .db3).", show_default=False)],
+    file: RecordingFile,
     as_json: Annotated[bool, typer.Option("--json", help="Print JSON instead of tables.")] = False,
 ) -> None:
     """Device, streams (format, size, fps, intrinsics, frames, timestamps, rate), extrinsics, depth scale."""
@@ -161,15 +163,12 @@ def info_command(
 
 
 # -- export -------------------------------------------------------------------------------------------
-def _parse_streams(text: str | None, recording: Any) -> list[str]:
-    """Stream keys to export; ``imu`` stands for accel and gyro."""
-    names = [n.strip() for n in text.split(",") if n.strip()] if text else [
-        k for k in EXPORT_STREAMS if k in recording.streams or (k == "imu" and "accel" in recording.streams)]
+def _export_keys(streams: list[ExportStream] | None, recording: Any) -> list[str]:
+    """Stream keys to export (default: every stream present); ``imu`` stands for accel and gyro."""
+    names = [s.value for s in streams] if streams else [
+        k for k in ("depth", "color", "ir1", "ir2", "accel", "gyro") if k in recording.streams]
     keys: list[str] = []
     for name in names:
-        if name not in EXPORT_STREAMS + ("accel", "gyro"):
-            raise RecordingError(f"unknown stream {name!r} (choose from {', '.join(EXPORT_STREAMS)})",
-                                 recording.path)
         wanted = [k for k in ("accel", "gyro") if k in recording.streams] if name == "imu" else [name]
         if not wanted:
             raise RecordingError("no IMU streams (accel, gyro) in this recording", recording.path)
@@ -241,15 +240,18 @@ def _metadata_json(recording: Any, keys: list[str]) -> dict[str, Any]:
 
 @recording_app.command("export")
 def export_command(
-    file: Annotated[Path, typer.Argument(help="A RealSense recording (.bag or .db3).", show_default=False)],
-    out: Annotated[Path, typer.Option("--out", help="Output folder.", show_default=False)],
-    streams: Annotated[str | None, typer.Option(
-        "--streams", help="Comma-separated: depth,color,ir1,ir2,imu (default: all present).")] = None,
-    fmt: Annotated[ExportFormat, typer.Option("--format", help="Image file format.")] = ExportFormat.png,
+    file: RecordingFile,
+    out: Annotated[Path, out_option("Output folder.")],
+    streams: Annotated[list[ExportStream] | None, typer.Option(
+        "--stream", help="Stream to export; repeat per stream (imu: accel and gyro; default: every stream "
+        "present).", show_default=False)] = None,
+    fmt: Annotated[ExportFormat, typer.Option("--format", "-f", help="Image file format.")] = ExportFormat.png,
     start_ms: Annotated[float | None, typer.Option(
-        "--start-ms", help="Export frames recorded from this time on (ms since the recording started).")] = None,
+        "--start-ms", help="Export frames recorded from this time on (ms since the recording started).",
+        show_default=False)] = None,
     stop_ms: Annotated[float | None, typer.Option(
-        "--stop-ms", help="Export frames recorded before this time (ms since the recording started).")] = None,
+        "--stop-ms", help="Export frames recorded before this time (ms since the recording started).",
+        show_default=False)] = None,
     every: Annotated[int, typer.Option("--every", min=1, help="Keep every N-th image frame of each stream.")] = 1,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Write into a non-empty output folder.")] = False,
 ) -> None:
@@ -261,7 +263,7 @@ def export_command(
     from darp.formats.realsense.recording import open_recording
 
     with open_recording(file) as recording:
-        keys = _parse_streams(streams, recording)
+        keys = _export_keys(streams, recording)
         if out.exists() and not out.is_dir():
             raise RecordingError("exists and is not a folder", out)
         if out.is_dir() and any(out.iterdir()) and not overwrite:

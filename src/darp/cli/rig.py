@@ -3,34 +3,28 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Annotated, Any
 
 import numpy as np
 import typer
 
 from darp.cli._app import app
+from darp.cli._options import ArmConfig, Joints, RigFile, calibration_option, out_option, parse_joints
 
 rig_app = typer.Typer(help="The dual-arm rig: print and plot its geometry.", no_args_is_help=True)
 app.add_typer(rig_app, name="rig")
 
 
-def parse_joints(text: str, option: str) -> np.ndarray:
-    """Six comma- (or space-) separated joint angles in radians; a KinematicsError names the option."""
-    from darp.errors import KinematicsError
-
-    parts = [p for p in text.replace(",", " ").split() if p]
-    try:
-        q = np.array([float(p) for p in parts], dtype=np.float64)
-    except ValueError:
-        raise KinematicsError(f"{option}: expected 6 numbers (radians), got {text!r}") from None
-    if q.shape != (6,) or not np.all(np.isfinite(q)):
-        raise KinematicsError(f"{option}: expected 6 finite numbers (radians), got {len(parts)} in {text!r}")
-    return q
+def _joints_option(arm: str) -> Any:
+    return typer.Option(f"--q{arm.removeprefix('arm')}-rad", parser=parse_joints, metavar="Q1,..,Q6",
+                        help=f"{arm} joints, 6 radians: '0,0.6,-1.2,1.2,0,0' (replaces --config for this arm).",
+                        show_default=False)
 
 
 @rig_app.command("show")
 def show(
-    rig_file: Path | None = typer.Argument(None, help="Rig YAML file (default: the packaged rig)."),
-    as_yaml: bool = typer.Option(False, "--yaml", help="Print the rig as YAML instead of tables."),
+    rig_file: RigFile = None,
+    as_yaml: Annotated[bool, typer.Option("--yaml", help="Print the rig as YAML instead of tables.")] = False,
 ) -> None:
     """Print a rig: arms, bases, camera mounts, park poses, table, workspace and margins."""
     from rich.console import Console
@@ -79,17 +73,16 @@ def show(
 
 @rig_app.command("plot")
 def plot(
-    out: Path = typer.Option(..., "--out", "-o", help="Image to write (.png, .svg or .pdf)."),
-    rig_file: Path | None = typer.Option(None, "--rig", help="Rig YAML file (default: the packaged rig)."),
-    config: str = typer.Option(
-        "park", "--config", help="Configuration for both arms: park, or a Z1 named one (forward, stow, ...)."),
-    q110: str | None = typer.Option(None, "--q110", help="arm110 joints, 6 radians: '0,0.6,-1.2,1.2,0,0'."),
-    q111: str | None = typer.Option(None, "--q111", help="arm111 joints, 6 radians."),
-    calibration: Path | None = typer.Option(
-        None, "--calibration", "-c", help="Draw with calibrated bases, mounts and joint offsets."),
+    out: Annotated[Path, out_option("Image to write (.png, .svg or .pdf).")],
+    rig_file: RigFile = None,
+    config: Annotated[ArmConfig, typer.Option("--config", help="Configuration for both arms: park, or a Z1 named "
+                                              "one.")] = ArmConfig.park,
+    q110: Annotated[Joints | None, _joints_option("arm110")] = None,
+    q111: Annotated[Joints | None, _joints_option("arm111")] = None,
+    calibration: Annotated[Path | None, calibration_option("Draw with calibrated bases, mounts and joint "
+                                                           "offsets.")] = None,
 ) -> None:
     """Draw both arms (links, collision capsules), cameras (frustums) and the table: two views."""
-    from darp.errors import KinematicsError
     from darp.formats.calibration import read_calibration
     from darp.kinematics import z1
     from darp.kinematics.rig import load_rig
@@ -97,17 +90,14 @@ def plot(
 
     rig = load_rig(rig_file)
     cal = read_calibration(calibration) if calibration is not None else None
-    if config != "park" and config not in z1.NAMED_CONFIGS:
-        names = ", ".join(["park", *z1.NAMED_CONFIGS])
-        raise KinematicsError(f"--config: unknown configuration {config!r} (choose from {names})")
     given = {"arm110": q110, "arm111": q111}
     q_by_arm = {}
     for arm_id, arm in rig.arms.items():
-        text = given.get(arm_id)
-        if text is not None:
-            q = parse_joints(text, f"--q{arm_id.removeprefix('arm')}")
+        joints = given.get(arm_id)
+        if joints is not None:
+            q = np.array(joints.rad, dtype=np.float64)
         else:
-            q = arm.park_q_rad if config == "park" else z1.NAMED_CONFIGS[config]
+            q = arm.park_q_rad if config is ArmConfig.park else z1.NAMED_CONFIGS[config.value]
         if not z1.within_limits(q):  # still drawn: seeing where an infeasible pose goes is the point
             typer.echo(f"darp: warning: {arm_id}: joints {np.round(q, 4).tolist()} are outside the Z1 limits",
                        err=True)

@@ -88,6 +88,26 @@ def _object_info(obj: Any, placement: Any, scale: float) -> dict[str, Any]:
     }
 
 
+def write_twin_truth(folder: str | Path, twin: TwinRig, obj: Any = None, placement: Any = None,
+                     scale: float = 1.0) -> list[ContactEvent]:
+    """Write ``folder/truth/`` of a twin run: true calibration, settings, camera poses, the object (object.json,
+    object.ply; none for an empty table) and contacts.json. Returns the contact events."""
+    object_info = mesh = None
+    if obj is not None and placement is not None:
+        from darp.twin.objects.model import to_world
+
+        object_info, mesh = _object_info(obj, placement, scale), to_world(obj, placement)
+    write_truth(folder, true_rig=twin.true_rig, settings=twin.settings,
+                camera_poses={a: c.truth for a, c in twin.cameras.items()}, object_info=object_info,
+                object_mesh_world=mesh)
+    events = list(twin.contact_events)
+    write_json_atomic(Path(folder) / TRUTH_DIR / "contacts.json", [
+        {"time_s": e.time_s, "arm": e.contact.arm_id, "arm_geom": e.contact.arm_geom,
+         "other": e.contact.other, "other_geom": e.contact.other_geom, "distance_m": e.contact.distance_m}
+        for e in events])
+    return events
+
+
 def _run(twin: TwinRig, plan: WaypointPlan, folder: Path, progress: ProgressFn | None, total_s: float) -> None:
     clock = twin.clock
 
@@ -166,17 +186,7 @@ def record_survey(
                 extra={"source": "darp twin record: the object's true envelope"},
             )
             write_envelope(partial / ENVELOPE_FILE, envelope)
-            from darp.twin.objects.model import to_world
-
-            write_truth(partial, true_rig=twin.true_rig, settings=settings,
-                        camera_poses={a: c.truth for a, c in twin.cameras.items()},
-                        object_info=_object_info(obj, placement, scale),
-                        object_mesh_world=to_world(obj, placement))
-            events = list(twin.contact_events)
-            write_json_atomic(partial / TRUTH_DIR / "contacts.json", [
-                {"time_s": e.time_s, "arm": e.contact.arm_id, "arm_geom": e.contact.arm_geom,
-                 "other": e.contact.other, "other_geom": e.contact.other_geom, "distance_m": e.contact.distance_m}
-                for e in events])
+            events = write_twin_truth(partial, twin, obj, placement, scale)
             frames = {a: c.frames_recorded for a, c in twin.cameras.items()}
             timings = {a: dict(c.timings_s) for a, c in twin.cameras.items()}
         log = read_arm_poses(partial / "arm_poses.csv", known_arms=tuple(park))
@@ -190,4 +200,4 @@ def record_survey(
     return RecordResult(out, last - first, frames, {a: log.rows(a) for a in log.arms}, events, timings)
 
 
-__all__ = ["RecordResult", "expected_duration_s", "record_survey"]
+__all__ = ["RecordResult", "expected_duration_s", "record_survey", "write_twin_truth"]
