@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # for the tests' helpers package
 
 W, H = 640, 480
 
@@ -82,7 +82,7 @@ def time_darp(path: Path) -> tuple[int, float]:
 
 
 def time_pyrealsense(path: Path) -> tuple[int, float]:
-    from realsense_playback import play_back
+    from helpers.realsense_playback import play_back
 
     start = time.perf_counter()
     played = play_back(path)

@@ -32,15 +32,14 @@ from typing import Self
 import numpy as np
 import open3d as o3d
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from synthetic_depth import D435_INTRINSICS, Scene, add_depth_noise, box, orbit_poses, table, to_z16
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # for the tests' helpers package
 
 from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
 from darp.reconstruction.backproject import PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop, support_mask
 from darp.reconstruction.fusion import FusionSettings, VoxelFusion
 from darp.reconstruction.mesh import ball_pivoting_mesh, mesh_arrays
+from helpers.synthetic_depth import D435_INTRINSICS, Scene, add_depth_noise, box, orbit_poses, table, to_z16
 
 CENTRE = np.array([0.01, 0.0, 0.05])
 

@@ -66,11 +66,10 @@ def test_twin_survey_is_accepted(tmp_path: Path, capsys: pytest.CaptureFixture[s
 def test_hardware_branch_runs_the_same_procedure(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     """``--hardware`` opens the rig YAML's HardwareRig; here a fake backend stands in for the devices."""
-    from test_acquisition_fakes import Cylinder, FakeRig
-
     import darp.hardware.rig as hardware_rig
     from darp.formats.calibration import write_calibration
     from darp.kinematics.rig import default_rig_path, load_rig
+    from helpers.acquisition_fakes import Cylinder, FakeRig
 
     opened: list[Path] = []
     fake = FakeRig([Cylinder(0.0, -0.05, 0.05, 0.1)])

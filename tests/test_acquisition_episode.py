@@ -6,10 +6,10 @@ import json
 from pathlib import Path
 
 import pytest
-from test_acquisition_fakes import FakeClock
 
 from darp.acquisition.episode import Episode, check_name, read_events
 from darp.errors import AcquisitionError
+from helpers.acquisition_fakes import FakeClock
 
 
 def test_accept_renames_and_keeps_the_events(tmp_path: Path) -> None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_acquisition_fakes import INTRINSICS, Cylinder, render_depth
 
 from darp.acquisition.estimate import (
     LocaliseSettings,
@@ -15,6 +14,7 @@ from darp.acquisition.localise import search_targets
 from darp.geometry import min_enclosing_circle
 from darp.kinematics import transforms as tf
 from darp.kinematics.rig import load_rig
+from helpers.acquisition_fakes import INTRINSICS, Cylinder, render_depth
 
 RIG = load_rig()
 

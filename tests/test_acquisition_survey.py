@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_acquisition_fakes import Cylinder, FakeRig
 
 from darp.acquisition.confirm import ConfirmSettings
 from darp.acquisition.episode import read_events
@@ -15,6 +14,7 @@ from darp.errors import AcquisitionError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
 from darp.formats.realsense.recording import open_recording
+from helpers.acquisition_fakes import Cylinder, FakeRig
 
 OBJECT = Cylinder(0.05, 0.08, 0.05, 0.10)
 

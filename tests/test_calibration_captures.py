@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from calibration_synthetic import COLOR, T_DEPTH_COLOR
 
 from darp.calibration.board import DEFAULT_BOARD
 from darp.calibration.captures import CaptureWriter, read_captures
 from darp.errors import CalibrationError, FormatError
+from helpers.calibration_synthetic import COLOR, T_DEPTH_COLOR
 
 
 def _write(folder: Path, n: int = 2) -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pyrealsense2 as rs
 import pytest
-from calibration_synthetic import COLOR, render_board
 
 from darp.calibration.board import DEFAULT_BOARD, corners_board_m
 from darp.calibration.captures import CaptureRecord
@@ -14,6 +13,7 @@ from darp.calibration.geometry import undistort_pixels
 from darp.errors import CalibrationError
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.transforms import look_at, pose_error
+from helpers.calibration_synthetic import COLOR, render_board
 
 T_WORLD_BOARD = np.eye(4)
 

@@ -17,14 +17,8 @@ from darp.calibration.plan import (
 )
 from darp.errors import CalibrationError, FormatError
 from darp.kinematics import collision, z1
-from darp.kinematics.rig import load_rig
 
 SETTINGS = PlanSettings(n_per_arm=10, n_candidates=120)
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_rig()
 
 
 @pytest.fixture(scope="module")

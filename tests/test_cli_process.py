@@ -34,13 +34,6 @@ def test_report_without_results(tmp_path: Path, capsys) -> None:
     one_error_line(capsys, "no processed survey")
 
 
-@pytest.fixture(scope="module")
-def survey_path(tmp_path_factory) -> Path:
-    from test_process_pipeline import record_tiny_survey
-
-    return record_tiny_survey(tmp_path_factory.mktemp("twin") / "cube")
-
-
 @pytest.mark.slow
 def test_bad_settings_and_calibration(survey_path: Path, tmp_path: Path, capsys) -> None:
     settings = tmp_path / "settings.yaml"

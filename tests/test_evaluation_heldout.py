@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
-from synthetic_depth import Scene, box, look_at, small_intrinsics, table
 
 from darp.errors import EvaluationError
 from darp.evaluation.heldout import HeldoutSummary, evaluate_heldout, heldout_mask
 from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
 from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
+from helpers.synthetic_depth import Scene, box, look_at, small_intrinsics, table
 
 INTR = small_intrinsics(160, 120, 190.0)
 TOP = 0.05

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
-from synthetic_depth import Scene, add_depth_noise, box, orbit_poses, small_intrinsics, table, to_z16
 
 from darp.evaluation.cross_arm import cross_arm_consistency
 from darp.evaluation.heldout import evaluate_heldout, heldout_mask
@@ -16,6 +15,7 @@ from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.fusion import FusionSettings, fuse
 from darp.reconstruction.mesh import ball_pivoting_mesh, boundary_edges, mesh_arrays
+from helpers.synthetic_depth import Scene, add_depth_noise, box, orbit_poses, small_intrinsics, table, to_z16
 
 INTR = small_intrinsics(320, 240, 380.0)  # the D435's pixel footprint, a smaller field of view
 CENTRE = (0.01, 0.0, 0.04)

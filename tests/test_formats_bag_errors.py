@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_formats_bag import DEVICE, profiles, write_sample
 
 from darp.errors import DarpError, RecordingError
 from darp.formats.realsense.bag.reader import BagRecording
@@ -15,6 +14,7 @@ from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.recording import open_recording
 from darp.formats.realsense.rosbag1.index import MAGIC, load_index, read_record
 from darp.formats.realsense.types import StreamProfile
+from helpers.bag_samples import DEVICE, profiles, write_sample
 
 CHUNKED = 20_000  # small chunks: about one frame set each at 64x48
 

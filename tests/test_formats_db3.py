@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from realsense_playback import play_back
 
 from darp.errors import RecordingError
 from darp.formats.realsense.db3.reader import Db3Recording, parse_key_values
 from darp.formats.realsense.recording import open_recording
+from helpers.realsense_playback import play_back
 
 rs = pytest.importorskip("pyrealsense2")
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"

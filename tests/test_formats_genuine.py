@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from realsense_playback import Played, play_back
 
 from darp.errors import RecordingError
 from darp.formats.realsense.recording import open_recording
+from helpers.realsense_playback import Played, play_back
 
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
 FILES = ["rs257_lz4.bag", "rs257_uncompressed.bag", "rs259_png.db3", "rs259_uncompressed.db3"]

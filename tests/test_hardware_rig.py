@@ -7,7 +7,6 @@ import time
 import numpy as np
 import pytest
 import yaml
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 from darp.backend import ArmBackend, JointState
 from darp.errors import ConfigError, FormatError, HardwareError
@@ -99,7 +98,7 @@ def rig_file(tmp_path, hardware: dict | None = None):
     return path
 
 
-def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111")):  # noqa: F811
+def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111")):
     fake_z1.reset(multi_arm=True)
     controllers = {arm_id: fake_z1.add_controller(PARK, port=port)
                    for arm_id, port in zip(arms, (8071, 8073))}
@@ -108,7 +107,7 @@ def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111")):  # noqa: F811
     return controllers
 
 
-def test_a_capture_on_the_rig_logs_moves_and_records_on_one_clock(fake_z1, fake_rs, tmp_path):  # noqa: F811
+def test_a_capture_on_the_rig_logs_moves_and_records_on_one_clock(fake_z1, fake_rs, tmp_path):
     plug_in(fake_z1, fake_rs)
     path = rig_file(tmp_path)
     assert load_rig(path).arm_ids == ("arm110", "arm111")  # the geometry loader tolerates the section
@@ -143,7 +142,7 @@ def test_a_capture_on_the_rig_logs_moves_and_records_on_one_clock(fake_z1, fake_
         assert stamps_s[0] < t[0] + 0.5 and stamps_s[-1] > t[-1] - 0.5
 
 
-def test_opening_part_of_a_rig_releases_what_was_connected(fake_z1, fake_rs, tmp_path):  # noqa: F811
+def test_opening_part_of_a_rig_releases_what_was_connected(fake_z1, fake_rs, tmp_path):
     plug_in(fake_z1, fake_rs, arms=("arm110",))  # arm111's controller is not running
     with pytest.raises(HardwareError, match="arm111: no answer from z1_ctrl at 127.0.0.1:8073 .*192.168.123.111"):
         HardwareRig.open(rig_file(tmp_path), connect_timeout_s=0.3)
@@ -161,7 +160,7 @@ def test_hardware_section_errors_name_the_file_and_field(tmp_path):
         HardwareRig.open(rig_file(tmp_path, {"cameras": {"fps": "thirty"}}))
 
 
-def test_open_rig_takes_a_loaded_rig_and_reads_its_hardware_section(fake_z1, fake_rs, tmp_path):  # noqa: F811
+def test_open_rig_takes_a_loaded_rig_and_reads_its_hardware_section(fake_z1, fake_rs, tmp_path):
     plug_in(fake_z1, fake_rs)
     from darp.hardware import open_rig
 

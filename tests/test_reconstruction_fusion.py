@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 import pytest
-from synthetic_depth import Scene, orbit_poses, small_intrinsics, sphere, table
 
 from darp.errors import ReconstructionError
 from darp.reconstruction.backproject import FrameCloud, PosedDepth
@@ -30,6 +29,7 @@ from darp.reconstruction.voxel_stats import (
     unpack_keys,
     view_bins,
 )
+from helpers.synthetic_depth import Scene, orbit_poses, small_intrinsics, sphere, table
 
 R = 0.04
 CENTRE = np.array([0.0, 0.0, R])

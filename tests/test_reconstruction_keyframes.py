@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from synthetic_depth import look_at, small_intrinsics
 
 from darp.errors import FormatError, ReconstructionError
 from darp.formats.realsense.types import Intrinsics
@@ -34,6 +33,7 @@ from darp.reconstruction.keyframes import (
     settled_mask,
 )
 from darp.reconstruction.poses import CameraTrajectory
+from helpers.synthetic_depth import look_at, small_intrinsics
 
 CENTRE = np.array([0.02, -0.01, 0.05])
 FPS = 30.0

@@ -20,7 +20,6 @@ import cv2
 import lz4.frame
 import numpy as np
 import pytest
-from realsense_playback import play_back
 from scipy.spatial.transform import Rotation
 
 from darp.errors import RecordingError, TwinError
@@ -31,6 +30,7 @@ from darp.twin.camera.depth_model import _window_min, occluded_from_right_scanli
 from darp.twin.camera.render import NO_GEOM, SceneRenderer, geom_image_region, mujoco
 from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings
 from darp.twin.camera.spec import make_camera_spec
+from helpers.realsense_playback import play_back
 
 
 # ======================================================================================================

@@ -11,7 +11,6 @@ import trimesh
 from darp.errors import ConfigError, KinematicsError, TwinError
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics import z1
-from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import look_at, make_transform, rotation_error_rad
 from darp.twin.arm_sim import SimArm
 from darp.twin.clock import SimClock
@@ -19,11 +18,6 @@ from darp.twin.settings import TwinSettings
 from darp.twin.truth import draw_true_rig
 from darp.twin.waypoints import load_waypoints
 from darp.twin.world import TwinWorld
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_rig()
 
 
 @pytest.fixture(scope="module")

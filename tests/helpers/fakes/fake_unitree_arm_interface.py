@@ -34,7 +34,7 @@ import numpy as np
 
 from darp.kinematics import ik, z1
 from darp.kinematics.transforms import posture_to_transform, transform_to_posture
-from fakes.fake_z1_controller import (
+from helpers.fakes.fake_z1_controller import (
     DT,
     Q_MAX,
     Q_MIN,

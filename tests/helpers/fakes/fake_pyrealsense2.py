@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pyrealsense2 as _rs
 
-from fakes import fake_rs_device as _dev
+from helpers.fakes import fake_rs_device as _dev
 
 # pyrealsense2's hardware-facing classes, simulated (fake_rs_device), under their real names
 (frame, video_frame, depth_frame, motion_frame, composite_frame, stream_profile, video_stream_profile, sensor,
