@@ -1,4 +1,4 @@
-"""Direct tests of the twin's fast paths (commit 5c29c89) against slow, obvious references.
+"""Direct tests of the twin's fast paths against slow, obvious references.
 
 - ``occluded_from_right_scanline`` (windowed minimum, ``mirrored``) and ``_window_min`` against brute-force
   loops written here from the geometric rule;
