@@ -58,7 +58,7 @@ def record(path: Path, frames: int, compress: bool) -> None:
             ((xx * 2 + yy + n) % 256 ^ rng.integers(0, 16, (H, W))).astype(np.uint8),
             np.ascontiguousarray(np.stack([(xx + n) % 256, yy % 256, (xx ^ yy) % 256], -1).astype(np.uint8)),
         ]
-        for (sensor, profile, bpp), pixels in zip(profiles, images):
+        for (sensor, profile, bpp), pixels in zip(profiles, images, strict=True):
             keep.append(pixels)
             f = rs.software_video_frame()
             f.pixels, f.bpp, f.stride, f.timestamp, f.frame_number = pixels, bpp, bpp * W, 1000.0 + 33.3 * n, n

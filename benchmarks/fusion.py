@@ -145,8 +145,8 @@ def main() -> None:
     for label, wall, cpu in rows:
         print(f"   {label:52s} {wall:11.1f} {cpu:10.1f}")
     for label, peer in (("raw depth", tsdf_raw), ("darp-masked depth", tsdf_masked)):
-        print(f"   darp stream / TSDF on {label}: {peer.wall / stream.wall:.1f}x wall, {peer.cpu / stream.cpu:.1f}x CPU; "
-              f"incl. final step {peer.wall / (stream.wall + final.wall):.1f}x wall")
+        print(f"   darp stream / TSDF on {label}: {peer.wall / stream.wall:.1f}x wall, "
+              f"{peer.cpu / stream.cpu:.1f}x CPU; incl. final step {peer.wall / (stream.wall + final.wall):.1f}x wall")
 
     print("\n2. memory while streaming the keyframes three times (300 distinct frames)")
     memory_run(frames, settings, crop)

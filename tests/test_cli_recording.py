@@ -50,8 +50,10 @@ def test_info_json_agrees_with_the_reader(path, capsys):
         assert info["depth_scale_m"] == recording.depth_scale
         depth = info["streams"]["depth"]
         infos = recording.frame_infos("depth")
-        assert (depth["format"], depth["width"], depth["height"], depth["fps"], depth["frames"]) == ("z16", 64, 48, 30, 4)
-        assert depth["first_timestamp_ms"] == infos[0].timestamp_ms and depth["last_timestamp_ms"] == infos[-1].timestamp_ms
+        assert (depth["format"], depth["width"], depth["height"], depth["fps"], depth["frames"]) == \
+            ("z16", 64, 48, 30, 4)
+        assert depth["first_timestamp_ms"] == infos[0].timestamp_ms
+        assert depth["last_timestamp_ms"] == infos[-1].timestamp_ms
         assert depth["measured_rate_hz"] == pytest.approx(3000.0 / (infos[-1].timestamp_ms - infos[0].timestamp_ms))
         assert info["streams"]["color"]["intrinsics"]["fx"] == recording.streams["color"].intrinsics.fx
         color = info["extrinsics_from_depth"]["color"]

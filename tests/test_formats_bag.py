@@ -78,7 +78,8 @@ def playback(path: Path) -> Playback:
             stopped_waits += 1
     intrinsics = {key: p.as_video_stream_profile().get_intrinsics() if p.is_video_stream_profile()
                   else p.as_motion_stream_profile().get_motion_intrinsics() for key, p in profiles_by_key.items()}
-    extrinsics = {(a, b): rs_extrinsics(pa, pb) for a, pa in profiles_by_key.items() for b, pb in profiles_by_key.items()}
+    extrinsics = {(a, b): rs_extrinsics(pa, pb)
+                  for a, pa in profiles_by_key.items() for b, pb in profiles_by_key.items()}
     fps = {key: p.fps() for key, p in profiles_by_key.items()}
     for sensor in sensors:
         sensor.stop()
@@ -112,15 +113,15 @@ def test_pyrealsense2_plays_darp_bag(tmp_path: Path, compression: str) -> None:
             np.testing.assert_allclose([f["ts"] for f in got], [f["ts"] for f in expected], rtol=0, atol=1e-5)
             # darp's reader computes the timestamp exactly as the player does
             assert [f["ts"] for f in got] == recording.timestamps_ms(key).tolist(), key
-            for g, e in zip(got, expected):
+            for g, e in zip(got, expected, strict=True):
                 assert g["data"].dtype == e["data"].dtype and np.array_equal(g["data"], e["data"]), key
             assert played.fps[key] == profile.fps
             if profile.is_image:
                 intr = played.intrinsics[key]
                 mine = profile.intrinsics
                 assert (intr.width, intr.height) == (mine.width, mine.height)
-                np.testing.assert_allclose([intr.fx, intr.fy, intr.ppx, intr.ppy], [mine.fx, mine.fy, mine.ppx, mine.ppy],
-                                           rtol=1e-6)
+                np.testing.assert_allclose([intr.fx, intr.fy, intr.ppx, intr.ppy],
+                                           [mine.fx, mine.fy, mine.ppx, mine.ppy], rtol=1e-6)
                 assert str(intr.model).split(".")[-1].replace("_", " ").lower() == mine.model.lower()
                 np.testing.assert_allclose(intr.coeffs, mine.coeffs, rtol=1e-6, atol=1e-9)
             else:
@@ -142,7 +143,7 @@ def test_pyrealsense2_plays_full_resolution_bag(tmp_path: Path) -> None:
     for key, expected in sample.frames.items():
         got = played.frames[key]
         assert [f["number"] for f in got] == [f["number"] for f in expected], key
-        assert all(np.array_equal(g["data"], e["data"]) for g, e in zip(got, expected)), key
+        assert all(np.array_equal(g["data"], e["data"]) for g, e in zip(got, expected, strict=True)), key
     assert played.intrinsics["color"].width == 640
 
 
@@ -278,7 +279,7 @@ def test_rosbags_reads_darp_bag(tmp_path: Path) -> None:
         accel = [c for c in reader.connections if c.topic.endswith("Accel_0/imu/data")]
         values = [store.deserialize_ros1(raw, "sensor_msgs/msg/Imu") for _, _, raw in reader.messages(accel)]
         assert [m.header.seq for m in values] == [f["number"] for f in sample.frames["accel"]]
-        for message, expected in zip(values, sample.frames["accel"]):
+        for message, expected in zip(values, sample.frames["accel"], strict=True):
             acc = message.linear_acceleration
             assert np.array_equal(np.float32([acc.x, acc.y, acc.z]), expected["data"])
         color_info = [c for c in reader.connections if c.topic.endswith("Color_0/info/camera_info")]
@@ -299,8 +300,10 @@ def test_reads_2018_style_bag_written_by_rosbags(tmp_path: Path) -> None:
     with writer:
         put = message_putter(writer, store)
         put("/file_version", "std_msgs/msg/UInt32", types["std_msgs/msg/UInt32"](data=3))
-        put("/device_0/info", "diagnostic_msgs/msg/KeyValue", types["diagnostic_msgs/msg/KeyValue"](key="Name", value="Intel RealSense D415"))
-        put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32", types["std_msgs/msg/Float32"](data=0.0001))
+        put("/device_0/info", "diagnostic_msgs/msg/KeyValue",
+            types["diagnostic_msgs/msg/KeyValue"](key="Name", value="Intel RealSense D415"))
+        put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32",
+            types["std_msgs/msg/Float32"](data=0.0001))
         put("/device_0/sensor_0/Depth_0/info", "realsense_msgs/msg/StreamInfo",
             types["realsense_msgs/msg/StreamInfo"](fps=15, encoding="mono16", is_recommended=True))
         header = types["std_msgs/msg/Header"]
@@ -323,7 +326,7 @@ def test_reads_2018_style_bag_written_by_rosbags(tmp_path: Path) -> None:
         frames = list(recording.iter_frames())
         assert [f.info.frame_number for f in frames] == [40, 41, 42]
         assert [f.info.timestamp_ms for f in frames] == [1500250.0, 1501250.0, 1502250.0]
-        assert all(np.array_equal(f.data, d) for f, d in zip(frames, depth))
+        assert all(np.array_equal(f.data, d) for f, d in zip(frames, depth, strict=True))
         assert frames[0].info.timestamp_domain == "Hardware Clock"  # librealsense's default without metadata
 
 

@@ -110,7 +110,7 @@ def test_every_frame_matches_librealsense(pair):
         assert len(infos) == len(expected) == recording.frame_count(key), key
         frames = list(recording.iter_frames([key]))
         assert [f.info for f in frames] == infos
-        for frame, want in zip(frames, expected):
+        for frame, want in zip(frames, expected, strict=True):
             assert frame.info.frame_number == want.frame_number, key
             assert frame.info.timestamp_ms == want.timestamp_ms, key
             assert frame.info.timestamp_domain == want.domain, key

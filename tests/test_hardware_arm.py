@@ -200,9 +200,9 @@ def test_two_arms_with_the_multi_arm_binding(fake_z1):
         for arm in arms:
             arm.connect()
         targets = [START + 0.25, START - np.array([0, 0.25, 0.25, 0.25, 0.25, 0.25])]
-        for arm, target in zip(arms, targets):
+        for arm, target in zip(arms, targets, strict=True):
             arm.move_to(target)
-        for arm, target in zip(arms, targets):
+        for arm, target in zip(arms, targets, strict=True):
             assert arm.wait_until_still(timeout_s=5.0)
             assert np.max(np.abs(arm.read_state().q_rad - target)) <= FAST.target_tolerance_rad
     finally:

@@ -69,7 +69,7 @@ def test_all_present_is_all_ok_exit_0_and_nothing_moves(fake_z1, fake_rs, tmp_pa
         assert report["arms"][arm_id]["within_limits"] and report["arms"][arm_id]["at_park"]
     assert details["arm110 streams"] == "depth z16, IR1 y8, IR2 y8, colour bgr8 at 640x480@30"
     assert details["arm111 controller"].startswith("z1_ctrl at 127.0.0.1:8073 (SDK port 8074")
-    assert {c["serial"]: c["usb"] for c in report["cameras"]} == {s: "3.2" for s in SERIALS.values()}
+    assert {c["serial"]: c["usb"] for c in report["cameras"]} == dict.fromkeys(SERIALS.values(), "3.2")
     assert report["cameras"][0]["name"] == "Intel RealSense D435I" and report["cameras"][0]["firmware"] == "5.16.0.1"
     for controller in controllers.values():  # read-only: no FSM change, no joint command tracked
         assert controller.state == fake_z1.ArmFSMState.PASSIVE and controller.commands == []
@@ -180,7 +180,8 @@ def test_a_malformed_rig_file_is_one_line(fake_z1, fake_rs, tmp_path, capsys):
     bad.write_text("arms: [unclosed\n")
     assert run(["hardware", "check", str(bad)]) == 2
     err = capsys.readouterr().err
-    expected = f"darp: error: rig file: {bad}: invalid YAML at line 2 column 1: expected ',' or ']', but got '<stream end>'"
+    expected = (f"darp: error: rig file: {bad}: invalid YAML at line 2 column 1: expected ',' or ']', "
+                "but got '<stream end>'")
     assert err.strip().splitlines() == [expected]
     rc, report, verdicts, details, err = check_json(rig_file(tmp_path, {"fps": "thirty"}), capsys)
     assert rc == 2 and list(verdicts) == ["rig file"] and verdicts["rig file"] == FAIL

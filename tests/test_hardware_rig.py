@@ -173,7 +173,7 @@ def rig_file(tmp_path, hardware: dict | None = None):
 def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111")):
     fake_z1.reset(multi_arm=True)
     controllers = {arm_id: fake_z1.add_controller(PARK, port=port)
-                   for arm_id, port in zip(arms, (8071, 8073))}
+                   for arm_id, port in zip(arms, (8071, 8073), strict=False)}
     for serial in SERIALS.values():
         fake_rs.add_camera(serial)
     return controllers

@@ -27,9 +27,9 @@ STAGES = ("poses", "keyframes", "fusion", "mesh", "evaluation")
 def make_job(survey_path: Path, out: Path, settings: ProcessSettings | None = None, truth_poses: bool = False,
              events: list | None = None) -> SurveyJob:
     truth = read_truth(survey_path)
+    progress = None if events is None else lambda stage, done, total: events.append((stage, done, total))
     return SurveyJob(open_survey(survey_path), out, truth.calibration, survey_path / "truth" / "calibration.json",
-                     settings or ProcessSettings(), truth_poses,
-                     progress=None if events is None else lambda stage, done, total: events.append((stage, done, total)))
+                     settings or ProcessSettings(), truth_poses, progress=progress)
 
 
 @pytest.fixture(scope="module")

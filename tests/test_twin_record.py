@@ -253,8 +253,8 @@ def test_cli_record_and_bad_input(tmp_path: Path, capsys) -> None:
     waypoints.write_text(f"arm,q1,q2,q3,q4,q5,q6,dwell_s\narm110,{q},0.1\n")
     out = tmp_path / "survey"
     args = ["twin", "record", "--waypoints", str(waypoints), "--object", "cube", "--placement", "0,0,30",
-            "--seed", "5", "--profile", "ideal", "--fps", "6", "--resolution", "424x240", "--no-workers", "--out", str(out),
-            "-q"]
+            "--seed", "5", "--profile", "ideal", "--fps", "6", "--resolution", "424x240", "--no-workers",
+            "--out", str(out), "-q"]
     assert run(args) == 0
     assert (out / "arm_poses.csv").is_file() and read_truth(out).object_info["placement"]["yaw_rad"] == pytest.approx(
         np.pi / 6)

@@ -56,8 +56,8 @@ class Sample:
 
 
 def write_sample(path: Path, *, compression: str = "lz4", width: int = 64, height: int = 48, framesets: int = 12,
-                 seed: int = 0, chunk_threshold: int = 768 * 1024, image_order: tuple[str, ...] = ("depth", "ir1", "ir2", "color"),
-                 imu: bool = True) -> Sample:
+                 seed: int = 0, chunk_threshold: int = 768 * 1024,
+                 image_order: tuple[str, ...] = ("depth", "ir1", "ir2", "color"), imu: bool = True) -> Sample:
     """A small recording with textured images, a colour stream on the system clock and 2 IMU streams."""
     rng = np.random.default_rng(seed)
     streams = [p for p in profiles(width, height) if imu or p.is_image]
@@ -69,7 +69,8 @@ def write_sample(path: Path, *, compression: str = "lz4", width: int = 64, heigh
         for i in range(framesets):
             t_ms = 1_700_000_000_000.0 + 33.3667 * i
             images = {
-                "depth": (800 + 200 * np.sin((x + 3 * i) / 7.0) + rng.integers(0, 9, (height, width))).astype(np.uint16),
+                "depth": (800 + 200 * np.sin((x + 3 * i) / 7.0)
+                          + rng.integers(0, 9, (height, width))).astype(np.uint16),
                 "ir1": rng.integers(0, 256, (height, width), dtype=np.uint8),
                 "ir2": rng.integers(0, 256, (height, width), dtype=np.uint8),
                 "color": rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
