@@ -77,7 +77,7 @@ def run_one(job: dict[str, Any]) -> dict[str, Any]:
         try:
             outcome = run_survey(twin, rig, out, name, calibration=cal, overwrite=True, object_name=obj.name)
             status, reason, message = outcome.status, outcome.reason, outcome.message
-        except Exception as err:  # noqa: BLE001  (an error is a result here, not the end of the benchmark)
+        except Exception as err:  # an error is a result here, not the end of the benchmark
             outcome, status, reason, message = None, "error", type(err).__name__, str(err)
         contacts = [(e.time_s, e.contact.arm_geom, e.contact.other_geom) for e in twin.contact_events]
         sim_s = twin.clock.now() - settings.timing.start_time_s

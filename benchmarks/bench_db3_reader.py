@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # for the tests' helpers package
 
 W, H = 640, 480
 
@@ -58,7 +58,7 @@ def record(path: Path, frames: int, compress: bool) -> None:
             ((xx * 2 + yy + n) % 256 ^ rng.integers(0, 16, (H, W))).astype(np.uint8),
             np.ascontiguousarray(np.stack([(xx + n) % 256, yy % 256, (xx ^ yy) % 256], -1).astype(np.uint8)),
         ]
-        for (sensor, profile, bpp), pixels in zip(profiles, images):
+        for (sensor, profile, bpp), pixels in zip(profiles, images, strict=True):
             keep.append(pixels)
             f = rs.software_video_frame()
             f.pixels, f.bpp, f.stride, f.timestamp, f.frame_number = pixels, bpp, bpp * W, 1000.0 + 33.3 * n, n
@@ -82,7 +82,7 @@ def time_darp(path: Path) -> tuple[int, float]:
 
 
 def time_pyrealsense(path: Path) -> tuple[int, float]:
-    from realsense_playback import play_back
+    from helpers.realsense_playback import play_back
 
     start = time.perf_counter()
     played = play_back(path)

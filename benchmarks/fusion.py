@@ -32,15 +32,14 @@ from typing import Self
 import numpy as np
 import open3d as o3d
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-
-from synthetic_depth import D435_INTRINSICS, Scene, add_depth_noise, box, orbit_poses, table, to_z16
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # for the tests' helpers package
 
 from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
 from darp.reconstruction.backproject import PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop, support_mask
 from darp.reconstruction.fusion import FusionSettings, VoxelFusion
 from darp.reconstruction.mesh import ball_pivoting_mesh, mesh_arrays
+from helpers.synthetic_depth import D435_INTRINSICS, Scene, add_depth_noise, box, orbit_poses, table, to_z16
 
 CENTRE = np.array([0.01, 0.0, 0.05])
 
@@ -146,8 +145,8 @@ def main() -> None:
     for label, wall, cpu in rows:
         print(f"   {label:52s} {wall:11.1f} {cpu:10.1f}")
     for label, peer in (("raw depth", tsdf_raw), ("darp-masked depth", tsdf_masked)):
-        print(f"   darp stream / TSDF on {label}: {peer.wall / stream.wall:.1f}x wall, {peer.cpu / stream.cpu:.1f}x CPU; "
-              f"incl. final step {peer.wall / (stream.wall + final.wall):.1f}x wall")
+        print(f"   darp stream / TSDF on {label}: {peer.wall / stream.wall:.1f}x wall, "
+              f"{peer.cpu / stream.cpu:.1f}x CPU; incl. final step {peer.wall / (stream.wall + final.wall):.1f}x wall")
 
     print("\n2. memory while streaming the keyframes three times (300 distinct frames)")
     memory_run(frames, settings, crop)

@@ -235,7 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     rec = sub.add_parser("record", help="(internal) record one file with this interpreter's pyrealsense2")
     rec.add_argument("out", type=Path)
     rec.add_argument("--compress", action=argparse.BooleanOptionalAction, default=True)
-    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent.parent / "tests/fixtures/recordings")
+    parser.add_argument("--out", type=Path,
+                        default=Path(__file__).resolve().parent.parent / "tests/fixtures/recordings")
     parser.add_argument("--old-venv", type=Path, default=Path("/tmp/rs257-venv"))
     args = parser.parse_args(argv)
     if args.command == "record":

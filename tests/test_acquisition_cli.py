@@ -69,7 +69,7 @@ def test_hardware_branch_runs_the_same_procedure(tmp_path: Path, monkeypatch: py
     import darp.hardware.rig as hardware_rig
     from darp.formats.calibration import write_calibration
     from darp.kinematics.rig import default_rig_path, load_rig
-    from test_acquisition_fakes import Cylinder, FakeRig
+    from helpers.acquisition_fakes import Cylinder, FakeRig
 
     opened: list[Path] = []
     fake = FakeRig([Cylinder(0.0, -0.05, 0.05, 0.1)])

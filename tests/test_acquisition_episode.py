@@ -9,7 +9,7 @@ import pytest
 
 from darp.acquisition.episode import Episode, check_name, read_events
 from darp.errors import AcquisitionError
-from test_acquisition_fakes import FakeClock
+from helpers.acquisition_fakes import FakeClock
 
 
 def test_accept_renames_and_keeps_the_events(tmp_path: Path) -> None:

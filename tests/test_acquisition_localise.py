@@ -14,12 +14,13 @@ from darp.acquisition.localise import search_targets
 from darp.geometry import min_enclosing_circle
 from darp.kinematics import transforms as tf
 from darp.kinematics.rig import load_rig
-from test_acquisition_fakes import INTRINSICS, Cylinder, render_depth
+from helpers.acquisition_fakes import INTRINSICS, Cylinder, render_depth
 
 RIG = load_rig()
 
 
-def camera_looking_at(target: np.ndarray, distance: float, elevation_deg: float, azimuth_deg: float = 180.0) -> np.ndarray:
+def camera_looking_at(target: np.ndarray, distance: float, elevation_deg: float,
+                      azimuth_deg: float = 180.0) -> np.ndarray:
     """T_world_cam of a camera ``distance`` from ``target`` at the given elevation and azimuth (world)."""
     e, a = np.radians(elevation_deg), np.radians(azimuth_deg)
     eye = target + distance * np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
@@ -109,7 +110,7 @@ def test_plane_fit_recovers_a_tilted_plane_despite_an_object() -> None:
 def test_min_enclosing_circle_matches_opencv() -> None:
     cv2 = pytest.importorskip("cv2")
     rng = np.random.default_rng(2)
-    for k in range(20):
+    for _ in range(20):
         pts = rng.normal(size=(int(rng.integers(3, 400)), 2)) * rng.uniform(0.01, 0.2, 2)
         centre, radius = min_enclosing_circle(pts)
         (cx, cy), r_cv = cv2.minEnclosingCircle(pts.astype(np.float32))

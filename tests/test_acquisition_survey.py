@@ -14,7 +14,7 @@ from darp.errors import AcquisitionError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
 from darp.formats.realsense.recording import open_recording
-from test_acquisition_fakes import Cylinder, FakeRig
+from helpers.acquisition_fakes import Cylinder, FakeRig
 
 OBJECT = Cylinder(0.05, 0.08, 0.05, 0.10)
 
@@ -91,7 +91,7 @@ def test_events_and_progress_follow_the_procedure(accepted: tuple) -> None:
     assert rig_times == sorted(rig_times)
     phases = [p for p, _, _ in seen]
     assert phases[0] == "localise" and phases[-1] == "done"
-    assert [p for p in dict.fromkeys(phases)] == ["localise", "confirm", "plan", "record", "verify", "done"]
+    assert list(dict.fromkeys(phases)) == ["localise", "confirm", "plan", "record", "verify", "done"]
 
 
 def test_same_inputs_give_the_same_survey(accepted: tuple, tmp_path: Path) -> None:

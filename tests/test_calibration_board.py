@@ -80,7 +80,8 @@ def test_pdf_places_the_board_at_true_size(tmp_path: Path) -> None:
     assert media[2] == pytest.approx(420 * PT_PER_MM, abs=0.01) and media[3] == pytest.approx(297 * PT_PER_MM, abs=0.01)
     # the image is drawn with "w 0 0 -h x y cm /I Do": its size on the page is the board's size
     draws = [s for s in _pdf_streams(data) if b" Do" in s]
-    match = re.search(rb"([\d.]+) 0 0\s+(-?[\d.]+) ([\d.]+) ([\d.]+) cm /I\d+ Do", b" ".join(draws).replace(b"\n", b" "))
+    match = re.search(rb"([\d.]+) 0 0\s+(-?[\d.]+) ([\d.]+) ([\d.]+) cm /I\d+ Do",
+                      b" ".join(draws).replace(b"\n", b" "))
     assert match is not None
     width_pt, height_pt = float(match.group(1)), abs(float(match.group(2)))
     assert width_pt == pytest.approx(300 * PT_PER_MM, abs=1e-3)

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration_synthetic import COLOR, T_DEPTH_COLOR
 from darp.calibration.board import DEFAULT_BOARD
 from darp.calibration.captures import CaptureWriter, read_captures
 from darp.errors import CalibrationError, FormatError
+from helpers.calibration_synthetic import COLOR, T_DEPTH_COLOR
 
 
 def _write(folder: Path, n: int = 2) -> None:
@@ -64,7 +64,8 @@ def _edit(path: Path, fn) -> None:
 @pytest.mark.parametrize("target, edit, message", [
     ("captures.json", lambda d: d.update(schema="other/1"), "schema: expected 'darp-calib-captures/1'"),
     ("captures.json", lambda d: d["board"].pop("dictionary"), "board: missing dictionary"),
-    ("captures.json", lambda d: d["board"].update(marker_length_m=0.05), "board: marker_length_m must be smaller than square_length_m"),
+    ("captures.json", lambda d: d["board"].update(marker_length_m=0.05),
+     "board: marker_length_m must be smaller than square_length_m"),
     ("captures.json", lambda d: d["captures"][0].update(meta="../x.json"), "must be a file name inside"),
     ("captures.json", lambda d: d["captures"].append(dict(d["captures"][0])), "duplicate capture id"),
     ("arm110_000.json", lambda d: d.update(q_rad=[0.0] * 5), "q_rad: expected shape \\(6,\\)"),

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration_synthetic import board_pose, random_poses, shared_once, true_rig, write_synthetic_captures
 from darp.calibration.captures import read_captures
 from darp.calibration.check import check_calibration
 from darp.cli._app import run
 from darp.formats.calibration import read_calibration
 from darp.kinematics.transforms import axis_angle_to_rotation, make_transform
+from helpers.calibration_synthetic import board_pose, random_poses, shared_once, true_rig, write_synthetic_captures
 
 ARMS = ("arm110", "arm111")
 SEED = 2

@@ -6,7 +6,6 @@ import numpy as np
 import pyrealsense2 as rs
 import pytest
 
-from calibration_synthetic import COLOR, render_board
 from darp.calibration.board import DEFAULT_BOARD, corners_board_m
 from darp.calibration.captures import CaptureRecord
 from darp.calibration.detect import CharucoCornerDetector, DetectionSettings
@@ -14,6 +13,7 @@ from darp.calibration.geometry import undistort_pixels
 from darp.errors import CalibrationError
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.transforms import look_at, pose_error
+from helpers.calibration_synthetic import COLOR, render_board
 
 T_WORLD_BOARD = np.eye(4)
 
@@ -63,8 +63,9 @@ def test_rejections_say_why() -> None:
 def _rs_intrinsics(intr: Intrinsics, model: str) -> rs.intrinsics:
     i = rs.intrinsics()
     i.width, i.height, i.fx, i.fy, i.ppx, i.ppy = intr.width, intr.height, intr.fx, intr.fy, intr.ppx, intr.ppy
-    i.model = {"Brown Conrady": rs.distortion.brown_conrady, "Modified Brown Conrady":
-               rs.distortion.modified_brown_conrady, "Inverse Brown Conrady": rs.distortion.inverse_brown_conrady}[model]
+    i.model = {"Brown Conrady": rs.distortion.brown_conrady,
+               "Modified Brown Conrady": rs.distortion.modified_brown_conrady,
+               "Inverse Brown Conrady": rs.distortion.inverse_brown_conrady}[model]
     i.coeffs = list(intr.coeffs)
     return i
 
@@ -81,7 +82,8 @@ def test_undistortion_inverts_librealsense_projection(model: str) -> None:
 
 
 def test_undistortion_matches_librealsense_deprojection() -> None:
-    intr = Intrinsics(640, 480, 610.0, 609.0, 318.0, 244.0, "Inverse Brown Conrady", (0.05, -0.02, 0.001, 0.0005, 0.003))
+    intr = Intrinsics(640, 480, 610.0, 609.0, 318.0, 244.0, "Inverse Brown Conrady",
+                      (0.05, -0.02, 0.001, 0.0005, 0.003))
     rsi = _rs_intrinsics(intr, intr.model)
     uv = np.random.default_rng(1).uniform([0, 0], [639, 479], (50, 2))
     rays = np.array([rs.rs2_deproject_pixel_to_point(rsi, list(p), 1.0) for p in uv])

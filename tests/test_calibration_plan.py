@@ -17,14 +17,8 @@ from darp.calibration.plan import (
 )
 from darp.errors import CalibrationError, FormatError
 from darp.kinematics import collision, z1
-from darp.kinematics.rig import load_rig
 
 SETTINGS = PlanSettings(n_per_arm=10, n_candidates=120)
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_rig()
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +96,8 @@ def test_deterministic_for_a_seed_and_round_trips(rig, plan, tmp_path: Path) -> 
     again = plan_captures(rig, DEFAULT_BOARD, settings=SETTINGS, seed=3)
     other = plan_captures(rig, DEFAULT_BOARD, settings=SETTINGS, seed=4)
     for arm in rig.arm_ids:
-        assert np.array_equal(np.array([p.q_rad for p in again.poses[arm]]), np.array([p.q_rad for p in plan.poses[arm]]))
+        assert np.array_equal(np.array([p.q_rad for p in again.poses[arm]]),
+                              np.array([p.q_rad for p in plan.poses[arm]]))
         assert not np.array_equal(np.array([p.q_rad for p in other.poses[arm]]),
                                   np.array([p.q_rad for p in plan.poses[arm]]))
     plan.save(tmp_path / "plan.json")

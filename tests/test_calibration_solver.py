@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibration_synthetic import board_pose, random_poses, synthetic_detections, true_rig
 from darp.calibration.board import DEFAULT_BOARD
 from darp.calibration.evaluate import fold_assignment, kfold_heldout, summarise, truth_errors
 from darp.calibration.handeye import HAND_EYE_METHODS, best, opencv_hand_eye
@@ -20,6 +19,7 @@ from darp.calibration.refine import Layout, _residuals, numeric_jacobian
 from darp.calibration.solve import calibrate_observations, opencv_chain, to_calibration
 from darp.calibration.world_frame import world_from_reference
 from darp.errors import CalibrationError
+from helpers.calibration_synthetic import board_pose, random_poses, synthetic_detections, true_rig
 
 ARMS = ("arm110", "arm111")
 

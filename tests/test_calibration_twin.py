@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration_synthetic import shared_once
 from darp.calibration.captures import read_captures
 from darp.calibration.check import check_calibration
 from darp.calibration.solve import SolveSettings, solve_captures
 from darp.cli._calib_twin import capture_twin
 from darp.formats.calibration import read_calibration, write_calibration
 from darp.kinematics.transforms import axis_angle_to_rotation, make_transform
+from helpers.calibration_synthetic import shared_once
 
 pytestmark = pytest.mark.slow
 SEED = 7

@@ -1,10 +1,14 @@
-"""``darp inspect`` and the release-composition table: values from synthetic surveys, the four formats,
-the paper's own numbers, and exit code 2 on bad input."""
+"""``darp inspect`` and the release-composition table: the printed numbers against counts taken from the
+survey files by other means (csv, json, pyrealsense2's playback, the file system), the four formats, the
+total row, and exit code 2 on bad input."""
 
 from __future__ import annotations
 
 import csv
 import io
+import json
+from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,61 +20,34 @@ from darp.evaluation.composition import SurveyComposition, format_composition, s
 from darp.formats.arm_poses import ArmPoseWriter
 from darp.formats.envelope import Envelope, write_envelope
 from darp.formats.survey import open_survey
-
-# -- the paper's table (Release composition and recording statistics) -----------------------------
-# object, radius cm, height cm, standoff cm, rows/arm, duration s, rate Hz, depth110, depth111, size GB
-PAPER = [
-    ("Red Bull", None, None, None, 1150, 118.6, 9.7, 3412, 3436, 14.85),
-    ("Dumbbell", 6.90, 3.66, 36.9, 3297, 110.6, 29.8, 3160, 3194, 13.78),
-    ("Controller", 5.78, 2.64, 35.8, 3093, 103.6, 29.9, 2950, 2986, 12.87),
-    ("Cube", 4.31, 1.60, 34.3, 2534, 88.4, 28.6, 2522, 2535, 10.96),
-    ("Ketchup", 4.41, 14.93, 34.4, 4119, 135.4, 30.4, 3921, 3944, 17.05),
-    ("Picture Frame", 11.60, 19.07, 52.2, 2923, 99.4, 29.4, 2843, 2867, 12.37),
-    ("Mug", 7.22, 6.30, 37.2, 2954, 99.4, 29.7, 2830, 2865, 12.35),
-    ("Paperweight", 4.85, 7.44, 34.8, 3465, 115.4, 30.0, 3315, 3314, 14.40),
-    ("Clock", 5.83, 9.95, 35.8, 3820, 126.6, 30.2, 3656, 3677, 15.90),
-    ("Cup", 4.11, 10.16, 34.1, 3151, 107.6, 29.3, 3088, 3107, 13.43),
-]
+from helpers.realsense_playback import play_back
 
 
-def _paper_items() -> list[SurveyComposition]:
-    def m(cm: float | None) -> float | None:
-        return None if cm is None else cm / 100.0
-
-    return [
-        SurveyComposition(
-            name=name, radius_m=m(r), height_m=m(h), standoff_m=m(s),
-            rows_by_arm={"arm110": rows, "arm111": rows}, duration_s=dur,
-            depth_frames={"arm110": d110, "arm111": d111}, size_bytes=round(gb * 1e9),
-        )
-        for name, r, h, s, rows, dur, _, d110, d111, gb in PAPER
-    ]
+def _item(name: str, rows: tuple[int, int], duration_s: float, depth: tuple[int, int], size_bytes: int,
+          radius_m: float | None = None, height_m: float | None = None,
+          standoff_m: float | None = None) -> SurveyComposition:
+    return SurveyComposition(name=name, radius_m=radius_m, height_m=height_m, standoff_m=standoff_m,
+                             rows_by_arm={"arm110": rows[0], "arm111": rows[1]}, duration_s=duration_s,
+                             depth_frames={"arm110": depth[0], "arm111": depth[1]}, size_bytes=size_bytes)
 
 
-def test_definitions_reproduce_the_papers_rate_column() -> None:
-    for item, row in zip(_paper_items(), PAPER):
-        rate_paper = row[6]
-        # the paper's Duration is rounded to 0.1 s: Rate = Rows/Arm / Duration must hold within that
-        low = item.rows_per_arm / (item.duration_s + 0.05)
-        high = item.rows_per_arm / (item.duration_s - 0.05)
-        assert low - 0.05 <= rate_paper <= high + 0.05, row[0]
-
-
-def test_total_row_reproduces_the_papers_totals() -> None:
-    text = format_composition(_paper_items(), "latex")
+def test_total_row_sums_unrounded_values_with_thousands_separators() -> None:
+    items = [_item("Ketchup", (4119, 4120), 135.44, (3921, 3944), 17_054_000_000, 0.0441, 0.1493, 0.344),
+             _item("Dumbbell", (3297, 3297), 110.64, (3160, 3194), 13_784_000_000, 0.069, 0.0366, 0.369),
+             _item("Red Bull", (1150, 1150), 118.63, (3412, 3436), 14_854_000_000)]
+    text = format_composition(items, "latex")
     total = next(line for line in text.splitlines() if "Total / Range" in line)
     cells = [c.strip().removesuffix(r"\\").strip() for c in total.split("&")]
-    assert cells[4:] == [r"\textbf{30,506}", r"\textbf{1105.0}", "--", r"\textbf{31,697}", r"\textbf{31,925}",
-                         r"\textbf{137.96}"]  # the paper prints 1105.1 and 137.94: sums of its unrounded values
-    assert cells[2:4] == [r"\textbf{1.6--19.1}", r"\textbf{34.1--52.2}"]  # as in the paper
-    assert cells[1] == r"\textbf{4.1--11.6}"  # the paper prints 3.5--11.6, below every radius it lists
+    assert cells[1:4] == [r"\textbf{4.4--6.9}", r"\textbf{3.7--14.9}", r"\textbf{34.4--36.9}"]  # ranges of the known
+    assert cells[4:] == [r"\textbf{8,566.5}", r"\textbf{364.7}", "--", r"\textbf{10,493}", r"\textbf{10,574}",
+                         r"\textbf{45.69}"]  # rounded cells would add up to 364.6 s and 45.68 GB
+    assert r"Ketchup & 4.41 & 14.93 & 34.4 & 4119.5 & 135.4 & 30.4 & 3921 & 3944 & 17.05 \\" in text
     assert r"Red Bull & -- & -- & -- & 1150 & 118.6 & 9.7 & 3412 & 3436 & 14.85 \\" in text
-    assert r"Picture Frame & 11.60 & 19.07 & 52.2 & 2923 & 99.4 & 29.4 & 2843 & 2867 & 12.37 \\" in text
 
 
 def test_format_errors() -> None:
     with pytest.raises(EvaluationError, match="unknown table format 'html'"):
-        format_composition(_paper_items(), "html")
+        format_composition([_item("x", (1, 1), 1.0, (1, 1), 1)], "html")
     with pytest.raises(EvaluationError, match="no surveys"):
         format_composition([], "table")
 
@@ -115,9 +92,11 @@ def _bag(path: Path, serial: str, start_ms: float, n_depth: int) -> None:
             writer.write_image("color", np.full((H, W, 3), k, np.uint8), t_ms + 3.0, k + 1)
 
 
+CUBE = Envelope(object_name="Cube", radius_m=0.0431, height_m=0.016, standoff_m=0.343)
+
+
 def _survey(root: Path, *, rows: dict[str, int], depth: dict[str, int], t0_s: float = 1718000000.0,
-            envelope: Envelope | None = Envelope(object_name="Cube", radius_m=0.0431, height_m=0.016,
-                                                 standoff_m=0.343)) -> tuple[Path, float]:
+            envelope: Envelope | None = CUBE) -> tuple[Path, float]:
     """A survey with ``rows`` joint-log rows and ``depth`` depth frames per arm; returns its log span."""
     root.mkdir(parents=True)
     times = {arm: t0_s + np.arange(n) / 29.5 + (0.004 if arm == "arm111" else 0.0) for arm, n in rows.items()}
@@ -145,6 +124,79 @@ def test_values_match_the_constructed_survey(tmp_path: Path) -> None:
     assert item.size_bytes == sum((root / f).stat().st_size for f in files)
     assert (item.radius_m, item.height_m, item.standoff_m) == (0.0431, 0.016, 0.343)
     assert item.notes == ()
+
+
+@dataclass
+class Counted:
+    """One survey's statistics taken from its files without darp's readers."""
+
+    rows: Counter[str]  # joint-log rows per arm
+    duration_s: float  # first to last joint-log time
+    depth: dict[str, int]  # depth frames pyrealsense2 plays back, per arm
+    envelope: dict  # manip_envelope.json as JSON
+    size_bytes: int  # the folder's files
+
+    @property
+    def rows_per_arm(self) -> float:
+        return sum(self.rows[arm] for arm in SERIALS) / len(SERIALS)
+
+
+def _count_files(root: Path) -> Counted:
+    with open(root / "arm_poses.csv", newline="", encoding="utf-8") as handle:
+        log = list(csv.DictReader(handle))
+    times = [float(row["time_s"]) for row in log]
+    depth = {arm: len(play_back(root / f"cam{serial}.bag").frames.get("depth", [])) for arm, serial in SERIALS.items()}
+    return Counted(rows=Counter(row["arm"] for row in log), duration_s=max(times) - min(times), depth=depth,
+                   envelope=json.loads((root / "manip_envelope.json").read_text(encoding="utf-8")),
+                   size_bytes=sum(f.stat().st_size for f in root.iterdir() if f.is_file()))
+
+
+def _cm(envelope: dict, key: str) -> float | None:
+    return None if envelope.get(key) is None else envelope[key] * 100.0
+
+
+def _cell(text: str) -> float | None:
+    return None if text == "" else float(text)
+
+
+def _range(text: str) -> tuple[float, float]:
+    low, high = text.split("-")
+    return float(low), float(high)
+
+
+def test_cli_numbers_equal_counts_taken_from_the_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    parent = tmp_path / "darp"
+    _survey(parent / "Cube", rows={"arm110": 40, "arm111": 38}, depth={"arm110": 5, "arm111": 7})
+    _survey(parent / "Mug", rows={"arm110": 25, "arm111": 28}, depth={"arm110": 9, "arm111": 4},
+            t0_s=1718003600.0, envelope=Envelope(object_name="Mug", radius_m=0.0722, height_m=0.063,
+                                                 standoff_m=0.372))
+    _survey(parent / "RedBull", rows={"arm110": 12, "arm111": 13}, depth={"arm110": 3, "arm111": 2},
+            envelope=Envelope(object_name="Red Bull"))
+    assert run(["inspect", str(parent), "--format", "csv"]) == 0
+    printed = list(csv.reader(io.StringIO(capsys.readouterr().out)))
+    assert printed[0][7:9] == ["Depth_110", "Depth_111"]
+    assert [row[0] for row in printed] == ["Object", "Cube", "Mug", "RedBull", "Total / Range"]
+    counted = {name: _count_files(parent / name) for name in ("Cube", "Mug", "RedBull")}
+    assert counted["Cube"].depth == {"arm110": 5, "arm111": 7}  # the oracle sees what was written
+    for row in printed[1:4]:
+        c = counted[row[0]]
+        for cell, key, digits in ((row[1], "radius_m", 2), (row[2], "height_m", 2), (row[3], "standoff_m", 1)):
+            expected = _cm(c.envelope, key)
+            assert _cell(cell) == (None if expected is None else pytest.approx(expected, abs=0.51 * 10**-digits))
+        assert float(row[4]) == c.rows_per_arm
+        assert float(row[5]) == pytest.approx(c.duration_s, abs=0.051)
+        assert float(row[6]) == pytest.approx(c.rows_per_arm / c.duration_s, abs=0.051)
+        assert [int(row[7]), int(row[8])] == [c.depth["arm110"], c.depth["arm111"]]
+        assert float(row[9]) == pytest.approx(c.size_bytes / 1e9, abs=0.0051)
+    total, known = printed[4], [c for c in counted.values() if c.envelope.get("radius_m") is not None]
+    for cell, key in ((total[1], "radius_m"), (total[2], "height_m"), (total[3], "standoff_m")):
+        values = [_cm(c.envelope, key) for c in known]
+        assert _range(cell) == pytest.approx((min(values), max(values)), abs=0.051)
+    assert float(total[4]) == sum(c.rows_per_arm for c in counted.values())
+    assert float(total[5]) == pytest.approx(sum(c.duration_s for c in counted.values()), abs=0.051)
+    assert total[6] == ""  # no total rate
+    assert [int(total[7]), int(total[8])] == [sum(c.depth[arm] for c in counted.values()) for arm in SERIALS]
+    assert float(total[9]) == pytest.approx(sum(c.size_bytes for c in counted.values()) / 1e9, abs=0.0051)
 
 
 def test_cli_all_formats(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -193,7 +245,7 @@ def test_cli_notes_go_to_stderr(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 
 def test_cli_warns_once_about_an_interrupted_recording(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from damaged_recordings import salvage_warning, unindexed_copy
+    from helpers.damaged_recordings import salvage_warning, unindexed_copy
 
     root, _ = _survey(tmp_path / "Cube", rows={"arm110": 5, "arm111": 5}, depth={"arm110": 4, "arm111": 3})
     bag = root / "cam348522076490.bag"

@@ -30,7 +30,8 @@ Q0 = {"arm110": np.array([0.1, 0.9, -1.1, 0.4, 0.05, -0.1]), "arm111": np.array(
 VEL = {"arm110": np.array([0.3, -0.2, 0.25, 0.1, -0.15, 0.2]), "arm111": np.array([-0.1, 0.15, -0.1, 0.2, 0.1, -0.3])}
 KINK = {"arm110": np.array([-0.4, 0.3, 0.0, -0.2, 0.25, 0.0]), "arm111": np.zeros(6)}
 KINK_AT_S = 0.30  # seconds after T0, a logged sample of arm110
-DQ = {"arm110": np.array([0.012, -0.015, 0.01, 0.008, -0.01, 0.02]), "arm111": np.array([-0.01, 0.01, 0.0, -0.012, 0.0, 0.015])}
+DQ = {"arm110": np.array([0.012, -0.015, 0.01, 0.008, -0.01, 0.02]),
+      "arm111": np.array([-0.01, 0.01, 0.0, -0.012, 0.0, 0.015])}
 
 # arm110's log: every 30 ms over [0, 0.51] and [0.81, 1.11] s; arm111's: every 30 ms over [-0.5, 2.0] s
 LOG_S = {"arm110": np.concatenate([np.arange(18) * 0.03, 0.81 + np.arange(11) * 0.03]),
@@ -78,7 +79,8 @@ def survey(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Calibr
         for t, arm in rows:
             log.write(T0_S + t, arm, q_true(arm, np.array([t]))[0])
     write_envelope(folder / "manip_envelope.json",
-                   Envelope(object_name="Mug", center_m=(0.0, 0.02, 0.05), radius_m=0.05, height_m=0.10, standoff_m=0.3))
+                   Envelope(object_name="Mug", center_m=(0.0, 0.02, 0.05), radius_m=0.05, height_m=0.10,
+                            standoff_m=0.3))
     cal = _calibration()
     write_calibration(root / "calibration.json", cal)
     return folder, root / "calibration.json", cal
@@ -187,7 +189,7 @@ def test_an_interrupted_recording_is_posed_with_one_warning(survey, tmp_path: Pa
                                                             capsys: pytest.CaptureFixture[str]) -> None:
     import shutil
 
-    from damaged_recordings import salvage_warning, unindexed_copy
+    from helpers.damaged_recordings import salvage_warning, unindexed_copy
 
     folder, cal_path, cal = survey
     copy = shutil.copytree(folder, tmp_path / folder.name)

@@ -34,13 +34,6 @@ def test_report_without_results(tmp_path: Path, capsys) -> None:
     one_error_line(capsys, "no processed survey")
 
 
-@pytest.fixture(scope="module")
-def survey_path(tmp_path_factory) -> Path:
-    from test_process_pipeline import record_tiny_survey
-
-    return record_tiny_survey(tmp_path_factory.mktemp("twin") / "cube")
-
-
 @pytest.mark.slow
 def test_bad_settings_and_calibration(survey_path: Path, tmp_path: Path, capsys) -> None:
     settings = tmp_path / "settings.yaml"
@@ -113,8 +106,8 @@ def test_a_survey_without_truth_is_processed_without_truth_metrics(survey_path: 
 @pytest.mark.slow
 def test_keyframes_and_process_read_a_cut_recording_with_one_warning(survey_path: Path, tmp_path: Path, capsys) -> None:
     """arm110's bag cut inside a chunk at about 90 %: both commands warn once, naming it, and use what is left."""
-    from damaged_recordings import cut_copy, salvage_warning
     from darp.formats.realsense.bag.reader import BagRecording
+    from helpers.damaged_recordings import cut_copy, salvage_warning
 
     copy = tmp_path / "cube"
     copy.mkdir()

@@ -51,8 +51,10 @@ def test_info_json_agrees_with_the_reader(path, capsys):
         assert info["depth_scale_m"] == recording.depth_scale
         depth = info["streams"]["depth"]
         infos = recording.frame_infos("depth")
-        assert (depth["format"], depth["width"], depth["height"], depth["fps"], depth["frames"]) == ("z16", 64, 48, 30, 4)
-        assert depth["first_timestamp_ms"] == infos[0].timestamp_ms and depth["last_timestamp_ms"] == infos[-1].timestamp_ms
+        assert (depth["format"], depth["width"], depth["height"], depth["fps"], depth["frames"]) == \
+            ("z16", 64, 48, 30, 4)
+        assert depth["first_timestamp_ms"] == infos[0].timestamp_ms
+        assert depth["last_timestamp_ms"] == infos[-1].timestamp_ms
         assert depth["measured_rate_hz"] == pytest.approx(3000.0 / (infos[-1].timestamp_ms - infos[0].timestamp_ms))
         assert info["streams"]["color"]["intrinsics"]["fx"] == recording.streams["color"].intrinsics.fx
         color = info["extrinsics_from_depth"]["color"]
@@ -198,9 +200,9 @@ def test_console_entry_point_has_no_traceback(tmp_path):
 def damaged(tmp_path_factory):
     """A complete bag (small chunks), its interrupted form (no index) and a copy cut in half, with the frames
     each should yield: those in complete chunks, from the complete bag's own index."""
-    from damaged_recordings import cut_copy, unindexed_copy
     from darp.formats.realsense.bag.reader import BagRecording
-    from test_formats_bag import write_sample
+    from helpers.bag_samples import write_sample
+    from helpers.damaged_recordings import cut_copy, unindexed_copy
 
     root = tmp_path_factory.mktemp("damaged")
     sample = write_sample(root / "whole.bag", chunk_threshold=20_000)
@@ -221,7 +223,7 @@ def damaged(tmp_path_factory):
 @pytest.mark.parametrize("kind,missing", [("interrupted", "no index (interrupted recording?)"),
                                           ("cut", "truncated at byte ")])
 def test_info_on_a_salvaged_bag_warns_and_shows_what_was_recovered(damaged, capsys, kind, missing):
-    from damaged_recordings import salvage_warning
+    from helpers.damaged_recordings import salvage_warning
 
     path, chunks, frames = damaged[kind]
     recovered = f"recovered {frames['depth']} depth, {frames['color']} color"
@@ -254,7 +256,7 @@ def test_info_on_an_intact_bag_says_nothing_of_salvage(damaged, capsys):
 
 
 def test_export_of_a_cut_bag_warns_once_and_writes_the_recovered_frames(damaged, tmp_path, capsys):
-    from damaged_recordings import salvage_warning
+    from helpers.damaged_recordings import salvage_warning
 
     path, _, frames = damaged["cut"]
     out = tmp_path / "export"
@@ -289,7 +291,8 @@ def test_a_device_or_folder_named_like_a_recording_is_refused(tmp_path, capsys):
     assert capsys.readouterr().err == f"darp: error: {folder}: is a folder, not a recording\n"
     if Path("/dev/null").exists():
         assert run(["recording", "export", "/dev/null", "--out", str(tmp_path / "out")]) == 2
-        assert capsys.readouterr().err == "darp: error: /dev/null: is a character device, not a regular file: not a recording\n"
+        expected = "darp: error: /dev/null: is a character device, not a regular file: not a recording\n"
+        assert capsys.readouterr().err == expected
         with pytest.raises(RecordingError, match="character device"):
             from darp.formats.realsense.bag.reader import BagRecording
 

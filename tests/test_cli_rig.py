@@ -49,7 +49,8 @@ def test_rig_plot_writes_an_image(tmp_path: Path) -> None:
     [(["--config", "dance"], "Invalid value for '--config'"),
      (["--q111-rad", "1,2,3"], "'--q111-rad': expected 6 finite numbers")],
 )
-def test_rig_plot_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str], message: str) -> None:
+def test_rig_plot_bad_arguments(tmp_path: Path, capsys: pytest.CaptureFixture[str], args: list[str],
+                                message: str) -> None:
     assert run(["rig", "plot", "--out", str(tmp_path / "x.png"), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]

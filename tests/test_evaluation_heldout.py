@@ -11,7 +11,7 @@ from darp.evaluation.heldout import HeldoutSummary, evaluate_heldout, heldout_ma
 from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
 from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
-from synthetic_depth import Scene, box, look_at, small_intrinsics, table
+from helpers.synthetic_depth import Scene, box, look_at, small_intrinsics, table
 
 INTR = small_intrinsics(160, 120, 190.0)
 TOP = 0.05

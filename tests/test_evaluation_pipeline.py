@@ -15,7 +15,7 @@ from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.fusion import FusionSettings, fuse
 from darp.reconstruction.mesh import ball_pivoting_mesh, boundary_edges, mesh_arrays
-from synthetic_depth import Scene, add_depth_noise, box, orbit_poses, small_intrinsics, table, to_z16
+from helpers.synthetic_depth import Scene, add_depth_noise, box, orbit_poses, small_intrinsics, table, to_z16
 
 INTR = small_intrinsics(320, 240, 380.0)  # the D435's pixel footprint, a smaller field of view
 CENTRE = (0.01, 0.0, 0.04)

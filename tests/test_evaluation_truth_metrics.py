@@ -10,7 +10,7 @@ from darp.errors import EvaluationError
 from darp.evaluation.point_to_mesh import MeshDistance
 from darp.evaluation.truth_metrics import sample_surface, truth_metrics, visible_in_frames
 from darp.reconstruction.backproject import PosedDepth
-from synthetic_depth import Scene, box, look_at, small_intrinsics, table
+from helpers.synthetic_depth import Scene, box, look_at, small_intrinsics, table
 
 EXTENTS = np.array([0.06, 0.04, 0.08])  # box centred at the origin: faces 24, 48, 32 cm^2 (x2)
 

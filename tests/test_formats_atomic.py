@@ -14,10 +14,9 @@ from darp.formats.atomic import atomic_open, write_json_atomic
 def test_failed_write_leaves_old_file_and_no_partial(tmp_path: Path) -> None:
     target = tmp_path / "out.json"
     write_json_atomic(target, {"a": 1})
-    with pytest.raises(RuntimeError):
-        with atomic_open(target) as handle:
-            handle.write("half")
-            raise RuntimeError("interrupted")
+    with pytest.raises(RuntimeError), atomic_open(target) as handle:
+        handle.write("half")
+        raise RuntimeError("interrupted")
     assert target.read_text().strip().startswith("{")
     assert [p.name for p in tmp_path.iterdir()] == ["out.json"]
 

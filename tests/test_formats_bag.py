@@ -2,97 +2,19 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pyrealsense2 as rs
 import pytest
-from scipy.spatial.transform import Rotation
 
 from darp.formats.realsense import ros_messages as rm
 from darp.formats.realsense.bag.reader import BagRecording
-from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.recording import open_recording
-from darp.formats.realsense.types import DeviceInfo, Intrinsics, MotionIntrinsics, StreamProfile
-from rosbags_writing import message_putter, realsense_typestore
-
-DEVICE = DeviceInfo("Intel RealSense D435I", "348522076490", "5.13.0.50", "0B3A",
-                    {"Product Line": "D400", "Usb Type Descriptor": "3.2"})
-IMU_INTRINSICS = MotionIntrinsics(tuple(1.0 + 0.01 * i for i in range(12)), (1e-4, 2e-4, 3e-4), (4e-6, 5e-6, 6e-6))
-
-
-def _pose(rotvec: tuple[float, float, float], t: tuple[float, float, float]) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = t
-    return T
-
-
-EXTRINSICS = {  # T_stream_depth
-    "color": _pose((0.01, -0.02, 0.03), (0.0147, 0.0002, -0.0003)),
-    "ir1": np.eye(4),
-    "ir2": _pose((0.0, 0.0, 0.0), (-0.0499, 0.0, 0.0)),
-    "accel": _pose((0.5, -0.3, 0.2), (-0.0117, -0.0055, 0.0051)),
-    "gyro": _pose((0.5, -0.3, 0.2), (-0.0117, -0.0055, 0.0051)),
-}
-
-
-def profiles(width: int, height: int) -> list[StreamProfile]:
-    def intr(fx: float, model: str, coeffs: tuple[float, ...]) -> Intrinsics:
-        return Intrinsics(width, height, fx, fx * 1.01, width / 2 - 0.37, height / 2 + 0.21, model, coeffs)
-
-    return [
-        StreamProfile("depth", "Depth", 0, 0, "z16", 30, width, height, intr(0.6 * width, "Brown Conrady", (0.0,) * 5)),
-        StreamProfile("ir1", "Infrared", 1, 0, "y8", 30, width, height, intr(0.6 * width, "Brown Conrady", (0.0,) * 5)),
-        StreamProfile("ir2", "Infrared", 2, 0, "y8", 30, width, height, intr(0.6 * width, "Brown Conrady", (0.0,) * 5)),
-        StreamProfile("color", "Color", 0, 1, "rgb8", 30, width, height,
-                      intr(0.9 * width, "Inverse Brown Conrady", (0.12, -0.25, 0.001, -0.002, 0.07))),
-        StreamProfile("accel", "Accel", 0, 2, "motion_xyz32f", 100, motion_intrinsics=IMU_INTRINSICS),
-        StreamProfile("gyro", "Gyro", 0, 2, "motion_xyz32f", 200, motion_intrinsics=IMU_INTRINSICS),
-    ]
-
-
-@dataclass
-class Sample:
-    path: Path
-    streams: list[StreamProfile]
-    frames: dict[str, list[dict]] = field(default_factory=dict)  # per stream: ts, number, domain, data
-
-
-def write_sample(path: Path, *, compression: str = "lz4", width: int = 64, height: int = 48, framesets: int = 12,
-                 seed: int = 0, chunk_threshold: int = 768 * 1024, image_order: tuple[str, ...] = ("depth", "ir1", "ir2", "color"),
-                 imu: bool = True) -> Sample:
-    """A small recording with textured images, a colour stream on the system clock and 2 IMU streams."""
-    rng = np.random.default_rng(seed)
-    streams = [p for p in profiles(width, height) if imu or p.is_image]
-    sample = Sample(path, streams, {p.key: [] for p in streams})
-    x = np.arange(width)[None, :]
-    with BagWriter(path, DEVICE, streams, depth_scale=0.00025, compression=compression,
-                   extrinsics={k: v for k, v in EXTRINSICS.items() if imu or k not in ("accel", "gyro")},
-                   chunk_threshold=chunk_threshold) as writer:
-        for i in range(framesets):
-            t_ms = 1_700_000_000_000.0 + 33.3667 * i
-            images = {
-                "depth": (800 + 200 * np.sin((x + 3 * i) / 7.0) + rng.integers(0, 9, (height, width))).astype(np.uint16),
-                "ir1": rng.integers(0, 256, (height, width), dtype=np.uint8),
-                "ir2": rng.integers(0, 256, (height, width), dtype=np.uint8),
-                "color": rng.integers(0, 256, (height, width, 3), dtype=np.uint8),
-            }
-            for key in image_order:
-                stamp = t_ms + (1.7 if key == "color" else 0.0)
-                domain = "System Time" if key == "color" else "Global Time"
-                number = 5000 + i if key == "color" else 100 + i
-                writer.write_image(key, images[key], stamp, number, timestamp_domain=domain)
-                sample.frames[key].append({"ts": stamp, "number": number, "domain": domain, "data": images[key]})
-            for j in range(3 if imu else 0):
-                for key, scale in (("accel", 9.81), ("gyro", 0.5)):
-                    xyz = (rng.normal(size=3) * scale).astype(np.float32)
-                    stamp, number = t_ms + 11.0 * j + (0.3 if key == "gyro" else 0.0), 3 * i + j
-                    writer.write_motion(key, xyz, stamp, number, timestamp_domain="Global Time")
-                    sample.frames[key].append({"ts": stamp, "number": number, "domain": "Global Time", "data": xyz})
-    return sample
-
+from darp.formats.realsense.types import DeviceInfo
+from helpers.bag_samples import DEVICE, EXTRINSICS, IMU_INTRINSICS, Sample, write_sample
+from helpers.rosbags_writing import message_putter, realsense_typestore
 
 # -- pyrealsense2 as the oracle ----------------------------------------------------------------------
 RS_KEYS = {("depth", 0): "depth", ("color", 0): "color", ("infrared", 1): "ir1", ("infrared", 2): "ir2",
@@ -156,7 +78,8 @@ def playback(path: Path) -> Playback:
             stopped_waits += 1
     intrinsics = {key: p.as_video_stream_profile().get_intrinsics() if p.is_video_stream_profile()
                   else p.as_motion_stream_profile().get_motion_intrinsics() for key, p in profiles_by_key.items()}
-    extrinsics = {(a, b): rs_extrinsics(pa, pb) for a, pa in profiles_by_key.items() for b, pb in profiles_by_key.items()}
+    extrinsics = {(a, b): rs_extrinsics(pa, pb)
+                  for a, pa in profiles_by_key.items() for b, pb in profiles_by_key.items()}
     fps = {key: p.fps() for key, p in profiles_by_key.items()}
     for sensor in sensors:
         sensor.stop()
@@ -190,15 +113,15 @@ def test_pyrealsense2_plays_darp_bag(tmp_path: Path, compression: str) -> None:
             np.testing.assert_allclose([f["ts"] for f in got], [f["ts"] for f in expected], rtol=0, atol=1e-5)
             # darp's reader computes the timestamp exactly as the player does
             assert [f["ts"] for f in got] == recording.timestamps_ms(key).tolist(), key
-            for g, e in zip(got, expected):
+            for g, e in zip(got, expected, strict=True):
                 assert g["data"].dtype == e["data"].dtype and np.array_equal(g["data"], e["data"]), key
             assert played.fps[key] == profile.fps
             if profile.is_image:
                 intr = played.intrinsics[key]
                 mine = profile.intrinsics
                 assert (intr.width, intr.height) == (mine.width, mine.height)
-                np.testing.assert_allclose([intr.fx, intr.fy, intr.ppx, intr.ppy], [mine.fx, mine.fy, mine.ppx, mine.ppy],
-                                           rtol=1e-6)
+                np.testing.assert_allclose([intr.fx, intr.fy, intr.ppx, intr.ppy],
+                                           [mine.fx, mine.fy, mine.ppx, mine.ppy], rtol=1e-6)
                 assert str(intr.model).split(".")[-1].replace("_", " ").lower() == mine.model.lower()
                 np.testing.assert_allclose(intr.coeffs, mine.coeffs, rtol=1e-6, atol=1e-9)
             else:
@@ -220,7 +143,7 @@ def test_pyrealsense2_plays_full_resolution_bag(tmp_path: Path) -> None:
     for key, expected in sample.frames.items():
         got = played.frames[key]
         assert [f["number"] for f in got] == [f["number"] for f in expected], key
-        assert all(np.array_equal(g["data"], e["data"]) for g, e in zip(got, expected)), key
+        assert all(np.array_equal(g["data"], e["data"]) for g, e in zip(got, expected, strict=True)), key
     assert played.intrinsics["color"].width == 640
 
 
@@ -356,7 +279,7 @@ def test_rosbags_reads_darp_bag(tmp_path: Path) -> None:
         accel = [c for c in reader.connections if c.topic.endswith("Accel_0/imu/data")]
         values = [store.deserialize_ros1(raw, "sensor_msgs/msg/Imu") for _, _, raw in reader.messages(accel)]
         assert [m.header.seq for m in values] == [f["number"] for f in sample.frames["accel"]]
-        for message, expected in zip(values, sample.frames["accel"]):
+        for message, expected in zip(values, sample.frames["accel"], strict=True):
             acc = message.linear_acceleration
             assert np.array_equal(np.float32([acc.x, acc.y, acc.z]), expected["data"])
         color_info = [c for c in reader.connections if c.topic.endswith("Color_0/info/camera_info")]
@@ -377,8 +300,10 @@ def test_reads_2018_style_bag_written_by_rosbags(tmp_path: Path) -> None:
     with writer:
         put = message_putter(writer, store)
         put("/file_version", "std_msgs/msg/UInt32", types["std_msgs/msg/UInt32"](data=3))
-        put("/device_0/info", "diagnostic_msgs/msg/KeyValue", types["diagnostic_msgs/msg/KeyValue"](key="Name", value="Intel RealSense D415"))
-        put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32", types["std_msgs/msg/Float32"](data=0.0001))
+        put("/device_0/info", "diagnostic_msgs/msg/KeyValue",
+            types["diagnostic_msgs/msg/KeyValue"](key="Name", value="Intel RealSense D415"))
+        put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32",
+            types["std_msgs/msg/Float32"](data=0.0001))
         put("/device_0/sensor_0/Depth_0/info", "realsense_msgs/msg/StreamInfo",
             types["realsense_msgs/msg/StreamInfo"](fps=15, encoding="mono16", is_recommended=True))
         header = types["std_msgs/msg/Header"]
@@ -401,7 +326,7 @@ def test_reads_2018_style_bag_written_by_rosbags(tmp_path: Path) -> None:
         frames = list(recording.iter_frames())
         assert [f.info.frame_number for f in frames] == [40, 41, 42]
         assert [f.info.timestamp_ms for f in frames] == [1500250.0, 1501250.0, 1502250.0]
-        assert all(np.array_equal(f.data, d) for f, d in zip(frames, depth))
+        assert all(np.array_equal(f.data, d) for f, d in zip(frames, depth, strict=True))
         assert frames[0].info.timestamp_domain == "Hardware Clock"  # librealsense's default without metadata
 
 

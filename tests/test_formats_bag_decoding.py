@@ -19,8 +19,8 @@ from darp.formats.realsense.rosbag1 import lz4 as bag_lz4
 from darp.formats.realsense.rosbag1.index import MAGIC, ByteSource, load_index, read_record
 from darp.formats.realsense.rosbag1.lz4 import ChunkBuffer, Lz4Error, decode_frame
 from darp.formats.realsense.types import Frame
-from rosbags_writing import message_putter, realsense_typestore
-from test_formats_bag import write_sample
+from helpers.bag_samples import write_sample
+from helpers.rosbags_writing import message_putter, realsense_typestore
 
 
 def _payload(seed: int = 0, size: int = 300_000) -> bytes:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import struct
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.recording import open_recording
 from darp.formats.realsense.rosbag1.index import MAGIC, load_index, read_record
 from darp.formats.realsense.types import StreamProfile
-from test_formats_bag import DEVICE, profiles, write_sample
+from helpers.bag_samples import DEVICE, profiles, write_sample
 
 CHUNKED = 20_000  # small chunks: about one frame set each at 64x48
 
@@ -49,10 +50,8 @@ def _read_everything(recording: BagRecording) -> int:
     for key in recording.streams:
         recording.frame_infos(key)
         for source in recording.streams:
-            try:
+            with contextlib.suppress(RecordingError):
                 recording.extrinsics(source, key)
-            except RecordingError:
-                pass
     for _ in recording.iter_frames():
         count += 1
     return count
@@ -68,7 +67,8 @@ def test_empty_file(tmp_path: Path) -> None:
         assert str(empty) in str(err.value)
 
 
-@pytest.mark.parametrize("content", [b"\x89PNG\r\n\x1a\n" + bytes(100), b"just some text\n" * 20, b"#ROSBAG V1.2\n" + bytes(64)])
+@pytest.mark.parametrize("content", [b"\x89PNG\r\n\x1a\n" + bytes(100), b"just some text\n" * 20,
+                                     b"#ROSBAG V1.2\n" + bytes(64)])
 def test_wrong_format(tmp_path: Path, content: bytes) -> None:
     fake = tmp_path / "fake.bag"
     fake.write_bytes(content)
@@ -94,7 +94,8 @@ def test_generic_bag_without_realsense_topics(tmp_path: Path) -> None:
     path = tmp_path / "other.bag"
     with Writer(path) as writer:
         conn = writer.add_connection("/chatter", "std_msgs/msg/String", typestore=store)
-        writer.write(conn, 5, store.serialize_ros1(store.types["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"))
+        message = store.types["std_msgs/msg/String"](data="hi")
+        writer.write(conn, 5, store.serialize_ros1(message, "std_msgs/msg/String"))
     with pytest.raises(RecordingError, match="no /file_version"):
         BagRecording(path)
 
@@ -136,7 +137,7 @@ def test_truncated_bag_reads_complete_chunks(lz4_bag, tmp_path: Path, kind: str,
         assert recording.salvage is not None and recording.salvage.chunks == complete
         assert recording.salvage.frames["depth"] == len([c for c in chunks_of["depth"] if c < complete])
         for key in ("depth", "gyro"):
-            expected = [f for f, c in zip(lz4_bag.frames[key], chunks_of[key]) if c < complete]
+            expected = [f for f, c in zip(lz4_bag.frames[key], chunks_of[key], strict=True) if c < complete]
             assert [i.frame_number for i in recording.frame_infos(key)] == [f["number"] for f in expected]
             for i, frame in enumerate(expected):
                 assert np.array_equal(recording.read_frame(key, i).data, frame["data"])
@@ -181,13 +182,15 @@ def test_corrupted_last_chunk_of_an_unindexed_bag_is_skipped(lz4_bag, tmp_path: 
     damaged.write_bytes(bytes(data))
     with BagRecording(damaged) as recording:
         assert recording.truncated and "unreadable and was skipped" in recording.truncation_note
-        expected = [f["number"] for f, c in zip(lz4_bag.frames["depth"], chunks_of["depth"]) if c < len(chunks) - 1]
+        expected = [f["number"] for f, c in zip(lz4_bag.frames["depth"], chunks_of["depth"], strict=True)
+                    if c < len(chunks) - 1]
         assert [i.frame_number for i in recording.frame_infos("depth")] == expected
 
 
 @pytest.mark.parametrize("fixture", ["raw_bag", "lz4_bag"])
 @pytest.mark.filterwarnings("ignore::darp.errors.SalvagedRecordingWarning")
-def test_damage_anywhere_gives_only_recording_errors(request: pytest.FixtureRequest, tmp_path: Path, fixture: str) -> None:
+def test_damage_anywhere_gives_only_recording_errors(request: pytest.FixtureRequest, tmp_path: Path,
+                                                     fixture: str) -> None:
     """Flip bytes at 150 random places (and cut at 30 random lengths): every outcome is a readable
     recording or a RecordingError, never a raw struct/Key/Index error."""
     source = request.getfixturevalue(fixture).path
@@ -251,7 +254,8 @@ def _writer(tmp_path: Path, **kwargs) -> BagWriter:
     ({"streams": [StreamProfile("depth", "Infrared", 1, 0, "z16", 30, 16, 8, profiles(16, 8)[0].intrinsics)]},
      "must be \\('Depth', 0\\)"),
     ({"streams": [StreamProfile("depth", "Depth", 0, 0, "z16", 30, 16, 8)]}, "needs intrinsics"),
-    ({"streams": [StreamProfile("depth", "Depth", 0, 0, "yuyv", 30, 16, 8, profiles(16, 8)[0].intrinsics)]}, "format 'yuyv'"),
+    ({"streams": [StreamProfile("depth", "Depth", 0, 0, "yuyv", 30, 16, 8, profiles(16, 8)[0].intrinsics)]},
+     "format 'yuyv'"),
     ({"streams": [StreamProfile("gyro", "Gyro", 0, 2, "z16", 200)]}, "motion streams have format"),
     ({"depth_scale": 0.0}, "depth_scale"),
     ({"extrinsics": {"color": np.diag([1.0, 1.0, -1.0, 1.0])}}, "rigid transform"),
@@ -331,13 +335,13 @@ def test_exception_inside_with_leaves_only_a_readable_partial(tmp_path: Path) ->
         assert recording.salvage.frames == {"depth": 20, "ir1": 0, "ir2": 0}
         frames = list(recording.iter_frames(["depth"]))
         assert [f.info.frame_number for f in frames] == list(range(20))
-        assert all(np.array_equal(f.data, d) for f, d in zip(frames, written))
+        assert all(np.array_equal(f.data, d) for f, d in zip(frames, written, strict=True))
 
 
 def test_unindexed_copy_is_what_an_interrupted_writer_leaves(tmp_path: Path) -> None:
     """The tests' stand-in for an interrupted recording (damaged_recordings.unindexed_copy of a complete bag)
     is byte for byte the ``.partial`` the writer leaves."""
-    from damaged_recordings import unindexed_copy
+    from helpers.damaged_recordings import unindexed_copy
 
     def write(interrupt: bool) -> None:
         with BagWriter(tmp_path / "cam.bag", DEVICE, profiles(64, 48)[:3], chunk_threshold=CHUNKED) as writer:

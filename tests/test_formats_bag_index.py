@@ -14,7 +14,7 @@ from rosbags.rosbag1 import Reader
 from darp.errors import RecordingError
 from darp.formats.realsense.rosbag1 import index as rosbag1
 from darp.formats.realsense.rosbag1.index import MAGIC, ByteSource, load_index, read_record
-from test_formats_bag import write_sample
+from helpers.bag_samples import write_sample
 
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
 GENUINE = sorted(FIXTURES.glob("*.bag"))

@@ -19,7 +19,7 @@ import pytest
 from darp.errors import RecordingError
 from darp.formats.realsense.db3.reader import Db3Recording, parse_key_values
 from darp.formats.realsense.recording import open_recording
-from realsense_playback import play_back
+from helpers.realsense_playback import play_back
 
 rs = pytest.importorskip("pyrealsense2")
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
@@ -105,7 +105,7 @@ def test_pixel_formats_match_what_was_sent_and_librealsense(tmp_path, compress, 
         for key, pixels in sent.items():
             frames = list(recording.iter_frames([key]))
             assert len(frames) == len(pixels) == len(played.frames[key])
-            for frame, want, oracle in zip(frames, pixels, played.frames[key]):
+            for frame, want, oracle in zip(frames, pixels, played.frames[key], strict=True):
                 assert frame.data.dtype == want.dtype and np.array_equal(frame.data, want), key
                 assert np.array_equal(frame.data, oracle.data), key
                 assert frame.info.timestamp_ms == oracle.timestamp_ms

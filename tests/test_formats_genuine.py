@@ -16,7 +16,7 @@ import pytest
 
 from darp.errors import RecordingError
 from darp.formats.realsense.recording import open_recording
-from realsense_playback import Played, play_back
+from helpers.realsense_playback import Played, play_back
 
 FIXTURES = Path(__file__).parent / "fixtures" / "recordings"
 FILES = ["rs257_lz4.bag", "rs257_uncompressed.bag", "rs259_png.db3", "rs259_uncompressed.db3"]
@@ -110,7 +110,7 @@ def test_every_frame_matches_librealsense(pair):
         assert len(infos) == len(expected) == recording.frame_count(key), key
         frames = list(recording.iter_frames([key]))
         assert [f.info for f in frames] == infos
-        for frame, want in zip(frames, expected):
+        for frame, want in zip(frames, expected, strict=True):
             assert frame.info.frame_number == want.frame_number, key
             assert frame.info.timestamp_ms == want.timestamp_ms, key
             assert frame.info.timestamp_domain == want.domain, key

@@ -9,7 +9,6 @@ import pytest
 
 from darp.errors import HardwareError, KinematicsError
 from darp.hardware.z1_arm import MotionLimits, Z1Arm, Z1Connection
-from fakes.fixtures import fake_z1  # noqa: F401 (pytest fixtures)
 
 START = np.array([0.0, 0.6, -1.2, 1.2, 0.0, 0.0])  # the default rig's park pose
 FAST = MotionLimits(max_speed_rad_s=1.0, max_accel_rad_s2=4.0, settle_timeout_s=1.0)
@@ -22,7 +21,7 @@ def connected_arm(fake, q0=START, **kwargs) -> Z1Arm:
     return arm
 
 
-def test_move_to_returns_at_once_then_arrives(fake_z1):  # noqa: F811
+def test_move_to_returns_at_once_then_arrives(fake_z1):
     arm = connected_arm(fake_z1)
     try:
         target = START + np.array([0.4, 0.2, -0.2, 0.1, 0.3, -0.5])
@@ -38,7 +37,7 @@ def test_move_to_returns_at_once_then_arrives(fake_z1):  # noqa: F811
         arm.close()
 
 
-def test_streamed_trajectory_is_smooth_and_within_speed(fake_z1):  # noqa: F811
+def test_streamed_trajectory_is_smooth_and_within_speed(fake_z1):
     arm = connected_arm(fake_z1)
     controller = fake_z1.WORLD.controllers[("127.0.0.1", 8071)]
     try:
@@ -68,7 +67,7 @@ def test_streamed_trajectory_is_smooth_and_within_speed(fake_z1):  # noqa: F811
 
 
 @pytest.mark.parametrize("flavour", ["members", "lowcmd"])
-def test_both_sdk_command_paths_move_the_arm(fake_z1, flavour):  # noqa: F811
+def test_both_sdk_command_paths_move_the_arm(fake_z1, flavour):
     fake_z1.reset(flavour=flavour)
     arm = connected_arm(fake_z1)
     try:
@@ -81,7 +80,7 @@ def test_both_sdk_command_paths_move_the_arm(fake_z1, flavour):  # noqa: F811
         arm.close()
 
 
-def test_stop_brakes_and_holds_short_of_the_target(fake_z1):  # noqa: F811
+def test_stop_brakes_and_holds_short_of_the_target(fake_z1):
     slow = MotionLimits(max_speed_rad_s=0.5, max_accel_rad_s2=2.0, settle_timeout_s=1.0)
     arm = connected_arm(fake_z1, motion=slow)
     try:
@@ -99,7 +98,7 @@ def test_stop_brakes_and_holds_short_of_the_target(fake_z1):  # noqa: F811
         arm.close()
 
 
-def test_new_target_during_a_move_blends_without_a_jump(fake_z1):  # noqa: F811
+def test_new_target_during_a_move_blends_without_a_jump(fake_z1):
     arm = connected_arm(fake_z1)
     controller = fake_z1.WORLD.controllers[("127.0.0.1", 8071)]
     try:
@@ -123,7 +122,7 @@ def test_new_target_during_a_move_blends_without_a_jump(fake_z1):  # noqa: F811
     ([0.0, 0.6, -1.2], "6 finite angles"),
     ([0.0, 0.6, np.nan, 1.2, 0.0, 0.0], "6 finite angles"),
 ])
-def test_targets_outside_the_limits_are_refused(fake_z1, bad, message):  # noqa: F811
+def test_targets_outside_the_limits_are_refused(fake_z1, bad, message):
     arm = connected_arm(fake_z1)
     controller = fake_z1.WORLD.controllers[("127.0.0.1", 8071)]
     try:
@@ -138,7 +137,7 @@ def test_targets_outside_the_limits_are_refused(fake_z1, bad, message):  # noqa:
         arm.close()
 
 
-def test_read_state_uses_the_host_clock(fake_z1):  # noqa: F811
+def test_read_state_uses_the_host_clock(fake_z1):
     arm = connected_arm(fake_z1)
     try:
         before = time.time()
@@ -153,7 +152,7 @@ def test_read_state_uses_the_host_clock(fake_z1):  # noqa: F811
         arm.close()
 
 
-def test_calls_before_connecting_fail_clearly(fake_z1):  # noqa: F811
+def test_calls_before_connecting_fail_clearly(fake_z1):
     arm = Z1Arm("arm110")
     with pytest.raises(HardwareError, match="arm110: not connected"):
         arm.read_state()
@@ -161,14 +160,14 @@ def test_calls_before_connecting_fail_clearly(fake_z1):  # noqa: F811
         arm.move_to(START)
 
 
-def test_no_controller_is_a_clear_error(fake_z1):  # noqa: F811
+def test_no_controller_is_a_clear_error(fake_z1):
     arm = Z1Arm("arm110")
     with pytest.raises(HardwareError, match=r"no answer from z1_ctrl at 127\.0\.0\.1:8071.*is that z1_ctrl running"):
         arm.connect(timeout_s=0.2)
     assert not arm.connected
 
 
-def test_controller_leaving_joint_control_is_reported(fake_z1):  # noqa: F811
+def test_controller_leaving_joint_control_is_reported(fake_z1):
     arm = connected_arm(fake_z1)
     controller = fake_z1.WORLD.controllers[("127.0.0.1", 8071)]
     try:
@@ -184,14 +183,14 @@ def test_controller_leaving_joint_control_is_reported(fake_z1):  # noqa: F811
         arm.close()
 
 
-def test_a_second_arm_needs_the_multi_arm_binding(fake_z1):  # noqa: F811
+def test_a_second_arm_needs_the_multi_arm_binding(fake_z1):
     fake_z1.add_controller(START, port=8073)
     second = Z1Arm("arm111", Z1Connection(controller_port=8073, sdk_port=8074))
     with pytest.raises(HardwareError, match="arm111: .*needs a unitree_arm_interface built with multi-arm support"):
         second.connect()
 
 
-def test_two_arms_with_the_multi_arm_binding(fake_z1):  # noqa: F811
+def test_two_arms_with_the_multi_arm_binding(fake_z1):
     fake_z1.reset(multi_arm=True)
     fake_z1.add_controller(START, port=8071)
     fake_z1.add_controller(START, port=8073)
@@ -201,9 +200,9 @@ def test_two_arms_with_the_multi_arm_binding(fake_z1):  # noqa: F811
         for arm in arms:
             arm.connect()
         targets = [START + 0.25, START - np.array([0, 0.25, 0.25, 0.25, 0.25, 0.25])]
-        for arm, target in zip(arms, targets):
+        for arm, target in zip(arms, targets, strict=True):
             arm.move_to(target)
-        for arm, target in zip(arms, targets):
+        for arm, target in zip(arms, targets, strict=True):
             assert arm.wait_until_still(timeout_s=5.0)
             assert np.max(np.abs(arm.read_state().q_rad - target)) <= FAST.target_tolerance_rad
     finally:
@@ -211,7 +210,7 @@ def test_two_arms_with_the_multi_arm_binding(fake_z1):  # noqa: F811
             arm.close()
 
 
-def test_busy_controller_is_refused(fake_z1):  # noqa: F811
+def test_busy_controller_is_refused(fake_z1):
     controller = fake_z1.add_controller(START)
     controller.trip(fake_z1.ArmFSMState.LOWCMD)  # another program drives it in low-level mode
     arm = Z1Arm("arm110")

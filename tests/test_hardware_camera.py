@@ -16,7 +16,6 @@ import pytest
 from darp.errors import HardwareError
 from darp.formats.realsense.recording import open_recording
 from darp.hardware.realsense_camera import CameraSettings, RealSenseCamera
-from fakes.fixtures import fake_rs  # noqa: F401 (pytest fixtures)
 
 SERIAL = "348522076490"
 SMALL = CameraSettings(width=424, height=240, fps=15)
@@ -26,7 +25,7 @@ def expected_depth_m(fake, w: int = 424, h: int = 240) -> np.ndarray:
     return fake.WORLD.cameras[SERIAL].image("depth", w, h, 0).astype(np.float64) * 0.001
 
 
-def test_latest_frameset_gives_metric_depth_colour_and_calibration(fake_rs):  # noqa: F811
+def test_latest_frameset_gives_metric_depth_colour_and_calibration(fake_rs):
     fake_rs.add_camera(SERIAL)
     with RealSenseCamera(SERIAL, SMALL, arm_id="arm110") as camera:
         before = time.time()
@@ -54,7 +53,7 @@ def test_latest_frameset_gives_metric_depth_colour_and_calibration(fake_rs):  # 
         assert len(numbers) == 4
 
 
-def test_global_time_is_switched_on_for_the_streaming_device(fake_rs):  # noqa: F811
+def test_global_time_is_switched_on_for_the_streaming_device(fake_rs):
     fake_rs.add_camera(SERIAL, global_time_default=False)  # a camera whose sensors start in hardware clock
     with RealSenseCamera(SERIAL, SMALL) as camera:
         fs = camera.latest_frameset()
@@ -96,7 +95,7 @@ def check_recording(path, fake, t0: float, t1: float, imu: bool = True, early_fr
         assert rec.stream("depth").intrinsics.fx == pytest.approx(383.5 * 424 / 640, rel=1e-6)
 
 
-def test_recording_with_a_db3_only_sdk_writes_cam_serial_db3(fake_rs, tmp_path, caplog):  # noqa: F811
+def test_recording_with_a_db3_only_sdk_writes_cam_serial_db3(fake_rs, tmp_path, caplog):
     fake_rs.add_camera(SERIAL)
     with RealSenseCamera(SERIAL, SMALL) as camera, caplog.at_level(logging.WARNING):
         written, finished, live, t0, t1 = record(camera, tmp_path / "survey" / f"cam{SERIAL}.bag")
@@ -107,7 +106,7 @@ def test_recording_with_a_db3_only_sdk_writes_cam_serial_db3(fake_rs, tmp_path, 
     check_recording(finished, fake_rs, t0, t1)
 
 
-def test_a_camera_starting_in_hardware_clock_records_on_the_host_clock(fake_rs, tmp_path):  # noqa: F811
+def test_a_camera_starting_in_hardware_clock_records_on_the_host_clock(fake_rs, tmp_path):
     # librealsense records from pipeline.start(); darp pauses the recorder right after, switches the
     # streaming sensors to global time and resumes on the first host-clock frame set. Only frames that
     # arrive between start() returning and pause() (none on a real D400, whose first frame takes ~100 ms;
@@ -119,7 +118,7 @@ def test_a_camera_starting_in_hardware_clock_records_on_the_host_clock(fake_rs, 
     check_recording(finished, fake_rs, t0, t1, early_frames=2)
 
 
-def test_recording_with_a_bag_sdk_writes_the_survey_format(fake_rs, tmp_path):  # noqa: F811
+def test_recording_with_a_bag_sdk_writes_the_survey_format(fake_rs, tmp_path):
     fake_rs.reset(version="2.57.7")
     fake_rs.add_camera(SERIAL)
     with RealSenseCamera(SERIAL, SMALL) as camera:
@@ -133,7 +132,7 @@ def test_recording_with_a_bag_sdk_writes_the_survey_format(fake_rs, tmp_path):  
         assert rec.frame_count("depth") >= 2
 
 
-def test_insisting_on_bag_with_a_db3_only_sdk_is_refused_with_the_fix(fake_rs, tmp_path):  # noqa: F811
+def test_insisting_on_bag_with_a_db3_only_sdk_is_refused_with_the_fix(fake_rs, tmp_path):
     fake_rs.add_camera(SERIAL)
     settings = CameraSettings(width=424, height=240, fps=15, recording_format="bag")
     with RealSenseCamera(SERIAL, settings) as camera:
@@ -143,7 +142,7 @@ def test_insisting_on_bag_with_a_db3_only_sdk_is_refused_with_the_fix(fake_rs, t
         assert camera.latest_frameset().depth_m.shape == (240, 424)  # still streaming live
 
 
-def test_an_existing_recording_is_never_overwritten(fake_rs, tmp_path):  # noqa: F811
+def test_an_existing_recording_is_never_overwritten(fake_rs, tmp_path):
     fake_rs.add_camera(SERIAL)
     (tmp_path / f"cam{SERIAL}.db3").write_bytes(b"precious")
     with RealSenseCamera(SERIAL, SMALL) as camera, pytest.raises(HardwareError, match="refusing to overwrite"):
@@ -151,7 +150,7 @@ def test_an_existing_recording_is_never_overwritten(fake_rs, tmp_path):  # noqa:
     assert (tmp_path / f"cam{SERIAL}.db3").read_bytes() == b"precious"
 
 
-def test_a_camera_without_imu_records_without_motion_streams(fake_rs, tmp_path):  # noqa: F811
+def test_a_camera_without_imu_records_without_motion_streams(fake_rs, tmp_path):
     fake_rs.add_camera(SERIAL, imu=False)
     with RealSenseCamera(SERIAL, SMALL) as camera:
         assert camera.imu_rates_hz is None
@@ -162,13 +161,13 @@ def test_a_camera_without_imu_records_without_motion_streams(fake_rs, tmp_path):
         RealSenseCamera(SERIAL, required).open()
 
 
-def test_imu_rates_follow_the_device(fake_rs):  # noqa: F811
+def test_imu_rates_follow_the_device(fake_rs):
     fake_rs.add_camera(SERIAL, accel_rates=(63, 250))  # older firmware: accel 63/250 Hz instead of 100/200
     with RealSenseCamera(SERIAL, SMALL) as camera:
         assert camera.imu_rates_hz == (63, 200)
 
 
-def test_hardware_problems_are_clear_errors(fake_rs):  # noqa: F811
+def test_hardware_problems_are_clear_errors(fake_rs):
     fake_rs.add_camera("405622074504")
     with pytest.raises(HardwareError, match=f"camera {SERIAL} is not connected \\(cameras found: 405622074504\\)"):
         RealSenseCamera(SERIAL).open()

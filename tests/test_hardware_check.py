@@ -14,7 +14,6 @@ from darp.hardware.check import FAIL, OK, WARNING, check_rig, usb_load_mb_s
 from darp.hardware.realsense_camera import CameraSettings
 from darp.hardware.z1_arm import Z1Connection, probe_arm
 from darp.kinematics.rig import default_rig_path
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 PARK = np.array([0.0, 0.6, -1.2, 1.2, 0.0, 0.0])
 SERIALS = {"arm110": "348522076490", "arm111": "405622074504"}
@@ -32,7 +31,7 @@ def rig_file(tmp_path, cameras: dict | None = None, serials: dict | None = None,
     return path
 
 
-def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111"), cameras=("arm110", "arm111"),  # noqa: F811
+def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111"), cameras=("arm110", "arm111"),
             q0=None, **camera_kwargs):
     fake_z1.reset(multi_arm=True)
     ports = {"arm110": 8071, "arm111": 8073}
@@ -58,7 +57,7 @@ def assert_one_line_per_failure(report, err):
     assert "Traceback" not in err
 
 
-def test_all_present_is_all_ok_exit_0_and_nothing_moves(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_all_present_is_all_ok_exit_0_and_nothing_moves(fake_z1, fake_rs, tmp_path, capsys):
     controllers = plug_in(fake_z1, fake_rs)
     rc, report, verdicts, details, err = check_json(rig_file(tmp_path), capsys)
     assert rc == 0 and err == "" and report["ok"] is True
@@ -70,14 +69,14 @@ def test_all_present_is_all_ok_exit_0_and_nothing_moves(fake_z1, fake_rs, tmp_pa
         assert report["arms"][arm_id]["within_limits"] and report["arms"][arm_id]["at_park"]
     assert details["arm110 streams"] == "depth z16, IR1 y8, IR2 y8, colour bgr8 at 640x480@30"
     assert details["arm111 controller"].startswith("z1_ctrl at 127.0.0.1:8073 (SDK port 8074")
-    assert {c["serial"]: c["usb"] for c in report["cameras"]} == {s: "3.2" for s in SERIALS.values()}
+    assert {c["serial"]: c["usb"] for c in report["cameras"]} == dict.fromkeys(SERIALS.values(), "3.2")
     assert report["cameras"][0]["name"] == "Intel RealSense D435I" and report["cameras"][0]["firmware"] == "5.16.0.1"
     for controller in controllers.values():  # read-only: no FSM change, no joint command tracked
         assert controller.state == fake_z1.ArmFSMState.PASSIVE and controller.commands == []
     assert fake_rs.WORLD.streaming == {}  # cameras enumerated, never started
 
 
-def test_the_table_lists_devices_and_checks(fake_z1, fake_rs, tmp_path, capsys, monkeypatch):  # noqa: F811
+def test_the_table_lists_devices_and_checks(fake_z1, fake_rs, tmp_path, capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "240")
     plug_in(fake_z1, fake_rs)
     assert run(["hardware", "check", "--rig", str(rig_file(tmp_path))]) == 0
@@ -87,7 +86,7 @@ def test_the_table_lists_devices_and_checks(fake_z1, fake_rs, tmp_path, capsys, 
     assert "ok: 19 checks, 0 failed, 0 warning(s)" in out
 
 
-def test_a_missing_camera_fails_with_one_line(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_a_missing_camera_fails_with_one_line(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs, cameras=("arm110",))
     rc, report, verdicts, details, err = check_json(rig_file(tmp_path), capsys)
     assert rc == 2 and report["ok"] is False
@@ -99,7 +98,7 @@ def test_a_missing_camera_fails_with_one_line(fake_z1, fake_rs, tmp_path, capsys
     assert_one_line_per_failure(report, err)
 
 
-def test_swapped_serials_and_a_stranger_are_warnings(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_swapped_serials_and_a_stranger_are_warnings(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs)
     fake_rs.add_camera("111122223333", imu=False)
     swapped = {"arm110": SERIALS["arm111"], "arm111": SERIALS["arm110"]}
@@ -111,7 +110,7 @@ def test_swapped_serials_and_a_stranger_are_warnings(fake_z1, fake_rs, tmp_path,
     assert verdicts["other cameras"] == WARNING and "111122223333 (Intel RealSense D435)" in details["other cameras"]
 
 
-def test_an_unreachable_arm_fails(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_an_unreachable_arm_fails(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs, arms=("arm110",))
     rc, report, verdicts, details, err = check_json(rig_file(tmp_path), capsys)
     assert rc == 2
@@ -122,7 +121,7 @@ def test_an_unreachable_arm_fails(fake_z1, fake_rs, tmp_path, capsys):  # noqa: 
     assert_one_line_per_failure(report, err)
 
 
-def test_the_stock_binding_cannot_reach_the_second_arm(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_the_stock_binding_cannot_reach_the_second_arm(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs)
     fake_z1.reset(multi_arm=False)
     fake_z1.add_controller(PARK, port=8071)
@@ -132,7 +131,7 @@ def test_the_stock_binding_cannot_reach_the_second_arm(fake_z1, fake_rs, tmp_pat
     assert "needs a unitree_arm_interface built with multi-arm support" in details["arm111 controller"]
 
 
-def test_a_missing_stream_profile_fails(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_a_missing_stream_profile_fails(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs)
     # the D435's colour sensor has 320x240@30, its stereo module does not
     rc, report, verdicts, details, err = check_json(rig_file(tmp_path, {"width": 320, "height": 240}), capsys)
@@ -141,7 +140,7 @@ def test_a_missing_stream_profile_fails(fake_z1, fake_rs, tmp_path, capsys):  # 
     assert_one_line_per_failure(report, err)
 
 
-def test_imu_required_but_absent_fails_and_auto_warns(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_imu_required_but_absent_fails_and_auto_warns(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs, imu=False)
     rc, _, verdicts, details, _ = check_json(rig_file(tmp_path, {"imu": "on"}), capsys)
     assert rc == 2 and verdicts["arm110 IMU"] == FAIL
@@ -150,7 +149,7 @@ def test_imu_required_but_absent_fails_and_auto_warns(fake_z1, fake_rs, tmp_path
     assert rc == 0 and verdicts["arm110 IMU"] == WARNING
 
 
-def test_usb2_fails_when_the_streams_do_not_fit_else_warns(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_usb2_fails_when_the_streams_do_not_fit_else_warns(fake_z1, fake_rs, tmp_path, capsys):
     plug_in(fake_z1, fake_rs, usb="2.1")
     assert usb_load_mb_s(CameraSettings()) == pytest.approx(640 * 480 * 30 * 6 / 1e6)
     rc, _, verdicts, details, _ = check_json(rig_file(tmp_path), capsys)
@@ -161,7 +160,7 @@ def test_usb2_fails_when_the_streams_do_not_fit_else_warns(fake_z1, fake_rs, tmp
     assert rc == 0 and verdicts["arm110 USB"] == WARNING
 
 
-def test_a_joint_outside_its_limits_fails_and_off_park_warns(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_a_joint_outside_its_limits_fails_and_off_park_warns(fake_z1, fake_rs, tmp_path, capsys):
     outside = PARK + np.array([0.0, -0.9, 0.0, 0.0, 0.0, 0.0])  # joint2 at -0.3 rad, below its 0 limit
     off_park = PARK + np.array([0.0, 0.0, 0.4, 0.0, 0.0, 0.0])
     plug_in(fake_z1, fake_rs, q0={"arm110": outside, "arm111": off_park})
@@ -176,12 +175,13 @@ def test_a_joint_outside_its_limits_fails_and_off_park_warns(fake_z1, fake_rs, t
     assert_one_line_per_failure(report, err)
 
 
-def test_a_malformed_rig_file_is_one_line(fake_z1, fake_rs, tmp_path, capsys):  # noqa: F811
+def test_a_malformed_rig_file_is_one_line(fake_z1, fake_rs, tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("arms: [unclosed\n")
     assert run(["hardware", "check", "--rig", str(bad)]) == 2
     err = capsys.readouterr().err
-    expected = f"darp: error: rig file: {bad}: invalid YAML at line 2 column 1: expected ',' or ']', but got '<stream end>'"
+    expected = (f"darp: error: rig file: {bad}: invalid YAML at line 2 column 1: expected ',' or ']', "
+                "but got '<stream end>'")
     assert err.strip().splitlines() == [expected]
     rc, report, verdicts, details, err = check_json(rig_file(tmp_path, {"fps": "thirty"}), capsys)
     assert rc == 2 and list(verdicts) == ["rig file"] and verdicts["rig file"] == FAIL
@@ -200,7 +200,7 @@ def test_missing_sdks_are_failures_not_tracebacks(tmp_path, capsys, monkeypatch)
     assert_one_line_per_failure(report, err)
 
 
-def test_probe_arm_reads_without_commanding(fake_z1):  # noqa: F811
+def test_probe_arm_reads_without_commanding(fake_z1):
     fake_z1.reset()
     controller = fake_z1.add_controller(PARK)
     probe = probe_arm("arm110", Z1Connection(), timeout_s=1.0)

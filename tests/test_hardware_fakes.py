@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from darp.kinematics import z1
-from fakes import fake_pyrealsense2, fake_unitree_arm_interface
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
+from helpers.fakes import fake_pyrealsense2, fake_unitree_arm_interface
 
 # Every name the z1_sdk Python binding defines (examples_py/arm_python_interface.cpp, z1_sdk 2.x),
 # plus those of the multi-arm patch of docs/hardware.md.
@@ -40,7 +39,7 @@ def public(obj) -> set[str]:
         n for n in dir(obj) if not n.startswith("_")}
 
 
-def test_the_z1_fake_invents_no_api(fake_z1):  # noqa: F811
+def test_the_z1_fake_invents_no_api(fake_z1):
     fake_z1.reset(multi_arm=True)
     names = {n for n in public(fake_unitree_arm_interface) if not inspect.ismodule(getattr(fake_z1, n))}
     names -= FAKE_CONTROLS | {"annotations", "enum", "math", "threading", "time", "weakref", "np", "ik", "z1",
@@ -51,7 +50,7 @@ def test_the_z1_fake_invents_no_api(fake_z1):  # noqa: F811
         assert not extra, f"{cls}: {extra}"
 
 
-def test_the_realsense_fake_invents_no_api(fake_rs):  # noqa: F811
+def test_the_realsense_fake_invents_no_api(fake_rs):
     real = fake_rs._rs
     for name in public(fake_pyrealsense2) - FAKE_CONTROLS:
         value = getattr(fake_rs, name)
@@ -59,13 +58,13 @@ def test_the_realsense_fake_invents_no_api(fake_rs):  # noqa: F811
                                                  "Path"):
             continue
         assert hasattr(real, name), f"pyrealsense2 has no {name}"
-        if inspect.isclass(value) and value.__module__.startswith("fakes."):
+        if inspect.isclass(value) and value.__module__.startswith("helpers.fakes."):
             extra = {m for m in public(value) if not hasattr(getattr(real, name), m)}
             assert not extra, f"pyrealsense2.{name} has no {extra}"
     assert fake_rs.stream is real.stream and fake_rs.option is real.option  # the real enums themselves
 
 
-def test_z1_state_comes_only_from_the_running_loop(fake_z1):  # noqa: F811
+def test_z1_state_comes_only_from_the_running_loop(fake_z1):
     fake_z1.add_controller(START)
     arm = fake_z1.ArmInterface(False)
     assert np.all(arm.lowstate.getQ() == 0) and arm.getCurrentState() == fake_z1.ArmFSMState.INVALID
@@ -76,7 +75,7 @@ def test_z1_state_comes_only_from_the_running_loop(fake_z1):  # noqa: F811
     arm.loopOff()
 
 
-def test_z1_movej_blocks_unless_told_not_to(fake_z1):  # noqa: F811
+def test_z1_movej_blocks_unless_told_not_to(fake_z1):
     fake_z1.add_controller(START)
     arm = fake_z1.ArmInterface(False)
     arm.loopOn()
@@ -97,7 +96,7 @@ def test_z1_movej_blocks_unless_told_not_to(fake_z1):  # noqa: F811
     arm.loopOff()
 
 
-def test_z1_misuse_is_caught(fake_z1):  # noqa: F811
+def test_z1_misuse_is_caught(fake_z1):
     fake_z1.add_controller(START)
     posture = fake_z1.homoToPosture(z1.fk(START, "flange"))
     with pytest.raises(TypeError):
@@ -130,7 +129,7 @@ def test_z1_misuse_is_caught(fake_z1):  # noqa: F811
     fake_z1.WORLD.violations.clear()  # all of the above were on purpose
 
 
-def test_realsense_requests_are_checked_like_librealsense(fake_rs, tmp_path):  # noqa: F811
+def test_realsense_requests_are_checked_like_librealsense(fake_rs, tmp_path):
     rs = fake_rs
     rs.add_camera("111")
     cfg = rs.config()
@@ -160,7 +159,7 @@ def test_realsense_requests_are_checked_like_librealsense(fake_rs, tmp_path):  #
     rs.WORLD.violations.clear()  # on purpose
 
 
-def test_realsense_frames_count_up_and_follow_the_streaming_device_options(fake_rs):  # noqa: F811
+def test_realsense_frames_count_up_and_follow_the_streaming_device_options(fake_rs):
     rs = fake_rs
     rs.add_camera("111")
     for dev in rs.context().query_devices():  # set before start, on another device object: no effect
@@ -183,7 +182,7 @@ def test_realsense_frames_count_up_and_follow_the_streaming_device_options(fake_
     pipe.stop()
 
 
-def test_a_recording_is_finished_only_when_the_recording_device_is_released(fake_rs, tmp_path):  # noqa: F811
+def test_a_recording_is_finished_only_when_the_recording_device_is_released(fake_rs, tmp_path):
     rs = fake_rs
     rs.reset(version="2.57.7")
     rs.add_camera("111")

@@ -1,8 +1,12 @@
-"""The joint logger and HardwareRig: rate, file validity, errors, and a whole capture on the fakes."""
+"""The joint logger and HardwareRig: the logger's schedule (in simulated time), file validity, errors, and a
+whole capture on the fakes."""
 
 from __future__ import annotations
 
+import math
+import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,28 +16,81 @@ from darp.backend import ArmBackend, JointState
 from darp.errors import ConfigError, FormatError, HardwareError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.realsense.recording import open_recording
+from darp.hardware import joint_logger
 from darp.hardware.joint_logger import JointLogger
 from darp.hardware.rig import HardwareRig
+from darp.hardware.settings import HardwareSettings
 from darp.kinematics.rig import default_rig_path, load_rig
-from fakes.fixtures import fake_rs, fake_z1  # noqa: F401 (pytest fixtures)
 
 PARK = np.array([0.0, 0.6, -1.2, 1.2, 0.0, 0.0])
 SERIALS = {"arm110": "348522076490", "arm111": "405622074504"}
+EPOCH = 1_718_000_000.0  # host-clock seconds at simulated time 0
+
+
+# -- the joint logger in simulated time -----------------------------------------------------------------
+class SimulatedTime:
+    """Stands in for the logger module's ``time`` (its schedule reads ``time.monotonic()``) and makes its stop
+    event's ``wait(timeout)`` advance simulated seconds at once instead of blocking. At ``until_s`` the event is
+    set, as if ``stop()`` had been called then: a run covers exactly that much simulated time, however fast or
+    loaded the machine is."""
+
+    def __init__(self, until_s: float) -> None:
+        self.now_s, self.until_s = 0.0, until_s
+
+    def monotonic(self) -> float:
+        return self.now_s
+
+
+class SimulatedStopEvent(threading.Event):
+    def __init__(self, sim: SimulatedTime) -> None:
+        super().__init__()
+        self.sim = sim
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if timeout is not None and not self.is_set():
+            self.sim.now_s += timeout
+            if self.sim.now_s >= self.sim.until_s - 1e-9:
+                self.set()
+        return self.is_set()
+
+
+def simulate(monkeypatch: pytest.MonkeyPatch, until_s: float = math.inf) -> SimulatedTime:
+    """Run JointLoggers created from now on in simulated time (see :class:`SimulatedTime`)."""
+    sim = SimulatedTime(until_s)
+    monkeypatch.setattr(joint_logger, "time", sim)
+    monkeypatch.setattr(joint_logger, "threading",
+                        SimpleNamespace(Thread=threading.Thread, Event=lambda: SimulatedStopEvent(sim)))
+    return sim
+
+
+def run_to_end(logger: JointLogger) -> None:
+    """Start ``logger`` and wait until its thread ends by itself (simulated time ran out, or an error)."""
+    logger.start()
+    deadline = time.monotonic() + 60.0  # only a guard against a hang: nothing here is timed
+    while logger.running:
+        if time.monotonic() > deadline:
+            logger.stop()
+            pytest.fail("the joint logger's thread did not end")
+        time.sleep(0.001)
 
 
 class ClockArm(ArmBackend):
-    """An arm whose state is the host clock and a slowly turning joint 1; can fail after some reads."""
+    """An arm whose state is stamped with the simulated host clock, with joint 1 turning at 0.1 rad/s. It can
+    fail after some reads, stay frozen (the driver repeats its last sample), or spend ``slow_reads[n]``
+    simulated seconds inside its n-th read (1-based; the state keeps the time the read began)."""
 
-    def __init__(self, arm_id: str, fail_after: int | None = None, frozen: bool = False) -> None:
-        self.arm_id, self.fail_after, self.frozen, self.reads = arm_id, fail_after, frozen, 0
-        self._t0 = time.time()
+    def __init__(self, arm_id: str, sim: SimulatedTime, fail_after: int | None = None, frozen: bool = False,
+                 slow_reads: dict[int, float] | None = None) -> None:
+        self.arm_id, self.sim, self.fail_after, self.frozen, self.reads = arm_id, sim, fail_after, frozen, 0
+        self.slow_reads = slow_reads or {}
 
     def read_state(self) -> JointState:
         self.reads += 1
         if self.fail_after is not None and self.reads > self.fail_after:
             raise HardwareError(f"{self.arm_id}: control loop stopped: simulated fault")
-        t = self._t0 if self.frozen else time.time()
-        return JointState(t, PARK + np.array([0.1 * (t - self._t0), 0, 0, 0, 0, 0]), np.zeros(6))
+        elapsed = 0.0 if self.frozen else self.sim.now_s
+        self.sim.now_s += self.slow_reads.get(self.reads, 0.0)
+        return JointState(EPOCH + elapsed, PARK + np.array([0.1 * elapsed, 0, 0, 0, 0, 0]), np.zeros(6))
 
     def move_to(self, q_target_rad, max_speed_rad_s=None) -> None:
         raise NotImplementedError
@@ -45,46 +102,60 @@ class ClockArm(ArmBackend):
         pass
 
 
-def test_joint_log_runs_at_about_33_hz_and_writes_a_valid_file(tmp_path):
-    arms = {"arm110": ClockArm("arm110"), "arm111": ClockArm("arm111")}
+def test_joint_log_follows_its_33_hz_schedule_and_writes_a_valid_file(tmp_path, monkeypatch):
+    assert HardwareSettings.defaults(("arm110", "arm111")).joint_log_hz == 33.0  # what a rig logs at by default
+    sim = simulate(monkeypatch, until_s=1.0)
+    arms = {"arm110": ClockArm("arm110", sim), "arm111": ClockArm("arm111", sim)}
     path = tmp_path / "arm_poses.csv"
     logger = JointLogger(arms, path)
-    start = time.time()
-    logger.start()
-    time.sleep(1.0)
+    assert logger.rate_hz == 33.0
+    run_to_end(logger)
     logger.stop()
-    elapsed = time.time() - start
     log = read_arm_poses(path, strict_tail=True)
     assert log.arms == ("arm110", "arm111")
-    for arm_id, arm in arms.items():
+    for arm_id in arms:
         times = log.times(arm_id)
-        rate = log.rows(arm_id) / elapsed
-        assert 25 <= rate <= 40, f"{arm_id}: {rate:.1f} Hz"  # behaviour, generous bounds: not a benchmark
-        assert np.all(np.diff(times) > 0)
-        assert start - 0.01 <= times[0] and times[-1] <= time.time()  # host clock seconds
-        assert np.allclose(log.joints(arm_id)[:, 0], 0.1 * (times - arm._t0), atol=1e-6)
-    assert logger.rows_written == log.n_rows
+        assert log.rows(arm_id) == 33  # one simulated second: a row at 0, 1/33, ..., 32/33 s
+        np.testing.assert_allclose(times - EPOCH, np.arange(33) / 33.0, atol=2e-6)  # the log has µs resolution
+        np.testing.assert_allclose(log.joints(arm_id)[:, 0], 0.1 * (times - EPOCH), atol=1e-6)  # each row's own state
+    assert logger.ticks == 33 and logger.skipped_ticks == 0
+    assert logger.rows_written == log.n_rows == 66
 
 
-def test_repeated_samples_are_not_logged_twice(tmp_path):
-    arms = {"arm110": ClockArm("arm110", frozen=True)}
-    with JointLogger(arms, tmp_path / "arm_poses.csv") as logger:
-        time.sleep(0.2)
-    assert read_arm_poses(tmp_path / "arm_poses.csv").rows("arm110") == 1
-    assert logger.repeated_samples >= 3
-
-
-def test_an_arm_fault_stops_the_log_and_is_reported(tmp_path):
+def test_a_slow_read_drops_the_ticks_it_overran_and_the_schedule_holds(tmp_path, monkeypatch):
+    sim = simulate(monkeypatch, until_s=1.0)
     path = tmp_path / "arm_poses.csv"
-    logger = JointLogger({"arm110": ClockArm("arm110", fail_after=5)}, path)
-    logger.start()
-    time.sleep(0.4)
+    logger = JointLogger({"arm110": ClockArm("arm110", sim, slow_reads={10: 0.1})}, path)  # 3.3 periods
+    run_to_end(logger)
+    logger.stop()
+    times = read_arm_poses(path, strict_tail=True).times("arm110") - EPOCH
+    # rows 0..9 on the 33 Hz grid (the 10th read began at 9/33 s); the next tick runs late, at 9/33 + 0.1 s,
+    # instead of the two it overran (dropped, not run back to back); then the grid again from 13/33 s
+    expected = [k / 33 for k in range(10)] + [9 / 33 + 0.1] + [k / 33 for k in range(13, 33)]
+    np.testing.assert_allclose(times, expected, atol=2e-6)
+    assert logger.skipped_ticks == 2 and logger.ticks + logger.skipped_ticks == 33
+
+
+def test_repeated_samples_are_not_logged_twice(tmp_path, monkeypatch):
+    sim = simulate(monkeypatch, until_s=0.2)
+    logger = JointLogger({"arm110": ClockArm("arm110", sim, frozen=True)}, tmp_path / "arm_poses.csv")
+    run_to_end(logger)
+    logger.stop()
+    assert read_arm_poses(tmp_path / "arm_poses.csv").rows("arm110") == 1
+    assert logger.ticks == 7 and logger.repeated_samples == 6  # ticks at 0, 1/33, ..., 6/33 s
+
+
+def test_an_arm_fault_stops_the_log_and_is_reported(tmp_path, monkeypatch):
+    sim = simulate(monkeypatch)
+    path = tmp_path / "arm_poses.csv"
+    logger = JointLogger({"arm110": ClockArm("arm110", sim, fail_after=5)}, path)
+    run_to_end(logger)  # the thread ends by itself at the fault
     assert not logger.running
     with pytest.raises(HardwareError, match="joint log stopped early: arm110: control loop stopped: simulated fault"):
         logger.stop()
     assert read_arm_poses(path).rows("arm110") == 5  # everything before the fault is kept, valid
     with pytest.raises(FormatError, match="already exists \\(refusing to overwrite a joint log\\)"):
-        JointLogger({"arm110": ClockArm("arm110")}, path).start()
+        JointLogger({"arm110": ClockArm("arm110", sim)}, path).start()
 
 
 def rig_file(tmp_path, hardware: dict | None = None):
@@ -99,16 +170,16 @@ def rig_file(tmp_path, hardware: dict | None = None):
     return path
 
 
-def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111")):  # noqa: F811
+def plug_in(fake_z1, fake_rs, arms=("arm110", "arm111")):
     fake_z1.reset(multi_arm=True)
     controllers = {arm_id: fake_z1.add_controller(PARK, port=port)
-                   for arm_id, port in zip(arms, (8071, 8073))}
+                   for arm_id, port in zip(arms, (8071, 8073), strict=False)}
     for serial in SERIALS.values():
         fake_rs.add_camera(serial)
     return controllers
 
 
-def test_a_capture_on_the_rig_logs_moves_and_records_on_one_clock(fake_z1, fake_rs, tmp_path):  # noqa: F811
+def test_a_capture_on_the_rig_logs_moves_and_records_on_one_clock(fake_z1, fake_rs, tmp_path):
     plug_in(fake_z1, fake_rs)
     path = rig_file(tmp_path)
     assert load_rig(path).arm_ids == ("arm110", "arm111")  # the geometry loader tolerates the section
@@ -143,7 +214,7 @@ def test_a_capture_on_the_rig_logs_moves_and_records_on_one_clock(fake_z1, fake_
         assert stamps_s[0] < t[0] + 0.5 and stamps_s[-1] > t[-1] - 0.5
 
 
-def test_opening_part_of_a_rig_releases_what_was_connected(fake_z1, fake_rs, tmp_path):  # noqa: F811
+def test_opening_part_of_a_rig_releases_what_was_connected(fake_z1, fake_rs, tmp_path):
     plug_in(fake_z1, fake_rs, arms=("arm110",))  # arm111's controller is not running
     with pytest.raises(HardwareError, match="arm111: no answer from z1_ctrl at 127.0.0.1:8073 .*192.168.123.111"):
         HardwareRig.open(rig_file(tmp_path), connect_timeout_s=0.3)
@@ -161,7 +232,7 @@ def test_hardware_section_errors_name_the_file_and_field(tmp_path):
         HardwareRig.open(rig_file(tmp_path, {"cameras": {"fps": "thirty"}}))
 
 
-def test_open_rig_takes_a_loaded_rig_and_reads_its_hardware_section(fake_z1, fake_rs, tmp_path):  # noqa: F811
+def test_open_rig_takes_a_loaded_rig_and_reads_its_hardware_section(fake_z1, fake_rs, tmp_path):
     plug_in(fake_z1, fake_rs)
     from darp.hardware import open_rig
 

@@ -16,7 +16,7 @@ ZERO = np.zeros(6)
 
 def dense(plan, t0: float, n: int = 1201):
     t = np.linspace(t0, plan.end_s + 0.1, n)
-    q, qd, qdd = (np.array(v) for v in zip(*(plan.sample(x) for x in t)))
+    q, qd, qdd = (np.array(v) for v in zip(*(plan.sample(x) for x in t), strict=True))
     return t, q, qd, qdd
 
 

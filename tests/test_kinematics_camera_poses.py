@@ -20,7 +20,7 @@ _FLANGE_X_M = 0.0618
 def reference_T_base_flange(q: np.ndarray) -> tuple[Rotation, np.ndarray]:
     R = Rotation.identity()
     p = np.zeros(3)
-    for origin, axis, angle in zip(_ORIGINS, _AXES, q):
+    for origin, axis, angle in zip(_ORIGINS, _AXES, q, strict=True):
         p = p + R.apply(origin)
         R = R * Rotation.from_euler(axis, angle)
     return R, p + R.apply([_FLANGE_X_M, 0.0, 0.0])

@@ -89,7 +89,8 @@ def _mj_geom(p: Primitive, name: str) -> str:
 
 
 def _mj_distances(prims_a: list[Primitive], prims_b: list[Primitive]) -> np.ndarray:
-    geoms = [_mj_geom(p, f"a{i}") for i, p in enumerate(prims_a)] + [_mj_geom(p, f"b{i}") for i, p in enumerate(prims_b)]
+    geoms = ([_mj_geom(p, f"a{i}") for i, p in enumerate(prims_a)]
+             + [_mj_geom(p, f"b{i}") for i, p in enumerate(prims_b)])
     model = mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{''.join(geoms)}</worldbody></mujoco>")
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
@@ -116,7 +117,7 @@ def test_pair_distances_agree_with_mujoco() -> None:
     A = [_random_primitive(rng, kinds[k % 3]) for k in range(450)]
     B = [_random_primitive(rng, kinds[(k // 3) % 3]) for k in range(450)]
     ours, _, _ = pair_distances(PrimitiveSet.from_list(A), PrimitiveSet.from_list(B))
-    ref = np.array([_mj_distances([a], [b])[0, 0] for a, b in zip(A, B)])
+    ref = np.array([_mj_distances([a], [b])[0, 0] for a, b in zip(A, B, strict=True)])
     apart = ref > 1e-5
     assert apart.sum() > 200 and (~apart).sum() > 50
     assert np.all(ours <= ref + 1e-9)  # never over-reported

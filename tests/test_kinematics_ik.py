@@ -28,7 +28,7 @@ def test_round_trip_1000_random_reachable_poses() -> None:
     results = [ik.solve_ik(T[i]) for i in range(len(Q))]
     ok = np.array([r.success for r in results])
     assert ok.mean() >= 0.99
-    for r, T_i in zip(results, T):
+    for r, T_i in zip(results, T, strict=True):
         if r.success:
             _check_exact(r, T_i)
     assert max(r.position_error_m for r in results if r.success) < TOL
@@ -70,7 +70,7 @@ def test_numeric_solver_alone_round_trips() -> None:
     Q = z1.random_configurations(100, np.random.default_rng(15))
     results = [ik.solve_ik(z1.fk(q), method="numeric", seed=i) for i, q in enumerate(Q)]
     assert np.mean([r.success for r in results]) >= 0.95
-    for r, q in zip(results, Q):
+    for r, q in zip(results, Q, strict=True):
         if r.success:
             _check_exact(r, z1.fk(q))
             assert r.iterations > 0
@@ -111,7 +111,8 @@ def test_closed_form_failures_are_confirmed_by_the_numeric_solver() -> None:
     rng = np.random.default_rng(16)
     failures = successes = 0
     while failures < 12:
-        T = tf.make_transform(tf.rotvec_to_rotation(rng.normal(size=3)), rng.uniform([-0.5, -0.5, 0.0], [0.5, 0.5, 0.6]))
+        T = tf.make_transform(tf.rotvec_to_rotation(rng.normal(size=3)),
+                              rng.uniform([-0.5, -0.5, 0.0], [0.5, 0.5, 0.6]))
         r = ik.solve_ik(T)
         if r.success:
             _check_exact(r, T)

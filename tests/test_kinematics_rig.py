@@ -16,11 +16,6 @@ from darp.kinematics.rig import default_rig_path, load_rig
 from darp.kinematics.transforms import make_transform, rot_z
 
 
-@pytest.fixture(scope="module")
-def rig():
-    return load_rig()
-
-
 def default_dict() -> dict[str, Any]:
     return yaml.safe_load(default_rig_path().read_text())
 

@@ -79,7 +79,7 @@ def test_fk_equals_chain_of_matrix_products() -> None:
     rot = {"x": tf.rot_x, "y": tf.rot_y, "z": tf.rot_z}
     for q in z1.random_configurations(20, RNG_SEED + 1):
         T = np.eye(4)
-        for joint, angle in zip(z1.Z1_JOINTS, q):
+        for joint, angle in zip(z1.Z1_JOINTS, q, strict=True):
             T = T @ tf.make_transform(rot[joint.axis](angle), joint.origin_xyz_m)
         T = T @ tf.make_transform(t=[z1.WRIST_FRAMES["gripper"], 0, 0])
         np.testing.assert_allclose(z1.fk(q, "gripper"), T, atol=1e-14)
@@ -91,7 +91,7 @@ def test_fk_outside_limits_and_at_half_turns() -> None:
                   [1e-300, -1e-12, 1e-9, 0.0, -0.0, 5e-324], [3 * np.pi, 0.5, -2.0, 1.0, -0.3, -np.pi / 2]])
     chain = z1.link_transforms_batch(Q)[:, 6] @ tf.make_transform(t=[z1.WRIST_FRAMES["flange"], 0, 0])
     np.testing.assert_allclose(z1.fk_batch(Q), chain, atol=2e-15)
-    for q, T in zip(Q, chain):
+    for q, T in zip(Q, chain, strict=True):
         np.testing.assert_allclose(z1.fk(q), T, atol=2e-15)
 
 

@@ -12,48 +12,24 @@ import pytest
 
 from darp.formats.survey import open_survey
 from darp.formats.truth import read_camera_poses
-from darp.kinematics.rig import load_rig
 from darp.processing.pipeline import SurveyJob, process_survey, read_stage_state
 from darp.processing.results import PROCESS_STAGES, aggregate_results, read_results
 from darp.processing.settings import ProcessSettings
 from darp.reconstruction.backproject import world_points
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
 from darp.reconstruction.keyframe_io import iter_keyframes, read_keyframe_index
-from darp.twin.objects.model import ObjectPlacement, make_object
-from darp.twin.record import record_survey
-from darp.twin.settings import TwinSettings
 from darp.twin.truth import read_truth
-from darp.twin.waypoints import WaypointPlan, orbit_waypoints
 
 pytestmark = pytest.mark.slow
-PLACEMENT = ObjectPlacement(0.0, 0.0, 0.4)
 STAGES = ("poses", "keyframes", "fusion", "mesh", "evaluation")
-
-
-def record_tiny_survey(folder: Path, name: str = "cube") -> Path:
-    """Three views per arm around a cube, 424x240 at 6 fps: about 25 simulated seconds."""
-    obj = make_object(name)
-    rig = load_rig()
-    centre = (PLACEMENT.x_m, PLACEMENT.y_m, 0.5 * obj.height_m)
-    plan = WaypointPlan({arm: tuple(orbit_waypoints(rig, arm, centre, 0.33, azimuths_deg=(-25.0, 0.0, 25.0),
-                                                    elevation_deg=40.0, dwell_s=0.8))
-                         for arm in ("arm110", "arm111")}, ("arm110", "arm111"))
-    settings = TwinSettings.from_profile("realistic", seed=11).with_camera(fps=6, width=424, height=240)
-    record_survey(folder, plan, obj, PLACEMENT, settings=settings)
-    return folder
-
-
-@pytest.fixture(scope="module")
-def survey_path(tmp_path_factory) -> Path:
-    return record_tiny_survey(tmp_path_factory.mktemp("twin") / "cube")
 
 
 def make_job(survey_path: Path, out: Path, settings: ProcessSettings | None = None, truth_poses: bool = False,
              events: list | None = None) -> SurveyJob:
     truth = read_truth(survey_path)
+    progress = None if events is None else lambda stage, done, total: events.append((stage, done, total))
     return SurveyJob(open_survey(survey_path), out, truth.calibration, survey_path / "truth" / "calibration.json",
-                     settings or ProcessSettings(), truth_poses,
-                     progress=None if events is None else lambda stage, done, total: events.append((stage, done, total)))
+                     settings or ProcessSettings(), truth_poses, progress=progress)
 
 
 @pytest.fixture(scope="module")

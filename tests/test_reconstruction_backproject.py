@@ -20,7 +20,7 @@ from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.depth_edges import HOLE_SEARCH_PX, depth_normals, edge_holes
 from darp.twin.camera.depth_model import DepthModel, DepthNoiseSettings
 from darp.twin.camera.noise import correlated_normal
-from synthetic_depth import Scene, look_at, small_intrinsics, sphere, table, to_z16
+from helpers.synthetic_depth import Scene, look_at, small_intrinsics, sphere, table, to_z16
 
 INTR = Intrinsics(64, 48, 380.0, 384.0, 31.2, 22.7)  # a D435-like pixel footprint on a small image
 

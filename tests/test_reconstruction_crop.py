@@ -9,7 +9,7 @@ from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
 from darp.reconstruction.backproject import PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop, support_mask
-from synthetic_depth import Scene, box, look_at, small_intrinsics, sphere, table, to_z16
+from helpers.synthetic_depth import Scene, box, look_at, small_intrinsics, sphere, table, to_z16
 
 CENTRE = (0.05, -0.02, 0.04)
 RADIUS = 0.04

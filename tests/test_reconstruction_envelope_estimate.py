@@ -33,7 +33,8 @@ from darp.reconstruction.envelope_estimate import (
 from darp.reconstruction.keyframes import look_at_point
 from darp.reconstruction.voxel_stats import frame_stats, merge_stats
 from darp.twin.truth import read_truth
-from synthetic_depth import Scene, add_depth_noise, box, look_at, orbit_poses, small_intrinsics, table, to_z16
+from helpers.synthetic_depth import Scene, add_depth_noise, box, look_at, orbit_poses, small_intrinsics, table, to_z16
+from helpers.twin_surveys import record_tiny_survey
 
 INTR = small_intrinsics(320, 240, 380.0)  # the D435's pixel footprint, a smaller field of view
 BASES_XY = [np.array([-0.6993, 0.0]), np.array([0.6993, 0.0])]
@@ -225,8 +226,6 @@ def record_empty_survey(folder: Path) -> Path:
 @pytest.fixture(scope="module")
 def red_bull(tmp_path_factory) -> tuple[Path, Path]:
     """The tiny twin survey of the process tests, of a Red Bull can, and its copy without envelope geometry."""
-    from test_process_pipeline import record_tiny_survey
-
     root = tmp_path_factory.mktemp("twin")
     survey = record_tiny_survey(root / "red_bull", "red_bull")
     return survey, strip_geometry(survey, root / "stripped" / "red_bull")

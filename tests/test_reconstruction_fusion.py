@@ -29,7 +29,7 @@ from darp.reconstruction.voxel_stats import (
     unpack_keys,
     view_bins,
 )
-from synthetic_depth import Scene, orbit_poses, small_intrinsics, sphere, table
+from helpers.synthetic_depth import Scene, orbit_poses, small_intrinsics, sphere, table
 
 R = 0.04
 CENTRE = np.array([0.0, 0.0, R])

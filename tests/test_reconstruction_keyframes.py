@@ -33,7 +33,7 @@ from darp.reconstruction.keyframes import (
     settled_mask,
 )
 from darp.reconstruction.poses import CameraTrajectory
-from synthetic_depth import look_at, small_intrinsics
+from helpers.synthetic_depth import look_at, small_intrinsics
 
 CENTRE = np.array([0.02, -0.01, 0.05])
 FPS = 30.0
@@ -233,7 +233,7 @@ def test_aligned_colour_lands_where_librealsense_projects_it() -> None:
     ext.translation = T_colour_depth[:3, 3].tolist()
     rs_d, rs_c = rs_intrinsics(d_intr), rs_intrinsics(c_intr)
     inside = outside = 0
-    for y, x in zip(*np.nonzero(depth)):
+    for y, x in zip(*np.nonzero(depth), strict=True):
         p = rs.rs2_deproject_pixel_to_point(rs_d, [float(x), float(y)], float(depth[y, x] * 0.001))
         uc, vc = rs.rs2_project_point_to_pixel(rs_c, rs.rs2_transform_point_to_point(ext, p))
         iu, iv = round(uc), round(vc)
@@ -296,12 +296,13 @@ def test_keyframe_round_trip_and_index(tmp_path: Path) -> None:
                                        {"arm110": {"keyframes": 2}}, infos, {"calibration_epoch": "e1"}))
     back = load_keyframes(tmp_path)
     assert len(back) == 3
-    for a, b in zip(keyframes, back):
+    for a, b in zip(keyframes, back, strict=True):
         for name in ("arm", "serial", "frame_number", "timestamp_ms", "t_s", "split", "view", "depth_scale",
                      "intrinsics", "streams"):
             assert getattr(a, name) == getattr(b, name), name
         for name in ("rgb", "depth", "ir_left", "ir_right", "support_mask", "T_world_cam"):
-            assert np.array_equal(getattr(a, name), getattr(b, name)) and getattr(a, name).dtype == getattr(b, name).dtype
+            assert np.array_equal(getattr(a, name), getattr(b, name))
+            assert getattr(a, name).dtype == getattr(b, name).dtype
     assert [k.frame_number for k in iter_keyframes(tmp_path, split="heldout")] == [9]
     assert [k.frame_number for k in load_keyframes(tmp_path, arm="arm111")] == [4]
     index = read_keyframe_index(tmp_path)

@@ -1,4 +1,4 @@
-"""Direct tests of the twin's fast paths (commit 5c29c89) against slow, obvious references.
+"""Direct tests of the twin's fast paths against slow, obvious references.
 
 - ``occluded_from_right_scanline`` (windowed minimum, ``mirrored``) and ``_window_min`` against brute-force
   loops written here from the geometric rule;
@@ -30,7 +30,7 @@ from darp.twin.camera.depth_model import _window_min, occluded_from_right_scanli
 from darp.twin.camera.render import NO_GEOM, SceneRenderer, geom_image_region, mujoco
 from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings
 from darp.twin.camera.spec import make_camera_spec
-from realsense_playback import play_back
+from helpers.realsense_playback import play_back
 
 
 # ======================================================================================================

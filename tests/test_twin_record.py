@@ -21,32 +21,16 @@ from darp.kinematics.camera_poses import camera_poses
 from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import pose_error
 from darp.twin.camera.spec import UnitCalibration, make_camera_spec
-from darp.twin.objects.model import ObjectPlacement, make_object
+from darp.twin.objects.model import make_object
 from darp.twin.record import record_survey
 from darp.twin.rig_backend import TwinRig
 from darp.twin.settings import TwinSettings
 from darp.twin.truth import draw_true_rig, read_truth
 from darp.twin.waypoints import Waypoint, WaypointPlan
-from realsense_playback import play_back
+from helpers.realsense_playback import play_back
+from helpers.twin_surveys import PLACEMENT, SMALL, record
 
-SMALL = {"width": 424, "height": 240}
-PLACEMENT = ObjectPlacement(0.0, 0.02, 0.3)
 GRAVITY = 9.80665
-
-
-def short_plan() -> WaypointPlan:
-    """One short move per arm around its park pose (the camera keeps the table centre in view)."""
-    park = load_rig().arms["arm110"].park_q_rad
-    return WaypointPlan({
-        "arm110": (Waypoint(park + np.array([0.15, 0.25, 0.0, -0.25, 0.0, 0.0]), 0.3),),
-        "arm111": (Waypoint(park + np.array([-0.15, 0.2, 0.0, -0.2, 0.1, 0.0]), 0.3),),
-    }, ("arm110", "arm111"))
-
-
-def record(folder: Path, profile: str, seed: int, fps: int, workers: bool = False) -> Path:
-    settings = TwinSettings.from_profile(profile, seed=seed).with_camera(fps=fps, **SMALL)
-    record_survey(folder, short_plan(), make_object("cube"), PLACEMENT, settings=settings, camera_workers=workers)
-    return folder
 
 
 @pytest.fixture(scope="module")
@@ -191,7 +175,7 @@ def test_imu_measures_gravity_when_still(ideal: Path) -> None:
 def test_identical_seeds_give_byte_identical_surveys(realistic: Path, tmp_path: Path) -> None:
     """The same recording made again in a fresh interpreter (other hash seed), with each camera rendered
     in its own worker process this time, is byte-identical."""
-    script = ("import sys; sys.path.insert(0, sys.argv[2]); from test_twin_record import record; "
+    script = ("import sys; sys.path.insert(0, sys.argv[2]); from helpers.twin_surveys import record; "
               "from pathlib import Path; record(Path(sys.argv[1]), 'realistic', 2, 6, workers=True)")
     again = tmp_path / "cube"
     subprocess.run([sys.executable, "-c", script, str(again), str(Path(__file__).parent)], check=True,
@@ -269,8 +253,8 @@ def test_cli_record_and_bad_input(tmp_path: Path, capsys) -> None:
     waypoints.write_text(f"arm,q1,q2,q3,q4,q5,q6,dwell_s\narm110,{q},0.1\n")
     out = tmp_path / "survey"
     args = ["twin", "record", "--waypoints", str(waypoints), "--object", "cube", "--placement", "0,0,30",
-            "--seed", "5", "--profile", "ideal", "--fps", "6", "--resolution", "424x240", "--no-workers", "--out", str(out),
-            "-q"]
+            "--seed", "5", "--profile", "ideal", "--fps", "6", "--resolution", "424x240", "--no-workers",
+            "--out", str(out), "-q"]
     assert run(args) == 0
     assert (out / "arm_poses.csv").is_file() and read_truth(out).object_info["placement"]["yaw_rad"] == pytest.approx(
         np.pi / 6)

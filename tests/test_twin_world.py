@@ -11,7 +11,6 @@ import trimesh
 from darp.errors import ConfigError, KinematicsError, TwinError
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics import z1
-from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import look_at, make_transform, rotation_error_rad
 from darp.twin.arm_sim import SimArm
 from darp.twin.clock import SimClock
@@ -19,11 +18,6 @@ from darp.twin.settings import TwinSettings
 from darp.twin.truth import draw_true_rig
 from darp.twin.waypoints import load_waypoints
 from darp.twin.world import TwinWorld
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return load_rig()
 
 
 @pytest.fixture(scope="module")
@@ -203,7 +197,7 @@ def test_bad_waypoints_name_the_file_and_entry(tmp_path: Path, text: str, messag
 def test_mujoco_links_and_cameras_follow_darp_kinematics(rig, true_rig, world) -> None:
     rng = np.random.default_rng(0)
     for q in z1.random_configurations(5, rng):
-        for arm_id, arm in true_rig.arms.items():
+        for arm_id in true_rig.arms:
             world.set_arm_q(arm_id, q)
         world.forward()
         for arm_id, arm in true_rig.arms.items():
@@ -250,7 +244,8 @@ def test_object_geoms_flags_and_contacts(rig, true_rig) -> None:
         world.set_arm_q(arm_id, rig.arms[arm_id].park_q_rad)
     world.forward()
     assert world.contacts() == []
-    world.set_arm_q("arm110", np.array([0.0, 2.543, -1.926, 0.954, 0.0, 0.0]))  # flange at (0.5, 0, 0.04), pointing down
+    # flange at (0.5, 0, 0.04), pointing down
+    world.set_arm_q("arm110", np.array([0.0, 2.543, -1.926, 0.954, 0.0, 0.0]))
     world.forward()
     hits = world.contacts()
     assert any(c.other == "object" and c.other_geom == "object_0_block" for c in hits)

@@ -1,6 +1,6 @@
 """The simulated D435(i) behind the fake pyrealsense2: cameras, frames, stream profiles, sensors, devices.
 
-Split from :mod:`fakes.fake_pyrealsense2` (which re-exports every name here under pyrealsense2's names);
+Split from :mod:`helpers.fakes.fake_pyrealsense2` (which re-exports every name here under pyrealsense2's names);
 see that module for the contract it enforces.
 """
 
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pyrealsense2 as _rs
 
-from fakes.fake_rs_recorders import BagRecorder, Db3Recorder
+from helpers.fakes.fake_rs_recorders import BagRecorder, Db3Recorder
 
 stream, format, option, camera_info = _rs.stream, _rs.format, _rs.option, _rs.camera_info
 timestamp_domain, distortion, intrinsics, extrinsics, vector = (

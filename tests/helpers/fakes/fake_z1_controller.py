@@ -1,4 +1,4 @@
-"""The simulated ``z1_ctrl`` controller and arm behind :mod:`fakes.fake_unitree_arm_interface`.
+"""The simulated ``z1_ctrl`` controller and arm behind :mod:`helpers.fakes.fake_unitree_arm_interface`.
 
 FSM states, joint tracking with a first-order lag at most pi rad/s, MoveJ/labelRun trajectories, and the
 checks on streamed joint commands (limits, speed, jumps). Contract violations are raised as

@@ -24,6 +24,7 @@ The simulated arm tracks joint commands with a first-order lag (``lag_s``) at mo
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import math
 import threading
@@ -34,7 +35,7 @@ import numpy as np
 
 from darp.kinematics import ik, z1
 from darp.kinematics.transforms import posture_to_transform, transform_to_posture
-from fakes.fake_z1_controller import (
+from helpers.fakes.fake_z1_controller import (
     DT,
     Q_MAX,
     Q_MIN,
@@ -258,10 +259,9 @@ class ArmInterface:
     def _loop_body(self) -> None:
         next_t = time.monotonic()
         while not self._loop_stop.is_set():
-            try:
+            # a contract error is recorded in WORLD.violations; a real controller would not stop either
+            with contextlib.suppress(SdkContractError):
                 self._exchange()
-            except SdkContractError:
-                pass  # recorded in WORLD.violations; a real controller would not stop either
             next_t += DT
             delay = next_t - time.monotonic()
             if delay > 0:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pyrealsense2 as _rs
 
-from fakes import fake_rs_device as _dev
+from helpers.fakes import fake_rs_device as _dev
 
 # pyrealsense2's hardware-facing classes, simulated (fake_rs_device), under their real names
 (frame, video_frame, depth_frame, motion_frame, composite_frame, stream_profile, video_stream_profile, sensor,
@@ -81,7 +81,8 @@ class config:
         kinds = [type(a) for a in args]
         if not args or not isinstance(args[0], stream):
             raise TypeError("enable_stream(): incompatible function arguments")
-        ints = lambda xs: all(isinstance(x, int) and not isinstance(x, bool) for x in xs)
+        def ints(xs):
+            return all(isinstance(x, int) and not isinstance(x, bool) for x in xs)
         st, rest = args[0], args[1:]
         if len(rest) == 0:
             idx, w, h, fmt, fps = -1, 0, 0, None, 0
@@ -129,7 +130,8 @@ class config:
             matches = [p for s in sensor_profiles for p in s.get_stream_profiles() if p._key == key
                        and (req["format"] is None or p.format() == req["format"])
                        and (req["fps"] == 0 or p.fps() == req["fps"])
-                       and (req["width"] == 0 or p._w == req["width"]) and (req["height"] == 0 or p._h == req["height"])]
+                       and (req["width"] == 0 or p._w == req["width"])
+                       and (req["height"] == 0 or p._h == req["height"])]
             if not matches:
                 raise RuntimeError("Couldn't resolve requests")
             prefer = [p for p in matches if (p._w, p._h, p.fps()) == (640, 480, 30)] or matches
