@@ -191,6 +191,16 @@ def test_ordering_is_shorter_than_random_orders() -> None:
     assert ordered <= tour_cost(p.q_park, shuffled[greedy], p.q_park) + 1e-12
 
 
+def test_ordering_breaks_near_ties_by_the_lower_index() -> None:
+    """Mirror-image views equally far from the start: rounding noise (which depends on the BLAS kernel)
+    must not choose the tour's direction."""
+    start = np.zeros(6)
+    for eps in (-4e-16, 0.0, 4e-16):
+        Q = np.array([[0.5 + eps, 0, 0, 0, 0, 0], [-0.5, 0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0], [-1.0, 0, 0, 0, 0, 0]])
+        assert order_views(start, Q, start, two_opt_rounds=0)[0] == 0
+        assert order_views(start, Q[[1, 0, 3, 2]], start, two_opt_rounds=0)[0] == 0
+
+
 def test_ordering_small_cases() -> None:
     start = np.zeros(6)
     Q = np.array([[3.0, 0, 0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0], [2.0, 0, 0, 0, 0, 0]])

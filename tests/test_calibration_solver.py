@@ -15,7 +15,7 @@ from darp.calibration.evaluate import fold_assignment, kfold_heldout, summarise,
 from darp.calibration.handeye import HAND_EYE_METHODS, best, opencv_hand_eye
 from darp.calibration.jacobian import residuals_and_jacobian
 from darp.calibration.model import build_observations
-from darp.calibration.refine import Layout, _residuals, numeric_jacobian
+from darp.calibration.refine import Layout, _residuals, imitators, numeric_jacobian
 from darp.calibration.solve import calibrate_observations, opencv_chain, to_calibration
 from darp.calibration.world_frame import world_from_reference
 from darp.errors import CalibrationError
@@ -60,6 +60,17 @@ def test_analytic_jacobian_matches_central_differences(seed0) -> None:
     assert np.allclose(r, _residuals(x, layout, p0, obs, 0.3, np.inf, "flange")[:n], atol=1e-9)
     rel = np.abs(J - Jn).max(axis=0) / np.abs(Jn).max(axis=0)
     assert rel.max() < 1e-6
+
+
+def test_imitators_rank_tied_coefficients_in_parameter_order() -> None:
+    """Two parameters with the same effect share a degenerate offset's coefficient equally; their last
+    bits (which change with the BLAS kernel) must not decide which one is listed."""
+    names = ["a", "b", "c", "d", "e"]
+    for ulp in (-1e-16, 0.0, 1e-16):
+        coef = np.array([0.02, -1.8, 0.47 + ulp, 1.07, -0.47])
+        assert imitators(coef, names) == ["b", "d", "c"]
+        assert imitators(coef[::-1], names[::-1]) == ["b", "d", "e"]
+    assert imitators(np.array([0.01, 0.04]), ["a", "b"]) == []
 
 
 def test_opencv_hand_eye_is_exact_on_noiseless_data_without_joint_offsets() -> None:

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -139,3 +144,44 @@ def test_bad_input_raises_darp_errors() -> None:
         tf.look_at([0, 0, 0], [0, 0, 1])
     with pytest.raises(KinematicsError, match="coincide"):
         tf.look_at([1, 1, 1], [1, 1, 1])
+
+
+def test_compose_and_matvec_equal_matmul_to_rounding() -> None:
+    rng = np.random.default_rng(3)
+    A, B, C = rng.standard_normal((3, 5, 4, 4))
+    np.testing.assert_allclose(tf.compose(A, B, C), A @ B @ C, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(tf.compose(A[0], B), A[0] @ B, rtol=0, atol=1e-13)  # broadcast like @
+    np.testing.assert_array_equal(tf.compose(A), A)
+    v = rng.standard_normal((5, 4))
+    np.testing.assert_allclose(tf.matvec(A, v), (A @ v[..., None])[..., 0], rtol=0, atol=1e-13)
+    np.testing.assert_allclose(tf.matvec(A[0], v), v @ A[0].T, rtol=0, atol=1e-13)
+    with pytest.raises(KinematicsError):
+        tf.compose()
+
+
+KERNEL_PROBE = """
+import hashlib
+import numpy as np
+from darp.kinematics import transforms as tf
+A, B = np.random.default_rng(0).standard_normal((2, 50, 4, 4))
+print(hashlib.sha256((A @ B).tobytes()).hexdigest())
+print(hashlib.sha256(tf.compose(A, B).tobytes() + tf.matvec(A, B[:, 0]).tobytes()
+                     + tf.rpy_to_rotation(*A[:, :3, 0].T).tobytes()).hexdigest())
+"""
+
+
+def test_compose_and_matvec_do_not_depend_on_the_openblas_kernel() -> None:
+    """``@`` gives other bits with OpenBLAS's Haswell (FMA) and Sandybridge kernels; compose does not."""
+    src = str(Path(tf.__file__).resolve().parents[2])  # the child imports the same darp as this process
+    pythonpath = os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH", "")) if p)
+    out = {}
+    for kernel in ("Haswell", "Sandybridge"):
+        result = subprocess.run([sys.executable, "-c", KERNEL_PROBE], capture_output=True, text=True, check=False,
+                                env={**os.environ, "PYTHONPATH": pythonpath, "OPENBLAS_CORETYPE": kernel})
+        if result.returncode == -4:  # SIGILL
+            pytest.skip(f"this CPU cannot run the OpenBLAS {kernel} kernel")
+        assert result.returncode == 0, result.stderr
+        out[kernel] = result.stdout.split()
+    if out["Haswell"][0] == out["Sandybridge"][0]:
+        pytest.skip("OPENBLAS_CORETYPE had no effect (numpy without a dynamic-arch OpenBLAS?)")
+    assert out["Haswell"][1] == out["Sandybridge"][1]

@@ -4,6 +4,7 @@ IMU, determinism, contacts, atomic output and the ``darp twin`` command."""
 from __future__ import annotations
 
 import hashlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -171,19 +172,61 @@ def test_imu_measures_gravity_when_still(ideal: Path) -> None:
         assert np.max(np.abs(gyro)) < 1e-6
 
 
+# Records the small survey in a child interpreter (argv: folder, tests folder, workers 0/1), then prints
+# a digest of a float64 matrix product, which depends on the OpenBLAS kernel (FMA or not).
+RECORD_SCRIPT = """
+import hashlib, sys
+from pathlib import Path
+import numpy as np
+sys.path.insert(0, sys.argv[2])
+from helpers.twin_surveys import record
+record(Path(sys.argv[1]), 'realistic', 2, 6, workers=sys.argv[3] == '1')
+a, b = np.random.default_rng(0).standard_normal((2, 4, 4))
+print('blas-probe', hashlib.sha256((a @ b).tobytes()).hexdigest())
+"""
+
+
+def record_in_child(folder: Path, workers: bool, **env: str) -> subprocess.CompletedProcess[str]:
+    """Record the small survey in a fresh interpreter with this process's environment plus ``env``.
+
+    The environment is inherited, not made up: variables that choose library code paths (OpenBLAS's
+    ``OPENBLAS_CORETYPE`` and ``OPENBLAS_L2_SIZE`` pick its kernel) must be the ones this process has.
+    """
+    src = str(Path(darp.__file__).resolve().parents[1])  # the child must import the same darp as this one
+    pythonpath = os.pathsep.join(p for p in (src, os.environ.get("PYTHONPATH", "")) if p)
+    return subprocess.run([sys.executable, "-c", RECORD_SCRIPT, str(folder), str(Path(__file__).parent),
+                           "1" if workers else "0"], capture_output=True, text=True, check=False,
+                          env={**os.environ, "MUJOCO_GL": "egl", "PYTHONPATH": pythonpath, **env})
+
+
 @pytest.mark.slow
 def test_identical_seeds_give_byte_identical_surveys(realistic: Path, tmp_path: Path) -> None:
     """The same recording made again in a fresh interpreter (other hash seed), with each camera rendered
     in its own worker process this time, is byte-identical."""
-    script = ("import sys; sys.path.insert(0, sys.argv[2]); from helpers.twin_surveys import record; "
-              "from pathlib import Path; record(Path(sys.argv[1]), 'realistic', 2, 6, workers=True)")
     again = tmp_path / "cube"
-    subprocess.run([sys.executable, "-c", script, str(again), str(Path(__file__).parent)], check=True,
-                   env={"PYTHONHASHSEED": "123", "PATH": "/usr/bin:/bin", "MUJOCO_GL": "egl",
-                        # the fresh interpreter must import the same darp as this one
-                        "PYTHONPATH": str(Path(darp.__file__).resolve().parents[1])})
+    result = record_in_child(again, workers=True, PYTHONHASHSEED="123")
+    assert result.returncode == 0, result.stderr
     assert files_digest(again) == files_digest(realistic)
     assert files_digest(again / "truth") == files_digest(realistic / "truth")
+
+
+@pytest.mark.slow
+def test_surveys_are_byte_identical_across_openblas_kernels(tmp_path: Path) -> None:
+    """docs/determinism.md: the twin's files do not depend on the OpenBLAS kernel. Haswell uses FMA,
+    Sandybridge does not; the children's matrix-product probe shows that the choice took effect."""
+    folders, probes = {}, {}
+    for kernel, workers in (("Haswell", False), ("Sandybridge", True)):
+        folders[kernel] = tmp_path / kernel / "cube"
+        result = record_in_child(folders[kernel], workers=workers, OPENBLAS_CORETYPE=kernel)
+        if result.returncode == -4:  # SIGILL: this CPU cannot run that kernel
+            pytest.skip(f"this CPU cannot run the OpenBLAS {kernel} kernel")
+        assert result.returncode == 0, result.stderr
+        probes[kernel] = [line for line in result.stdout.splitlines() if line.startswith("blas-probe")]
+    if probes["Haswell"] == probes["Sandybridge"]:
+        pytest.skip("OPENBLAS_CORETYPE had no effect (numpy without a dynamic-arch OpenBLAS?)")
+    haswell, sandybridge = folders["Haswell"], folders["Sandybridge"]
+    assert files_digest(haswell) == files_digest(sandybridge)
+    assert files_digest(haswell / "truth") == files_digest(sandybridge / "truth")
 
 
 def test_seeds_change_the_rig_and_the_log(tmp_path: Path) -> None:

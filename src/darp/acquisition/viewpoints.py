@@ -34,7 +34,10 @@ one with lower elevations); every attempt is recorded. The first attempt with en
 
 **Order.** Views are ordered to shorten joint travel: greedy nearest neighbour from the park
 configuration, then 2-opt, with the cost of a move being its largest joint change (a synchronised
-joint move's duration grows with it); the tour starts and ends at park.
+joint move's duration grows with it); the tour starts and ends at park. Moves whose costs differ by
+less than :data:`TIE_TOLERANCE_RAD` are ties, broken by the lower candidate index: the orbit is
+symmetric about the arm's side, so mirror-image views are often equally far from park, and the last
+bits of their costs (which change with the BLAS kernel) must not choose the tour's direction.
 """
 
 from __future__ import annotations
@@ -57,6 +60,7 @@ CANDIDATE_REASONS = ("ik", "joint_limits", "workspace", "min_depth", "table", "s
                      "joint_motion")
 ROLL_HINTS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 135.0, -135.0, 180.0)
 SHOULDER_BASE_M = np.array([0.0, 0.0, z1.JOINT_ORIGINS_M[0, 2] + z1.JOINT_ORIGINS_M[1, 2]])
+TIE_TOLERANCE_RAD = 1e-9  # move costs closer than this are equal when ordering views (module docstring)
 
 
 def standoff_for_radius(radius_m: float) -> float:
@@ -407,7 +411,8 @@ def order_views(q_start: Array, Q: Array, q_end: Array | None = None, two_opt_ro
     path = [0]
     while remaining:
         last = path[-1]
-        nxt = min(remaining, key=lambda j: (D[last, j], j))
+        best = min(D[last, j] for j in remaining)
+        nxt = min(j for j in remaining if D[last, j] <= best + TIE_TOLERANCE_RAD)  # ties: the lower index
         path.append(nxt)
         remaining.remove(nxt)
     if q_end is not None:
@@ -423,7 +428,7 @@ def order_views(q_start: Array, Q: Array, q_end: Array | None = None, two_opt_ro
                 d = path[k + 1] if k + 1 < len(path) else None
                 before = D[a, b] + (D[c, d] if d is not None else 0.0)
                 after = D[a, c] + (D[b, d] if d is not None else 0.0)
-                if after < before - 1e-12:
+                if after < before - TIE_TOLERANCE_RAD:
                     path[i:k + 1] = path[i:k + 1][::-1]
                     improved = True
         if not improved:

@@ -15,7 +15,11 @@ offset's effect no other parameter can imitate. Offsets with ``rho < rho_min`` a
 Z1 this finds, for both arms, joint 1 (a rotation about the base z axis through the base origin: the
 same as turning the base, or, for the reference arm, the board about that axis) and joint 6 (a
 rotation about the flange x axis: the same as turning the hand-eye about it). The calibration then
-holds the *effective* base yaw and hand-eye; eq. 1 is unchanged by that choice.
+holds the *effective* base yaw and hand-eye; eq. 1 is unchanged by that choice. Each fixed offset
+lists (``degenerate_with``) the three parameters with the largest coefficients in its projection;
+coefficients equal to :data:`DEGENERACY_DECIMALS` decimals are ties, listed in parameter order (two
+parameters with the same effect share it equally, and their last bits, which change with the BLAS
+kernel, must not choose the label).
 
 **Uncertainty**: the corners of one capture share its joint-reading error, so their residuals are
 not independent and ``s^2 (J^T J)^-1`` is optimistic (kept as ``covariance_iid``). The reported
@@ -37,6 +41,7 @@ from darp.calibration.model import ChainParams, Observations, predict_pixels
 from darp.errors import CalibrationError
 
 POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
+DEGENERACY_DECIMALS = 9  # projection coefficients (O(1)) equal to this many decimals rank as ties
 
 
 @dataclass(frozen=True)
@@ -162,6 +167,14 @@ class Identifiability:
                 "degenerate_with": self.degenerate_with, "singular_values": self.singular_values.tolist()}
 
 
+def imitators(coef: np.ndarray, names: list[str], n: int = 3) -> list[str]:
+    """The ``n`` parameters with the largest projection coefficients (above 0.05) that imitate an offset;
+    magnitudes equal to :data:`DEGENERACY_DECIMALS` decimals are ties, ranked in parameter order."""
+    magnitude = np.round(np.abs(coef), DEGENERACY_DECIMALS)
+    top = np.lexsort((np.arange(len(coef)), -magnitude))[:n]
+    return [names[k] for k in top if abs(coef[k]) > 0.05]
+
+
 def analyse_identifiability(p0: ChainParams, obs: Observations, settings: RefineSettings | None = None,
                             sigma_px: float | None = None) -> Identifiability:
     """Project each joint offset's Jacobian column against all other unknowns (see the module doc)."""
@@ -183,9 +196,7 @@ def analyse_identifiability(p0: ChainParams, obs: Observations, settings: Refine
             if r_arm[j] >= s.rho_min:
                 s_arm[j] = float(np.degrees(1.0 / (norms[col] * r_arm[j])))  # columns are in noise units
             else:
-                names = [layout.names[k] for k in others]
-                top = np.argsort(-np.abs(coef))[:3]
-                degenerate[f"{a}.joint{j + 1}"] = [names[k] for k in top if abs(coef[k]) > 0.05]
+                degenerate[f"{a}.joint{j + 1}"] = imitators(coef, [layout.names[k] for k in others])
         rho[a], std[a], ident[a] = r_arm, s_arm, r_arm >= s.rho_min
     dq_cols = np.concatenate([np.arange(layout.slices[f"dq:{a}"].start, layout.slices[f"dq:{a}"].stop)
                               for a in p0.arms])
@@ -275,5 +286,5 @@ def _covariances(r: np.ndarray, J: np.ndarray, row_capture: np.ndarray) -> tuple
     return bread @ meat @ bread, cov_iid
 
 
-__all__ = ["Identifiability", "Layout", "RefineResult", "RefineSettings", "analyse_identifiability",
+__all__ = ["Identifiability", "Layout", "RefineResult", "RefineSettings", "analyse_identifiability", "imitators",
            "numeric_jacobian", "refine"]

@@ -11,6 +11,10 @@ Conventions (see docs/DEVELOPING.md):
 
 Every function accepts a leading batch dimension where it says so, so that trajectories and
 candidate sets are handled without Python loops.
+
+:func:`compose` and :func:`matvec` multiply without BLAS, so that their results do not depend on the
+OpenBLAS kernel picked at run time (docs/determinism.md); the digital twin builds the poses behind
+the files it writes with them.
 """
 
 from __future__ import annotations
@@ -26,10 +30,12 @@ Array = NDArray[np.float64]
 
 __all__ = [
     "axis_angle_to_rotation",
+    "compose",
     "invert_transform",
     "look_at",
     "look_at_rotation",
     "make_transform",
+    "matvec",
     "orthonormalize",
     "pose_error",
     "posture_to_transform",
@@ -58,6 +64,29 @@ def _as_array(value: ArrayLike, shape_tail: tuple[int, ...], what: str) -> Array
     if not np.all(np.isfinite(arr)):
         raise KinematicsError(f"{what} contains NaN or infinite values")
     return arr
+
+
+def compose(*matrices: ArrayLike) -> Array:
+    """Product ``M1 @ M2 @ ...`` (left to right) of matrices (..., m, n), batched and broadcast like ``@``.
+
+    Computed by ``np.einsum`` without ``optimize``, which runs numpy's own loops: ``@`` on float64 calls
+    OpenBLAS, whose last bit depends on the CPU kernel it picks at run time (FMA or not; the
+    ``OPENBLAS_CORETYPE`` variable), so the same program gives other bytes on another machine. Use it
+    where that matters (the twin's poses); the result equals ``@`` to rounding.
+    """
+    if not matrices:
+        raise KinematicsError("compose needs at least one matrix")
+    out = np.asarray(matrices[0], dtype=np.float64)
+    for M in matrices[1:]:
+        out = np.einsum("...ij,...jk->...ik", out, np.asarray(M, dtype=np.float64))
+    return out
+
+
+def matvec(M: ArrayLike, v: ArrayLike) -> Array:
+    """``M @ v`` for matrices (..., m, n) and vectors (..., n), batched and broadcast, without BLAS (see
+    :func:`compose`); ``matvec(T[:3, :3], points) + T[:3, 3]`` maps points (..., 3) by a pose."""
+    product: Array = np.einsum("...ij,...j->...i", np.asarray(M, dtype=np.float64), np.asarray(v, dtype=np.float64))
+    return product
 
 
 def make_transform(R: ArrayLike | None = None, t: ArrayLike | None = None) -> Array:
@@ -145,7 +174,8 @@ def rotvec_to_rotation(rotvec: ArrayLike) -> Array:
     # sin(t)/t and (1-cos(t))/t^2, with their Taylor series for tiny angles.
     a = np.where(small, 1.0 - theta**2 / 6.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta**2 / 24.0, (1.0 - np.cos(safe)) / safe**2)
-    return cast(Array, np.eye(3) + a * K + b * (K @ K))
+    R: Array = np.eye(3) + a * K + b * compose(K, K)
+    return R
 
 
 def axis_angle_to_rotation(axis: ArrayLike, angle_rad: ArrayLike) -> Array:
@@ -266,7 +296,7 @@ def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike = (0.0, 0.0, 1.0)) 
 
 def rpy_to_rotation(roll_rad: ArrayLike, pitch_rad: ArrayLike, yaw_rad: ArrayLike) -> Array:
     """Z1 SDK convention: ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (batched)."""
-    return rot_z(yaw_rad) @ rot_y(pitch_rad) @ rot_x(roll_rad)
+    return compose(rot_z(yaw_rad), rot_y(pitch_rad), rot_x(roll_rad))
 
 
 def rotation_to_rpy(R: ArrayLike) -> Array:
@@ -312,13 +342,15 @@ def world_from_base_origins(origin_a: ArrayLike, origin_b: ArrayLike, up: ArrayL
     a = _as_array(origin_a, (3,), "base origin")
     b = _as_array(origin_b, (3,), "base origin")
     z = _as_array(up, (3,), "up direction")
-    if np.linalg.norm(z) < 1e-12:
+    # Norms over axis=-1 and elementwise dot products: np.linalg.norm of a 1-D array and ``@`` call BLAS
+    # (see compose), and the twin's truth is built with this function.
+    if np.linalg.norm(z, axis=-1) < 1e-12:
         raise KinematicsError("world frame: the up direction has zero length")
-    z = z / np.linalg.norm(z)
-    x = (b - a) - ((b - a) @ z) * z
-    if np.linalg.norm(x) < 1e-3:
+    z = z / np.linalg.norm(z, axis=-1)
+    x = (b - a) - np.sum((b - a) * z) * z
+    if np.linalg.norm(x, axis=-1) < 1e-3:
         raise KinematicsError("world frame: the two base origins are (nearly) on one vertical line")
-    x = x / np.linalg.norm(x)
+    x = x / np.linalg.norm(x, axis=-1)
     T = np.eye(4)
     T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
     T[:3, 3] = 0.5 * (a + b)

@@ -21,6 +21,7 @@ import numpy as np
 from darp.backend import ArmBackend, JointState
 from darp.errors import KinematicsError, TwinError
 from darp.kinematics import z1
+from darp.kinematics.transforms import matvec
 from darp.twin.clock import NS_PER_S, SimClock
 
 _SAMPLES = np.linspace(0.0, 1.0, 65)
@@ -62,7 +63,11 @@ class QuinticMove:
         return self.t0_ns + round(self.duration_s * NS_PER_S)
 
     def _derivative(self, s: np.ndarray, order: int) -> np.ndarray:
-        """(len(s), 6) derivative ``order`` of the polynomials at seconds-since-start ``s``."""
+        """(len(s), 6) derivative ``order`` of the polynomials at seconds-since-start ``s``.
+
+        ``matvec`` rather than ``powers @ c.T``: the joint angles end up in the twin's files, which must
+        not depend on the BLAS kernel (see :func:`darp.kinematics.transforms.compose`).
+        """
         c = self.coeffs
         if order == 0:
             powers = np.stack([s ** k for k in range(6)], axis=1)
@@ -70,8 +75,7 @@ class QuinticMove:
             powers = np.stack([k * s ** (k - 1) if k else np.zeros_like(s) for k in range(6)], axis=1)
         else:
             powers = np.stack([k * (k - 1) * s ** (k - 2) if k > 1 else np.zeros_like(s) for k in range(6)], axis=1)
-        values: np.ndarray = powers @ c.T
-        return values
+        return matvec(c, powers)  # (N, 6): row n is c @ powers[n]
 
     def state(self, t_ns: np.ndarray | int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(q, qd, qdd), each (N, 6) (or (6,) for a scalar time), clamped to the move's span."""

@@ -52,6 +52,7 @@ from darp.kinematics import z1
 from darp.kinematics.rig import WORLD_FRAME_TEXT, Rig
 from darp.kinematics.transforms import (
     axis_angle_to_rotation,
+    compose,
     invert_transform,
     make_transform,
     rot_z,
@@ -82,7 +83,7 @@ class TrueRig:
         """True camera pose(s) for true joint angles (6,) or (N, 6): (4, 4) or (N, 4, 4)."""
         arm = self.arms[arm_id]
         Q = np.atleast_2d(q_true_rad)
-        poses: np.ndarray = arm.T_world_base @ z1.fk_batch(Q, self.nominal.wrist_frame) @ arm.T_flange_cam
+        poses = compose(arm.T_world_base, z1.fk_batch(Q, self.nominal.wrist_frame), arm.T_flange_cam)
         return poses[0] if np.ndim(q_true_rad) == 1 else poses
 
     def calibration(self, settings: TwinSettings) -> Calibration:
@@ -110,7 +111,8 @@ class TrueRig:
 
 def _random_unit(rng: np.random.Generator) -> np.ndarray:
     v = rng.normal(size=3)
-    return v / np.linalg.norm(v)
+    unit: np.ndarray = v / np.linalg.norm(v, axis=-1)  # axis=-1: no BLAS (see compose)
+    return unit
 
 
 def perturbation(rng: np.random.Generator, translation_m: float, rotation_rad: float) -> np.ndarray:
@@ -130,7 +132,7 @@ def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
         dq = g_joint.uniform(-bias, bias, 6) if bias > 0 else np.zeros(6)
         g_mount = settings.rng(f"mount:{arm_id}")
         T_err = perturbation(g_mount, m.hand_eye_translation_mm * 1e-3, np.deg2rad(m.hand_eye_rotation_deg))
-        T_flange_cam = nominal.T_flange_cam @ T_err
+        T_flange_cam = compose(nominal.T_flange_cam, T_err)
         T_world_base = np.array(nominal.T_world_base, dtype=float)
         if index > 0:
             g_base = settings.rng(f"base:{arm_id}")
@@ -138,8 +140,8 @@ def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
             yaw = np.deg2rad(m.base_yaw_deg) * g_base.choice([-1.0, 1.0])
             psi = g_base.uniform(0.0, 2 * np.pi)
             tilt_axis = np.array([np.cos(psi), np.sin(psi), 0.0])
-            R_err = rot_z(yaw) @ axis_angle_to_rotation(tilt_axis, np.deg2rad(m.base_tilt_deg))
-            T_world_base = make_transform(R_err @ T_world_base[:3, :3],
+            R_err = compose(rot_z(yaw), axis_angle_to_rotation(tilt_axis, np.deg2rad(m.base_tilt_deg)))
+            T_world_base = make_transform(compose(R_err, T_world_base[:3, :3]),
                                           T_world_base[:3, 3] + m.base_translation_mm * 1e-3
                                           * np.array([np.cos(phi), np.sin(phi), 0.0]))
         arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_flange_cam, dq)
@@ -155,7 +157,8 @@ def _in_rig_world(arms: dict[str, TrueArm]) -> dict[str, TrueArm]:
     T_nominal_world = world_from_base_origins(first.T_world_base[:3, 3], second.T_world_base[:3, 3],
                                               np.array([0.0, 0.0, 1.0]))
     T_world_nominal = invert_transform(T_nominal_world)
-    return {arm_id: replace(arm, T_world_base=T_world_nominal @ arm.T_world_base) for arm_id, arm in arms.items()}
+    return {arm_id: replace(arm, T_world_base=compose(T_world_nominal, arm.T_world_base))
+            for arm_id, arm in arms.items()}
 
 
 # -- per-frame camera poses -----------------------------------------------------------------------

@@ -37,7 +37,7 @@ from darp.errors import TwinError
 from darp.formats.calibration import CharucoBoardSpec
 from darp.kinematics import z1
 from darp.kinematics.collision import LINK_CYLINDERS
-from darp.kinematics.transforms import make_transform
+from darp.kinematics.transforms import compose, make_transform, matvec
 from darp.twin.camera.render import mujoco  # render sets MUJOCO_GL before importing mujoco
 
 TABLE_THICKNESS_M = 0.03
@@ -163,11 +163,11 @@ def _add_rod(spec: mujoco.MjSpec, body: Any, name: str, a: np.ndarray, b: np.nda
     body.add_geom(name=name, type=prim, fromto=[*a, *b], size=[radius_m, 0, 0], rgba=list(rgba),
                   contype=contype, conaffinity=conaffinity, mass=0.0, group=COLLISION_GROUP)
     d = np.asarray(b, float) - np.asarray(a, float)
-    length = float(np.linalg.norm(d))
+    length = float(np.linalg.norm(d, axis=-1))  # axis=-1: no BLAS, the scene must not depend on its kernel
     z = d / length
     helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
+    x /= np.linalg.norm(x, axis=-1)
     R = np.stack([x, np.cross(z, x), z], axis=1)
     geom = body.add_geom(name=f"{name}_visual", type=mujoco.mjtGeom.mjGEOM_MESH,
                          meshname=_rod_mesh(spec, kind, radius_m, length), rgba=list(rgba), contype=0, conaffinity=0,
@@ -195,7 +195,7 @@ def _add_arm(spec: mujoco.MjSpec, arm_id: str, index: int, T_world_base: np.ndar
         rgba = MOTOR_RGBA if "motor" in cyl.name else LINK_RGBA.get(cyl.link, MOTOR_RGBA)
         _add_rod(spec, bodies[cyl.link], f"{arm_id}_{cyl.name}", a, b, cyl.radius_m, "cylinder", rgba, own, affinity)
     flange = z1.WRIST_FRAMES["flange"]
-    T_link6_cam = make_transform(t=[flange, 0.0, 0.0]) @ T_flange_cam
+    T_link6_cam = compose(make_transform(t=[flange, 0.0, 0.0]), T_flange_cam)
     cam = bodies["link06"].add_body(name=f"{arm_id}_camera")
     _set_pose(cam, T_link6_cam)
     size = np.asarray(camera_body.size_m, dtype=float)
@@ -204,7 +204,7 @@ def _add_arm(spec: mujoco.MjSpec, arm_id: str, index: int, T_world_base: np.ndar
                  contype=own, conaffinity=affinity, mass=0.0)
     # Bracket post as in darp.kinematics.collision.CameraMount: a capsule from the tool axis under the
     # housing centre (clamped to link06) up to the housing, radius 1 cm.
-    centre = (T_flange_cam @ np.append(np.asarray(camera_body.center_cam_m, dtype=float), 1.0))[:3]
+    centre = matvec(T_flange_cam, np.append(np.asarray(camera_body.center_cam_m, dtype=float), 1.0))[:3]
     anchor = np.array([np.clip(centre[0], -flange, 0.0), 0.0, 0.0])
     offset = np.array([flange, 0.0, 0.0])
     _add_rod(spec, bodies["link06"], f"{arm_id}_camera_bracket", anchor + offset, centre + offset, BRACKET_RADIUS_M,

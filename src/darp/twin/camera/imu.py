@@ -24,6 +24,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
 from darp.errors import TwinError
+from darp.kinematics.transforms import matvec
 
 PoseFunction = Callable[[np.ndarray], np.ndarray]  # (N,) times in s -> (N, 4, 4) T_world_cam
 STANDARD_GRAVITY_M_S2 = 9.80665
@@ -80,7 +81,7 @@ class ImuSimulator:
         h = self.settings.difference_step_s
         lever = np.asarray(self.settings.t_depth_imu_m, dtype=float)
         T_prev, T_now, T_next = (_check_poses(pose(t + k * h), t.size) for k in (-1, 0, 1))
-        p = [T[:, :3, 3] + T[:, :3, :3] @ lever for T in (T_prev, T_now, T_next)]
+        p = [T[:, :3, 3] + matvec(T[:, :3, :3], lever) for T in (T_prev, T_now, T_next)]  # no BLAS
         a_world = (p[2] - 2.0 * p[1] + p[0]) / (h * h)
         f_world = a_world - np.asarray(self.settings.gravity_world, dtype=float)
         f_imu: np.ndarray = np.einsum("nji,nj->ni", T_now[:, :3, :3], f_world)  # R^T f

@@ -31,6 +31,7 @@ import cv2
 import numpy as np
 
 from darp.errors import ConfigError, TwinError
+from darp.kinematics.transforms import compose
 from darp.twin.camera.depth_model import DepthModel, DepthNoiseSettings, depth_to_z16
 from darp.twin.camera.imu import ImuSettings, ImuSimulator, PoseFunction
 from darp.twin.camera.ir import IrModel, IrSettings
@@ -208,8 +209,8 @@ class TwinCamera:
         T_world_depth = np.asarray(T_world_cam, dtype=float)
         if T_world_depth.shape != (4, 4) or not np.all(np.isfinite(T_world_depth)):
             raise TwinError(f"T_world_cam must be a finite 4x4 matrix, got shape {T_world_depth.shape}")
-        T_world_color = T_world_depth @ self.T_depth_color
-        T_world_ir2 = T_world_depth @ self.T_depth_ir2
+        T_world_color = compose(T_world_depth, self.T_depth_color)  # no BLAS: images independent of its kernel
+        T_world_ir2 = compose(T_world_depth, self.T_depth_ir2)
         rng = np.random.default_rng([self.seed, self.frame_index])
         self.frame_index += 1
 

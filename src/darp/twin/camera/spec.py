@@ -26,6 +26,7 @@ import numpy as np
 
 from darp.errors import ConfigError
 from darp.formats.realsense.types import Intrinsics, MotionIntrinsics, StreamProfile
+from darp.kinematics.transforms import compose, invert_transform
 
 DEPTH_FULL_SENSOR = (1280, 800)
 COLOR_FULL_SENSOR = (1920, 1080)
@@ -73,7 +74,7 @@ def draw_unit(rng: np.random.Generator | int) -> UnitCalibration:
     g = np.random.default_rng(rng)
     fx = g.uniform(382.0, 385.0)
     rot_axis = g.normal(size=3)
-    rot_axis /= np.linalg.norm(rot_axis)
+    rot_axis /= np.linalg.norm(rot_axis, axis=-1)  # axis=-1: no BLAS (see T_depth_stream)
     rot_angle = np.deg2rad(g.uniform(0.0, 0.4))
     rx, ry, rz = (float(x) for x in rot_axis * rot_angle)
     return UnitCalibration(
@@ -112,12 +113,12 @@ def scale_intrinsics(ref: Intrinsics, full_sensor: tuple[int, int], size: tuple[
 
 
 def _rotvec_to_matrix(rotvec: tuple[float, float, float]) -> np.ndarray:
-    theta = float(np.linalg.norm(rotvec))
+    theta = float(np.linalg.norm(np.asarray(rotvec, dtype=float), axis=-1))
     if theta < 1e-15:
         return np.eye(3)
     k = np.asarray(rotvec, dtype=float) / theta
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    R: np.ndarray = np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * kx @ kx
+    R: np.ndarray = np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * compose(kx, kx)
     return R
 
 
@@ -151,19 +152,22 @@ class CameraSpec:
         return self.depth.fx * self.baseline_m / MAX_DISPARITY_PX
 
     def T_depth_stream(self, key: str) -> np.ndarray:
-        """Pose of stream ``key``'s optical frame in the depth frame (``T_depth_<key>``)."""
+        """Pose of stream ``key``'s optical frame in the depth frame (``T_depth_<key>``).
+
+        Rigid inverses and products without BLAS (:func:`~darp.kinematics.transforms.compose`): these
+        poses reach the bags and the rendered images, which must not depend on the BLAS kernel.
+        """
         if key in ("depth", "ir1", "accel", "gyro"):
             return np.eye(4)
         if key == "ir2":
-            return np.linalg.inv(self.T_ir2_depth)
+            return invert_transform(self.T_ir2_depth)
         if key == "color":
-            return np.linalg.inv(self.T_color_depth)
+            return invert_transform(self.T_color_depth)
         raise ConfigError(f"unknown stream {key!r} (streams: depth, color, ir1, ir2, accel, gyro)")
 
     def extrinsics(self, source: str, target: str) -> np.ndarray:
         """4x4 ``T_target_source`` between two streams, as ``Recording.extrinsics`` returns it."""
-        T: np.ndarray = np.linalg.inv(self.T_depth_stream(target)) @ self.T_depth_stream(source)
-        return T
+        return compose(invert_transform(self.T_depth_stream(target)), self.T_depth_stream(source))
 
     def stream_profiles(self) -> dict[str, StreamProfile]:
         """The six streams of a D435i recording as darp ``StreamProfile`` objects, by darp stream key."""

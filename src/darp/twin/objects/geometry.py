@@ -18,6 +18,8 @@ import numpy as np
 import trimesh
 from numpy.typing import ArrayLike
 
+from darp.kinematics.transforms import matvec
+
 CM = 0.01  # builders write their dimensions in centimetres, as the paper's table does
 
 
@@ -31,7 +33,7 @@ class Piece:
 
     def transformed(self, T: np.ndarray) -> Piece:
         """The piece moved by a 4x4 rigid or scaling transform (faces flipped if it mirrors)."""
-        v = self.vertices @ T[:3, :3].T + T[:3, 3]
+        v = matvec(T[:3, :3], self.vertices) + T[:3, 3]  # no BLAS: object shapes independent of its kernel
         faces = self.faces[:, ::-1] if np.linalg.det(T[:3, :3]) < 0 else self.faces
         return Piece(v, faces.copy(), None if self.uv is None else self.uv.copy())
 

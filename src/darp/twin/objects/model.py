@@ -19,6 +19,7 @@ import trimesh
 
 from darp.errors import TwinError
 from darp.formats.atomic import atomic_path
+from darp.kinematics.transforms import matvec
 from darp.twin.objects.geometry import Piece
 from darp.twin.objects.shapes import BUILDERS, ObjectPart, make_part
 
@@ -198,9 +199,14 @@ def random_placement(rng: np.random.Generator | int, workspace: WorkspaceRegion,
 
 
 def to_world(obj: TwinObject, placement: ObjectPlacement) -> trimesh.Trimesh:
-    """The object's true mesh in the world frame (face colours kept), for ground truth."""
+    """The object's true mesh in the world frame (face colours kept), for ground truth.
+
+    The vertices are mapped with ``matvec`` rather than trimesh's ``apply_transform`` (BLAS): the truth
+    files must not depend on the BLAS kernel (:func:`darp.kinematics.transforms.compose`).
+    """
     mesh = obj.mesh.copy()
-    mesh.apply_transform(placement.T_world_object)
+    T = placement.T_world_object
+    mesh.vertices = matvec(T[:3, :3], mesh.vertices) + T[:3, 3]  # a turn about z: the winding stays
     return mesh
 
 

@@ -18,6 +18,7 @@ import trimesh
 from numpy.typing import ArrayLike
 from PIL import Image
 
+from darp.kinematics.transforms import compose, matvec
 from darp.twin.objects import textures as tex
 from darp.twin.objects.geometry import (
     CM,
@@ -106,12 +107,12 @@ def dumbbell(rng: RNG) -> list[ObjectPart]:
                (1.8, -half + head), (0, -half + head)]
     grip_rz = [(0, -half + head - 0.2), (1.05, -half + head - 0.2), (1.05, half - head + 0.2),
                (0, half - head + 0.2)]
-    lay = translation(z=1.83 * CM) @ rotation("y", 90)  # axis along x; a hex flat on the table
+    lay = compose(translation(z=1.83 * CM), rotation("y", 90))  # axis along x; a hex flat on the table
     parts = []
     pts, labels = profile([("head", head_rz)])
     head_piece = revolve(pts, labels, sections=6, theta0_rad=np.pi / 6)["head"]  # flats at +-x
     for side, turn in (("left", np.eye(4)), ("right", rotation("x", 180))):
-        piece = head_piece.transformed(lay @ turn)
+        piece = head_piece.transformed(compose(lay, turn))
         parts.append(make_part(f"head_{side}", piece, (0.07, 0.07, 0.08, 1.0), dark=True))
     pts, labels = profile([("grip", grip_rz)])
     grip = revolve(pts, labels, sections=48)["grip"].transformed(lay)
@@ -122,14 +123,14 @@ def dumbbell(rng: RNG) -> list[ObjectPart]:
 def controller(rng: RNG) -> list[ObjectPart]:
     """Gamepad lying flat: a flattened body, two angled grips, a top bump, buttons, d-pad, sticks."""
     body = _capsule(4.4, 2.2).transformed(
-        translation(0, 0.3 * CM, 1.1 * CM) @ scaling(1, 1, 0.5) @ rotation("y", 90))
+        compose(translation(0, 0.3 * CM, 1.1 * CM), scaling(1, 1, 0.5), rotation("y", 90)))
     shell = [body]
     for sx in (1.0, -1.0):
         p0, p1 = np.array([2.9 * sx, 0.0]), np.array([4.0 * sx, -2.5])
         mid, d = (p0 + p1) / 2, p1 - p0
         grip = _capsule(float(np.hypot(*d)), 1.35).transformed(
-            translation(mid[0] * CM, mid[1] * CM, 1.2 * CM) @ scaling(1, 1, 1.2 / 1.35)
-            @ rotation("z", np.degrees(np.arctan2(d[1], d[0]))) @ rotation("y", 90))
+            compose(translation(mid[0] * CM, mid[1] * CM, 1.2 * CM), scaling(1, 1, 1.2 / 1.35),
+                    rotation("z", np.degrees(np.arctan2(d[1], d[0]))), rotation("y", 90)))
         shell.append(grip)
     shell.append(_ellipsoid(2.0, 1.3, 0.5).transformed(translation(0, 0.9 * CM, 2.0 * CM)))
     shell_piece = concat(shell)
@@ -203,7 +204,7 @@ def picture_frame(rng: RNG) -> list[ObjectPart]:
     photo = quads(np.asarray([(x, pocket, z) for x, z in inner]) * CM, [(0, 1, 2, 3)], [(0, -1, 0)])
     photo.uv = planar_uv(photo.vertices, np.array([0, 0, h / 2]) * CM, np.array([1.0, 0, 0]),
                          np.array([0, 0, 1.0]), ((w / 2 - b) * CM, (h / 2 - b) * CM))
-    tilt = translation(y=d * CM) @ rotation("x", -lean) @ translation(y=-d * CM)  # pivot: back-bottom edge
+    tilt = compose(translation(y=d * CM), rotation("x", -lean), translation(y=-d * CM))  # pivot: back-bottom edge
     frame, back, photo = (p.transformed(tilt) for p in (frame, back, photo))
     strut = _strut(tilt, d, attach_z_cm=10.5, angle_deg=60.0, half_width_cm=1.4, thickness_cm=0.5)
     wood: RGBA = (0.5, 0.33, 0.18, 1.0)
@@ -247,7 +248,7 @@ def clock(rng: RNG) -> list[ObjectPart]:
         ("case", [(4.6, 1.7)] + arc(4.2, 1.7, 0.4, 0, 90, 5)[1:] + [(0, 2.1)]),
     ])
     centre_z = 1.0 + 4.65 - 0.35  # sits 3.5 mm into the base
-    stand = translation(z=centre_z * CM) @ rotation("x", -90)  # revolve axis -> y, face towards -y
+    stand = compose(translation(z=centre_z * CM), rotation("x", -90))  # revolve axis -> y, face towards -y
     p = {k: v.transformed(stand) for k, v in revolve(pts, labels).items()}
     p["face"].uv = planar_uv(p["face"].vertices, np.array([0, -1.9, centre_z]) * CM, np.array([1.0, 0, 0]),
                              np.array([0, 0, 1.0]), (3.8 * CM, 3.8 * CM))
@@ -322,9 +323,9 @@ def _top_surface(mesh: trimesh.Trimesh) -> Callable[[float, float], float]:
 def _strut(tilt: np.ndarray, depth_cm: float, *, attach_z_cm: float, angle_deg: float,
            half_width_cm: float, thickness_cm: float) -> Piece:
     """A plank from the frame's back (slightly embedded) down to a flat foot on the table."""
-    attach = (tilt @ np.array([0.0, depth_cm * CM, attach_z_cm * CM, 1.0]))[:3]
+    attach = matvec(tilt, np.array([0.0, depth_cm * CM, attach_z_cm * CM, 1.0]))[:3]
     foot = np.array([0.0, attach[1] + attach[2] / np.tan(np.radians(angle_deg)), 0.0])
-    u = (foot - attach) / np.linalg.norm(foot - attach)
+    u = (foot - attach) / np.linalg.norm(foot - attach, axis=-1)
     n = np.array([0.0, -u[2], u[1]])  # across the plank, pointing back and up
     t = thickness_cm * CM
     top_in, top_out = attach - 0.4 * CM * u, attach - 0.4 * CM * u + t * n
