@@ -1,6 +1,6 @@
 # darp: two commands on a fresh machine.
 #   make demo   set everything up, then run the main job on the embedded digital twin
-#   make test   set everything up, then run the whole test suite
+#   make test   set everything up, then lint (ruff), type-check (mypy strict) and run the whole test suite
 #   make bench  set everything up, then run the benchmarks (darp next to its peers)
 
 PYTHON ?= python3
@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.darp-installed
 export MUJOCO_GL ?= egl
 export PYOPENGL_PLATFORM ?= egl
 
-.PHONY: all setup demo test test-fast bench clean
+.PHONY: all setup demo lint test test-fast bench clean
 
 all: test
 
@@ -28,7 +28,11 @@ setup: $(STAMP)
 demo: $(STAMP)
 	$(DARP) demo
 
-test: $(STAMP)
+lint: $(STAMP)
+	$(PY) -m ruff check src tests benchmarks scripts
+	$(PY) -m mypy
+
+test: lint
 	$(PY) -m pytest -n 2 --dist loadfile -q
 
 test-fast: $(STAMP)
