@@ -324,7 +324,7 @@ def read_pose_csv(path: Path, conv: PoseConventions) -> dict[str, np.ndarray]:
             vals = [float(v) for v in row[1:8]]
         except ValueError:
             raise FormatError(f"row {n + 1} has a value that is not a number", path) from None
-        key = row[0].strip()
+        key = _capture_key(row[0].strip())
         if key in out:
             raise FormatError(f"capture {key!r} appears twice (duplicated row)", path)
         q = np.array(vals[3:7])
@@ -399,6 +399,7 @@ class ArmCaptures:
     images: dict[str, Path] = field(default_factory=dict)
     board_poses: dict[str, np.ndarray] = field(default_factory=dict)
     pose_source: Path | None = None
+    camera: CameraModel | None = None  # this arm's own intrinsics (an arm sub-folder's intrinsics.*)
 
 
 @dataclass
@@ -447,6 +448,11 @@ def _load_arm(folder: Path, arm: str, conv: PoseConventions) -> ArmCaptures:
     return ArmCaptures(arm, folder, poses, images, board_poses, source)
 
 
+def _arm_camera(folder: Path) -> CameraModel | None:
+    path = _find_intrinsics(folder)
+    return load_intrinsics(path) if path is not None else None
+
+
 def load_capture_folder(root: str | Path, intrinsics: str | Path | None = None,
                         eye_to_hand: bool | None = None) -> CaptureFolder:
     """Read a generic captures folder (one arm at its root, or one sub-folder per arm)."""
@@ -472,6 +478,8 @@ def load_capture_folder(root: str | Path, intrinsics: str | Path | None = None,
         if not subs:
             raise FormatError("no poses.csv or poses/ here nor in any arm sub-folder", root)
         arms = [_load_arm(d, d.name, conv) for d in subs]
+        for a in arms:
+            a.camera = _arm_camera(a.folder)
     ipath = Path(intrinsics) if intrinsics is not None else _find_intrinsics(root)
     camera = load_intrinsics(ipath) if ipath is not None else None
     return CaptureFolder(root, board, conv, e2h, arms, camera)
@@ -511,8 +519,8 @@ def solve_intrinsics(board: Board, found: list[tuple[np.ndarray, np.ndarray]], s
 
 
 def detect_folder(folder: CaptureFolder, min_corners: int = 8, max_pnp_rms_px: float = 2.0
-                  ) -> tuple[list[GenericDetection], CameraModel, dict[str, Any]]:
-    """Corners and board poses of every capture; intrinsics solved from the images when not given."""
+                  ) -> tuple[list[GenericDetection], dict[str, CameraModel], dict[str, Any]]:
+    """Corners and board poses of every capture; intrinsics (per arm) solved from the images when not given."""
     raw: list[tuple[str, str, np.ndarray, np.ndarray, str]] = []
     size: tuple[int, int] | None = None
     for arm in folder.arms:
@@ -528,17 +536,22 @@ def detect_folder(folder: CaptureFolder, min_corners: int = 8, max_pnp_rms_px: f
             ids, uv = detect_corners(folder.board, grey)
             raw.append((arm.arm, key, ids, uv, str(img_path)))
     info: dict[str, Any] = {}
-    camera = folder.camera
-    if camera is None:
-        if not raw or size is None:
-            raise CalibrationError("board poses without intrinsics: give intrinsics (3x3) to weight them", folder.root)
-        camera, rms = solve_intrinsics(folder.board, [(i, u) for _, _, i, u, _ in raw if len(i) >= min_corners],
-                                       size)
-        info["intrinsics_rms_px"] = rms
-    info["intrinsics_source"] = camera.source
+    cameras: dict[str, CameraModel] = {}
+    for arm in folder.arms:
+        camera = arm.camera or folder.camera
+        if camera is None:
+            mine = [(i, u) for a, _, i, u, _ in raw if a == arm.arm and len(i) >= min_corners]
+            if not mine or size is None:
+                raise CalibrationError("board poses without intrinsics: give intrinsics (3x3) to weight them",
+                                       arm.folder)
+            camera, rms = solve_intrinsics(folder.board, mine, size)
+            info.setdefault("intrinsics_rms_px", {})[arm.arm] = rms
+        cameras[arm.arm] = camera
+    info["intrinsics_source"] = {a: c.source for a, c in cameras.items()}
     P = folder.board.corners_m()
     dets: list[GenericDetection] = []
     for arm_name, key, ids, uv, src in raw:
+        camera = cameras[arm_name]
         d = GenericDetection(arm_name, key, ids, camera.undistort(uv), False, source=src)
         if len(ids) < min_corners:
             d.reason = f"too few corners ({len(ids)} < {min_corners})"
@@ -549,6 +562,7 @@ def detect_folder(folder: CaptureFolder, min_corners: int = 8, max_pnp_rms_px: f
             d.reason = "" if d.ok else f"PnP reprojection error {rms:.2f} px > {max_pnp_rms_px} px"
         dets.append(d)
     for arm in folder.arms:  # board poses given instead of images: their corners, seen through K
+        camera = cameras[arm.arm]
         for key, T in arm.board_poses.items():
             if key in arm.images:
                 continue
@@ -557,11 +571,11 @@ def detect_folder(folder: CaptureFolder, min_corners: int = 8, max_pnp_rms_px: f
             dets.append(GenericDetection(arm.arm, key, np.arange(len(P)), uv, bool(np.all(Pc[:, 2] > 0)),
                                          "" if np.all(Pc[:, 2] > 0) else "board behind the camera", T, 0.0,
                                          "board_poses"))
-    return dets, camera, info
+    return dets, cameras, info
 
 
-def build_generic_observations(folder: CaptureFolder, dets: list[GenericDetection], camera: CameraModel
-                               ) -> tuple[Observations, list[str]]:
+def build_generic_observations(folder: CaptureFolder, dets: list[GenericDetection],
+                               cameras: dict[str, CameraModel]) -> tuple[Observations, list[str]]:
     """Observations for darp's chain: measured flange poses (inverted for eye-to-hand); warnings."""
     warnings_out: list[str] = []
     P = folder.board.corners_m()
@@ -591,7 +605,7 @@ def build_generic_observations(folder: CaptureFolder, dets: list[GenericDetectio
     obs = Observations(
         arms=arms, capture_ids=[f"{d.arm}/{d.capture_id}" if len(arms) > 1 else d.capture_id for d in good],
         arm_index=np.array([arms.index(d.arm) for d in good]), q_rad=np.zeros((len(good), 6)),
-        T_stream_depth=np.tile(np.eye(4), (len(good), 1, 1)), K=np.tile(camera.K, (len(good), 1, 1)),
+        T_stream_depth=np.tile(np.eye(4), (len(good), 1, 1)), K=np.array([cameras[d.arm].K for d in good]),
         corner_capture=np.repeat(np.arange(len(good)), counts), corner_id=np.concatenate([d.ids for d in good]),
         P_board=np.concatenate([P[d.ids] for d in good]), uv=np.concatenate([d.corners_px for d in good]),
         T_depth_board_pnp=np.array([d.T_cam_board for d in good]), T_base_flange=F)
@@ -603,11 +617,71 @@ def build_generic_observations(folder: CaptureFolder, dets: list[GenericDetectio
 REFINE = RefineSettings(estimate_offsets=False)
 
 
-def darp_solver(obs: Observations, settings: RefineSettings = REFINE) -> ChainParams:
-    """darp's calibration of measured-pose observations: best OpenCV start, then the joint refinement."""
+def darp_solver(obs: Observations, settings: RefineSettings = REFINE, metric: bool = False) -> ChainParams:
+    """darp's calibration of measured-pose observations: best OpenCV start, then the joint refinement.
+
+    ``metric``: the captures are board *poses* (no pixels were measured), so the refinement minimises
+    the boards' disagreement in the reference frame (:func:`refine_metric`) instead of pixels.
+    """
     est = {a: handeye.opencv_hand_eye(obs, a) for a in obs.arms}
     start = handeye.chain_from_estimates({a: handeye.best(est[a]) for a in obs.arms}, obs.arms)
+    if metric:
+        return refine_metric(start, obs)
     return refine(start, obs, None, settings).params
+
+
+def metric_solver(obs: Observations) -> ChainParams:
+    """:func:`darp_solver` for board-pose captures."""
+    return darp_solver(obs, metric=True)
+
+
+ROTATION_LEVER_MM = 1000.0  # board-pose refinement: mm of residual per radian of board rotation
+
+
+def refine_metric(p0: ChainParams, obs: Observations, centre_board: np.ndarray | None = None,
+                  lever_mm: float = ROTATION_LEVER_MM) -> ChainParams:
+    """Hand-eyes, other bases and the board that best place every capture's board together (board poses).
+
+    Per capture i (arm a) the board placed by that capture, ``T_i = T_ref_base_a F_i X_a T_cam_board_i``, is
+    compared with the board ``W``: the distance of the board's centre (mm) and its rotation
+    ``log(W^-1 T_i)`` (rad) times ``lever_mm``. The large default lever makes the rotation dominate (the
+    hand-eye rotation is fitted first, as the two-step AX = XB methods do) and the centre fixes the
+    translations; this is the held-out board consistency the report scores. Same parameterisation as
+    the pixel refinement (:class:`darp.calibration.refine.Layout`, right perturbations, no joint offsets).
+    """
+    from scipy.optimize import least_squares
+
+    from darp.calibration.geometry import log_delta
+    from darp.calibration.refine import Layout
+
+    if obs.T_base_flange is None:
+        raise CalibrationError("board-pose refinement needs measured flange poses")
+    layout = Layout(p0.arms, {a: np.zeros(6, bool) for a in p0.arms})
+    c = np.append(np.unique(obs.P_board, axis=0).mean(axis=0) if centre_board is None else centre_board, 1.0)
+    F, B = np.asarray(obs.T_base_flange), obs.T_depth_board_pnp
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        p = layout.unpack(x, p0)
+        T = np.empty_like(B)
+        for a, arm in enumerate(obs.arms):
+            sel = obs.arm_index == a
+            T[sel] = p.T_ref_base[arm] @ F[sel] @ p.T_flange_cam[arm] @ B[sel]
+        d = 1e3 * ((T @ c)[:, :3] - (p.T_ref_board @ c)[:3])
+        r = lever_mm * log_delta(invert_transform(p.T_ref_board) @ T)[:, :3]
+        return np.concatenate([d.ravel(), r.ravel()])
+
+    x = np.zeros(layout.size)
+    if lever_mm > 0:
+        x = least_squares(fun, x, method="lm").x
+        return layout.unpack(x, p0)
+    lever = 100.0  # whitened: the lever is the ratio of the residuals' own spreads, re-estimated (3 rounds)
+    for _ in range(3):
+        lever_mm = lever
+        x = least_squares(fun, x, method="lm").x
+        r = fun(x)
+        n = len(r) // 2
+        lever = float(np.sqrt(np.mean(r[:n] ** 2)) / max(np.sqrt(np.mean((r[n:] / lever_mm) ** 2)), 1e-9))
+    return layout.unpack(x, p0)
 
 
 def opencv_solver(method: str) -> Callable[[Observations], ChainParams]:
@@ -672,7 +746,7 @@ class HandEyeOutcome:
     params: ChainParams
     observations: Observations
     detections: list[GenericDetection]
-    camera: CameraModel
+    cameras: dict[str, CameraModel]
     heldout: dict[str, Any]
     consistency: dict[str, Any]
     comparison: dict[str, dict[str, Any]]
@@ -685,18 +759,20 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
     from darp.calibration.diagnose import check_pose_conventions
 
     folder = load_capture_folder(root, intrinsics, eye_to_hand)
-    dets, camera, info = detect_folder(folder)
-    obs, warns = build_generic_observations(folder, dets, camera)
+    dets, cameras, info = detect_folder(folder)
+    obs, warns = build_generic_observations(folder, dets, cameras)
     for arm in obs.arms:
         if int(np.sum(obs.for_arm(arm))) < 4:
             raise CalibrationError(f"{arm}: {int(np.sum(obs.for_arm(arm)))} usable captures; hand-eye needs at "
                                    "least 4", folder.root)
         check_pose_conventions(folder, obs, arm)
-    params = darp_solver(obs)
+    pose_only = all(d.source == "board_poses" for d in dets if d.ok)
+    solver = metric_solver if pose_only else darp_solver
+    params = solver(obs)
     centre = folder.board.corners_m().mean(axis=0)
     k = min(folds, min(int(np.sum(obs.for_arm(a))) for a in obs.arms)) if folds > 1 else 0
-    held = kfold_heldout(obs, darp_solver, k, seed) if k > 1 else {}
-    cons = heldout_consistency(obs, darp_solver, centre, k, seed) if k > 1 else {}
+    held = kfold_heldout(obs, solver, k, seed) if k > 1 else {}
+    cons = heldout_consistency(obs, solver, centre, k, seed) if k > 1 else {}
     comparison: dict[str, dict[str, Any]] = {}
     if compare and k > 1:
         for m in OPENCV_METHODS:
@@ -709,10 +785,13 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
     report: dict[str, Any] = {
         "kind": "any-arm hand-eye",
         "mode": "eye_to_hand" if folder.eye_to_hand else "eye_in_hand",
+        "refinement": ("board poses: board centre (mm) and rotation (x 1000 mm/rad) in the base" if pose_only
+                       else "corner reprojection (px), darp's joint refinement without joint offsets"),
         "captures_folder": str(folder.root),
         "board": folder.board.describe(),
         "pose_conventions": {"unit": folder.conventions.unit, "quaternion": folder.conventions.quaternion},
-        "intrinsics": {"K": camera.K, "dist": camera.dist, **info},
+        "intrinsics": {"K": {a: c.K for a, c in cameras.items()}, "dist": {a: c.dist for a, c in cameras.items()},
+                       **info},
         "n_captures": {a: int(np.sum(obs.for_arm(a))) for a in obs.arms},
         "rejected": {f"{d.arm}/{d.capture_id}": d.reason for d in dets if not d.ok},
         "fit": {"reprojection_px": summarise(fit), "board_consistency_mm": summarise(fit_cons[0]),
@@ -744,7 +823,7 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
              f"the base frame of {obs.arms[0]} (any-arm calibration, no joint offsets)")
     cal = Calibration(epoch=folder.root.name, date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                       arms=arms_out, board=folder.board.spec(), world_frame=world, report=_jsonable(report))
-    return HandEyeOutcome(cal, params, obs, dets, camera, held, cons, comparison, warns)
+    return HandEyeOutcome(cal, params, obs, dets, cameras, held, cons, comparison, warns)
 
 
 def _jsonable(v: Any) -> Any:
@@ -761,6 +840,6 @@ def _jsonable(v: Any) -> Any:
 
 __all__ = ["Board", "CameraModel", "CaptureFolder", "GenericDetection", "HandEyeOutcome", "OPENCV_METHODS",
            "PoseConventions", "board_consistency", "build_generic_observations", "darp_solver", "detect_corners",
-           "detect_folder", "heldout_consistency", "load_capture_folder", "load_intrinsics", "opencv_solver",
-           "parse_board", "quat_pose", "read_matrix_file", "read_pose_csv", "read_poses", "solve_folder",
-           "solve_intrinsics"]
+           "detect_folder", "heldout_consistency", "load_capture_folder", "load_intrinsics", "metric_solver",
+           "opencv_solver", "parse_board", "quat_pose", "read_matrix_file", "read_pose_csv", "read_poses",
+           "refine_metric", "solve_folder", "solve_intrinsics"]
