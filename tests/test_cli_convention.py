@@ -27,8 +27,8 @@ from darp.cli import app
 SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--format", "-w": "--waypoints"}
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
 OUTPUT_PATHS = {"--out", "--report"}
-INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints"}
-FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings"}
+INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics"}
+FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.
 CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config"}
 # Words that name a physical quantity: an option containing one ends in its unit.
