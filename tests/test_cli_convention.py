@@ -27,7 +27,8 @@ from darp.cli import app
 SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--format", "-w": "--waypoints"}
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
 OUTPUT_PATHS = {"--out", "--report"}
-INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics"}
+INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics",
+               "--trajectory", "--flange-poses"}
 FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.
 CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config"}

@@ -135,7 +135,22 @@ def process(
     resume: Annotated[bool, typer.Option("--resume", help="Skip stages already done with the same inputs and "
                                          "settings.")] = False,
 ) -> None:
-    """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall."""
+    """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall.
+
+    A folder written by ``darp import`` is processed from its keyframes (fusion, mesh, held-out evaluation).
+    """
+    from darp.processing.imported import is_imported, process_imported
+
+    imported = [s for s in surveys if is_imported(s)]
+    for folder in imported:
+        s = _settings(settings_file)
+        r = process_imported(folder, out / folder.name, s.fusion, s.mesh)
+        h = r["heldout_point_to_mesh"]
+        typer.echo(f"{folder.name} (imported): {r['keyframes']} keyframes, {r['fused_points']:,} fused points, "
+                   f"held-out median {h.get('median_mm', float('nan')):.2f} mm; wrote {out / folder.name}")
+    surveys = [s for s in surveys if not is_imported(s)]
+    if imported and not surveys:
+        return
     _need_calibration(calibration, truth_poses)
     from rich.console import Console
     from rich.table import Table

@@ -17,9 +17,9 @@ import re
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from darp.errors import FormatError
-from darp.kinematics.transforms import quaternion_to_rotation
 
 FORMATS = ("tum", "log", "pose-txt", "nerfstudio")
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -69,7 +69,7 @@ def read_tum(path: str | Path) -> dict[str, np.ndarray]:
         if r[0] in out:
             raise FormatError(f"timestamp {r[0]} appears twice (duplicated frame)", p)
         T = np.eye(4)
-        T[:3, :3] = quaternion_to_rotation(v[3:7] / np.linalg.norm(v[3:7]))
+        T[:3, :3] = Rotation.from_quat(v[3:7] / np.linalg.norm(v[3:7])).as_matrix()  # x y z w
         T[:3, 3] = v[:3]
         out[r[0]] = T
     return out
@@ -142,11 +142,10 @@ def read_trajectory(path: str | Path, kind: str) -> dict[str, np.ndarray]:
 def write_tum(path: str | Path, poses: dict[str, np.ndarray]) -> None:
     """Write poses as TUM lines (key as the timestamp); for round trips and exports."""
     from darp.formats.atomic import write_text_atomic
-    from darp.kinematics.transforms import rotation_to_quaternion
 
     lines = []
     for k, T in poses.items():
-        q = rotation_to_quaternion(T[:3, :3])
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
         lines.append(" ".join([k, *(f"{v:.9f}" for v in (*T[:3, 3], *q))]))
     write_text_atomic(path, "\n".join(lines) + "\n")
 
