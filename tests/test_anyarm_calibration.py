@@ -160,6 +160,17 @@ def test_intrinsics_forms_round_trip(tmp_path: Path) -> None:
         assert np.allclose(load_intrinsics(tmp_path / name).K, K), name
     assert np.allclose(load_intrinsics(tmp_path / "k.npz").dist, dist)
     assert np.allclose(load_intrinsics(tmp_path / "k.json").dist, dist)
+    # a RealSense recording: its colour stream's intrinsics and librealsense distortion model
+    from darp.calibration.geometry import undistort_pixels
+    from darp.formats.realsense import open_recording
+
+    bag = Path(__file__).parent / "fixtures" / "recordings" / "rs257_lz4.bag"
+    cam = load_intrinsics(bag)
+    with open_recording(bag) as rec:
+        intr = rec.stream("color").intrinsics
+    assert np.allclose(cam.K, intr.K) and cam.model == intr.model
+    uv = np.array([[5.0, 7.0], [60.0, 40.0]])
+    assert np.allclose(cam.undistort(uv), undistort_pixels(uv, intr))
     np.savetxt(tmp_path / "bad.txt", K.T)
     with pytest.raises(FormatError, match="bad.txt.*3x3 camera matrix"):
         load_intrinsics(tmp_path / "bad.txt")

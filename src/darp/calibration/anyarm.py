@@ -163,11 +163,21 @@ class CameraModel:
     K: np.ndarray
     dist: np.ndarray
     source: str = ""
+    model: str = "Brown Conrady"  # librealsense's name; "Brown Conrady" is OpenCV's model
 
     def undistort(self, uv: np.ndarray) -> np.ndarray:
         """Distorted pixels (N, 2) -> ideal pinhole pixels of the same K."""
         if not np.any(self.dist) or len(uv) == 0:
             return np.asarray(uv, np.float64)
+        if self.model != "Brown Conrady":  # a RealSense model: librealsense's own equations
+            from darp.calibration.geometry import undistort_pixels
+            from darp.formats.realsense.types import Intrinsics
+
+            K = self.K
+            c = tuple(float(v) for v in (list(self.dist) + [0.0] * 5)[:5])
+            intr = Intrinsics(int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1)), float(K[0, 0]),
+                              float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), self.model, c)  # type: ignore[arg-type]
+            return np.asarray(undistort_pixels(np.asarray(uv, np.float64), intr))
         out = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(-1, 1, 2), self.K, self.dist, P=self.K)
         return cast(np.ndarray, out.reshape(-1, 2))
 
@@ -181,7 +191,8 @@ def _check_K(K: np.ndarray, path: Path) -> np.ndarray:
 
 
 def load_intrinsics(path: str | Path) -> CameraModel:
-    """Intrinsics from a 3x3 text/.npy, an .npz (``cameraMatrix``/``K``, ``distCoeffs``/``dist``), or JSON.
+    """Intrinsics from a 3x3 text/.npy, an .npz (``cameraMatrix``/``K``, ``distCoeffs``/``dist``), JSON, or a
+    RealSense recording (``.bag``/``.db3``: its colour stream, to which aligned depth is registered).
 
     JSON: ``{"K": 3x3}`` or ``{"fx", "fy", "cx"|"ppx", "cy"|"ppy"}``, optional ``"dist"``/``"coeffs"``;
     a nerfstudio-style ``fl_x``/``fl_y`` works too. A text file may hold the 3x3 then one distortion line.
@@ -189,6 +200,8 @@ def load_intrinsics(path: str | Path) -> CameraModel:
     p = Path(path)
     if not p.is_file():
         raise FormatError("intrinsics file not found", p)
+    if p.suffix in (".bag", ".db3"):
+        return _recording_intrinsics(p)
     dist = np.zeros(5)
     try:
         if p.suffix == ".npz":
@@ -230,6 +243,18 @@ def load_intrinsics(path: str | Path) -> CameraModel:
     except (ValueError, OSError, KeyError, json.JSONDecodeError) as err:
         raise FormatError(f"cannot read intrinsics ({err})", p) from None
     return CameraModel(_check_K(K, p), np.asarray(dist, np.float64), str(p))
+
+
+def _recording_intrinsics(p: Path) -> CameraModel:
+    from darp.formats.realsense import open_recording
+
+    with open_recording(p) as rec:
+        key = "color" if "color" in rec.streams else "depth"
+        i = rec.stream(key).intrinsics
+    if i is None:
+        raise FormatError(f"the recording's {key} stream has no intrinsics", p)
+    return CameraModel(i.K, np.asarray(i.coeffs, np.float64), f"{p} ({key} stream)",
+                       "Brown Conrady" if i.model == "None" else i.model)
 
 
 # -- poses --------------------------------------------------------------------------------------------

@@ -52,7 +52,8 @@ def import_command(
     out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).")],
     intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Depth/colour intrinsics (registered "
                                                     "streams): 3x3 .txt/.npy, .npz or .json; a nerfstudio "
-                                                    "transforms.json gives its own.", exists=True,
+                                                    "transforms.json gives its own; a RealSense .bag/.db3 its "
+                                                    "colour stream's.", exists=True,
                                                     dir_okay=False, show_default=False)] = None,
     depth_scale_m: Annotated[float, typer.Option("--depth-scale-m", help="Metres per depth unit (0.001: mm).")
                              ] = 0.001,
@@ -82,9 +83,10 @@ def import_command(
         raise typer.BadParameter("give exactly one of --trajectory and --flange-poses", param_hint="'--trajectory'")
     K = None
     dist = np.zeros(5)
+    model = "Brown Conrady"
     if intrinsics is not None:
         cam = load_intrinsics(intrinsics)
-        K, dist = cam.K, cam.dist
+        K, dist, model = cam.K, cam.dist, cam.model
     if trajectory is not None:
         if trajectory_format is TrajectoryFormat.nerfstudio:
             poses, intr = read_nerfstudio(trajectory)
@@ -124,7 +126,8 @@ def import_command(
         source = str(flange_poses)
     if K is None:
         raise typer.BadParameter("no intrinsics: give --intrinsics", param_hint="'--intrinsics'")
-    record = import_sequence(ImportSpec(sequence, out, K, dist, depth_scale_m, poses, source, name, every))
+    record = import_sequence(ImportSpec(sequence, out, K, dist, depth_scale_m, poses, source, name, every,
+                                         distortion_model=model))
     typer.echo(f"wrote {out} ({record['frames']} frames, {record['heldout']} held out; median depth "
                f"{record['median_depth_m']:.2f} m; neighbouring frames agree to "
                f"{record['pose_check']['neighbour_median_mm']:.1f} mm median)")

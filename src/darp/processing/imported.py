@@ -76,6 +76,7 @@ class ImportSpec:
     arm: str = "arm"
     every: int = 1
     heldout_every: int = 5
+    distortion_model: str = "Brown Conrady"  # librealsense's name of the model of ``dist``
 
 
 def find_frames(folder: Path) -> tuple[dict[str, Path], dict[str, Path]]:
@@ -202,7 +203,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     sample = [(depth[k], _read_depth(depth[k]), spec.poses[k]) for k in keys[:6]]
     record["pose_check"] = pose_direction_check(sample, spec.depth_scale_m, spec.K, spec.pose_source)
     intr = Intrinsics(w, h, float(spec.K[0, 0]), float(spec.K[1, 1]), float(spec.K[0, 2]), float(spec.K[1, 2]),
-                      "Brown Conrady", tuple(float(v) for v in (list(spec.dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
+                      spec.distortion_model, tuple(float(v) for v in (list(spec.dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
     folder = spec.out / "keyframes"
     held = heldout_mask(len(keys), spec.heldout_every)
     entries = []
