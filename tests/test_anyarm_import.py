@@ -147,3 +147,13 @@ def test_real_3dmatch_process_fuses_meshes_and_evaluates(tmp_path: Path) -> None
     # about 6 mm median (1 cm voxels); far from a tabletop's 2 mm, but the surface is there
     assert r["heldout_point_to_mesh"]["median_mm"] < 10.0
     assert (tmp_path / "out" / "imp" / "figures" / "imported_mesh.png").stat().st_size > 10000
+
+
+def test_millimetre_trajectory_given_as_metres_is_named(tmp_path: Path) -> None:
+    mm = {}
+    for k, T in poses().items():
+        T = T.copy()
+        T[:3, 3] *= 1000.0
+        mm[k] = T
+    with pytest.raises(FormatError, match="trajectory.txt: the cameras span .* look like millimetres given as metres"):
+        import_sequence(ImportSpec(SEQ, tmp_path / "imp", K(), poses=mm, pose_source="trajectory.txt"))

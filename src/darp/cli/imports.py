@@ -121,6 +121,9 @@ def import_command(
             from darp.calibration.anyarm import read_pose_csv
 
             raw = read_pose_csv(flange_poses, conv)
+        from darp.calibration.diagnose import check_translation_unit
+
+        check_translation_unit(np.array(list(raw.values())), unit.value, flange_poses)
         a = cal.arms[name]
         poses = {k: a.T_world_base @ F @ a.T_wrist_cam for k, F in raw.items()}
         source = str(flange_poses)

@@ -126,6 +126,17 @@ def check_depth_scale(depth: np.ndarray, scale: float, path: Path) -> float:
     return med
 
 
+def check_translation_scale(T_world_cam: np.ndarray, median_depth_m: float, source: str,
+                            factor: float = 50.0) -> None:
+    """Raise when the cameras span far more than the scene's depth allows: millimetres given as metres."""
+    t = T_world_cam[:, :3, 3]
+    extent = float(np.max(np.ptp(t, axis=0))) if len(t) > 1 else 0.0
+    if extent > factor * median_depth_m:
+        raise FormatError(f"the cameras span {extent:.3g} m in a scene {median_depth_m:.2f} m deep (median depth): "
+                          "the translations look like millimetres given as metres (divide them by 1000, or "
+                          "--unit mm for flange poses)", source)
+
+
 def _points(depth: np.ndarray, scale: float, K: np.ndarray, T: np.ndarray, step: int = 4) -> np.ndarray:
     d = depth[::step, ::step].astype(np.float64) * scale
     v, u = np.nonzero(d)
@@ -200,6 +211,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
         raise FormatError(f"the principal point ({spec.K[0, 2]:.0f}, {spec.K[1, 2]:.0f}) is far from the centre of "
                           f"the {w} x {h} depth image: intrinsics for another resolution or stream?", spec.sequence)
     record["median_depth_m"] = check_depth_scale(first, spec.depth_scale_m, depth[keys[0]])
+    check_translation_scale(np.array([spec.poses[k] for k in keys]), record["median_depth_m"], spec.pose_source)
     sample = [(depth[k], _read_depth(depth[k]), spec.poses[k]) for k in keys[:6]]
     record["pose_check"] = pose_direction_check(sample, spec.depth_scale_m, spec.K, spec.pose_source)
     intr = Intrinsics(w, h, float(spec.K[0, 0]), float(spec.K[1, 1]), float(spec.K[0, 2]), float(spec.K[1, 2]),
@@ -308,5 +320,5 @@ def _figure(mesh: Any, held_points: list[np.ndarray], path: Path, title: str, me
         fig.savefig(tmp, format="png", dpi=100)
 
 
-__all__ = ["IMPORT_FILE", "ImportSpec", "ImportWarning", "check_depth_scale", "find_frames", "import_sequence",
+__all__ = ["IMPORT_FILE", "ImportSpec", "ImportWarning", "check_depth_scale", "check_translation_scale", "find_frames", "import_sequence",
            "is_imported", "pose_direction_check", "process_imported"]
