@@ -320,5 +320,5 @@ def _figure(mesh: Any, held_points: list[np.ndarray], path: Path, title: str, me
         fig.savefig(tmp, format="png", dpi=100)
 
 
-__all__ = ["IMPORT_FILE", "ImportSpec", "ImportWarning", "check_depth_scale", "check_translation_scale", "find_frames", "import_sequence",
-           "is_imported", "pose_direction_check", "process_imported"]
+__all__ = ["IMPORT_FILE", "ImportSpec", "ImportWarning", "check_depth_scale", "check_translation_scale",
+           "find_frames", "import_sequence", "is_imported", "pose_direction_check", "process_imported"]
