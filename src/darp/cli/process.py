@@ -142,22 +142,20 @@ def process(
     from darp.processing.imported import is_imported, process_imported
 
     imported = [s for s in surveys if is_imported(s)]
+    done: list[Path] = []
     for folder in imported:
         s = _settings(settings_file)
-        r = process_imported(folder, out / folder.name, s.fusion, s.mesh)
-        h = r["heldout_point_to_mesh"]
-        typer.echo(f"{folder.name} (imported): {r['keyframes']} keyframes, {r['fused_points']:,} fused points, "
-                   f"held-out median {h.get('median_mm', float('nan')):.2f} mm; wrote {out / folder.name}")
+        process_imported(folder, out / folder.name, s.fusion, s.mesh)
+        done.append(out / folder.name)
     surveys = [s for s in surveys if not is_imported(s)]
-    if imported and not surveys:
+    if not surveys:
+        _summarise(out, done)
         return
     _need_calibration(calibration, truth_poses)
-    from rich.console import Console
-    from rich.table import Table
 
     from darp.formats.survey import find_survey_folders
     from darp.processing.pipeline import process_survey
-    from darp.processing.results import PROCESS_STAGES, write_summary
+    from darp.processing.results import PROCESS_STAGES
 
     settings = _settings(settings_file)
     folders = find_survey_folders(surveys)
@@ -166,7 +164,6 @@ def process(
     if duplicated:
         raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
                                  param_hint="'SURVEYS...'")
-    done: list[Path] = []
     with _progress_bars() as progress:
         overall = progress.add_task("surveys", total=len(folders))
         for folder in folders:
@@ -175,6 +172,16 @@ def process(
             process_survey(job, PROCESS_STAGES, resume=resume)
             done.append(job.out)
             progress.advance(overall)
+    _summarise(out, done)
+
+
+def _summarise(out: Path, done: list[Path]) -> None:
+    """Write the summary results.json and print the table of the processed surveys."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from darp.processing.results import write_summary
+
     summary_path = write_summary(out, done)
 
     from darp.processing.results import read_results

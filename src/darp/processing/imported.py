@@ -32,12 +32,16 @@ import cv2
 import numpy as np
 
 from darp.errors import DarpWarning, FormatError, ReconstructionError
-from darp.evaluation.heldout import evaluate_heldout, heldout_mask
+from darp.evaluation.heldout import PAPER_HELDOUT, evaluate_heldout, heldout_mask
 from darp.evaluation.point_to_mesh import MeshDistance
 from darp.formats.atomic import write_json_atomic
 from darp.formats.realsense.types import Intrinsics
+from darp.formats.schema import to_jsonable
 from darp.formats.trajectories import frame_key
 from darp.kinematics.transforms import invert_transform
+from darp.processing.evaluate import EVALUATION_DIR, HELDOUT_DISTANCES, _save_arrays, draw_figures
+from darp.processing.pipeline import FIGURES_DIR
+from darp.processing.results import RESULTS_FILE, SCHEMA
 from darp.reconstruction.backproject import PosedDepth, backproject
 from darp.reconstruction.fusion import FusionSettings, VoxelFusion, write_voxel_cloud
 from darp.reconstruction.keyframe_io import (
@@ -260,7 +264,11 @@ def is_imported(folder: Path) -> bool:
 
 def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettings | None = None,
                      mesh_settings: MeshSettings | None = None) -> dict[str, Any]:
-    """Fusion of the ``fuse`` keyframes, ball-pivoting mesh, held-out point-to-mesh; writes results.json."""
+    """Fusion of the ``fuse`` keyframes, ball-pivoting mesh, held-out point-to-mesh; writes results.json.
+
+    The results document follows ``darp-results/1`` (:mod:`darp.processing.results`) with pose_source
+    "imported", no cross-arm section, no truth and no composition row, so ``darp report`` takes it.
+    """
     out = out or folder
     out.mkdir(parents=True, exist_ok=True)
     kdir = folder / "keyframes"
@@ -280,17 +288,31 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     write_mesh(out / "mesh.ply", mesh)
     md = MeshDistance(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
     frames: list[PosedDepth] = [kf.posed_depth() for kf in iter_keyframes(kdir, HELDOUT)]
-    held = evaluate_heldout(frames, md, object_name=index.survey, settings=settings)
-    stats = held.stats().to_dict() if hasattr(held.stats(), "to_dict") else {}
-    fig = out / "figures" / "imported_mesh.png"
+    held = evaluate_heldout(frames, md, object_name=index.object_name or index.survey, settings=settings)
+    (out / EVALUATION_DIR).mkdir(exist_ok=True)
+    _save_arrays(out / EVALUATION_DIR / HELDOUT_DISTANCES, held.distances)
+    for arm, c in result.per_arm.items():
+        write_voxel_cloud(out / f"{arm}.ply", c)
+    figures = draw_figures(out, {a: c.points for a, c in result.per_arm.items()}, cloud.points, cloud.colours,
+                           held.distances, title=index.survey)
+    fig = out / FIGURES_DIR / "imported_mesh.png"
+    pooled = np.concatenate(list(held.distances.values())) if held.distances else np.empty(0)
     _figure(mesh, [backproject(f, settings.depth).points for f in frames], fig, index.survey,
-            float(np.median(np.concatenate(list(held.distances.values())))) * 1e3 if held.distances else float("nan"))
-    res = {"survey": index.survey, "pose_source": POSE_SOURCE, "arms": list(index.arms),
-           "keyframes": len(index.keyframes), "fuse": len(index.select(FUSE)), "heldout": len(frames),
-           "fused_points": len(cloud), "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles),
-                                                "area_m2": mesh_area(mesh)},
-           "heldout_point_to_mesh": stats, "figure": str(fig.relative_to(out))}
-    write_json_atomic(out / "results.json", res)
+            float(np.median(pooled)) * 1e3 if pooled.size else float("nan"))
+    figures["mesh"] = f"{FIGURES_DIR}/imported_mesh.png"
+    res = {
+        "schema": SCHEMA, "survey": folder.name, "survey_path": str(folder),
+        "object": index.object_name or index.survey, "pose_source": POSE_SOURCE,
+        "calibration": {"epoch": None, "path": None}, "composition": None,
+        "envelope": {"source": "none (imported: no envelope crop; depth range from the settings)"},
+        "keyframes": {"total": len(index.keyframes), "fuse": len(index.select(FUSE)), "heldout": len(frames),
+                      "arms": index.arms},
+        "clouds": {**{a: len(c) for a, c in result.per_arm.items()}, "fused": len(cloud)},
+        "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": mesh_area(mesh)},
+        "heldout": held.to_dict(), "cross_arm": None, "truth": None, "figures": figures, "stages": {},
+        "paper": PAPER_HELDOUT,
+    }
+    write_json_atomic(out / RESULTS_FILE, to_jsonable(res))
     return res
 
 
