@@ -150,3 +150,30 @@ def test_real_3dmatch_process_fuses_meshes_and_evaluates(tmp_path: Path) -> None
     assert (tmp_path / "out" / "imp" / "figures" / "imported_mesh.png").stat().st_size > 10000
     assert run(["report", str(tmp_path / "out")]) == 0
     assert "imported" in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_an_envelope_crops_fusion_and_evaluation(tmp_path: Path) -> None:
+    from darp.formats.envelope import Envelope, write_envelope
+    from darp.processing.imported import process_imported
+    from darp.reconstruction.backproject import DepthFilterSettings
+    from darp.reconstruction.cloud_io import read_ply
+    from darp.reconstruction.fusion import FusionSettings
+
+    P = poses()
+    d = cv2.imread(str(SEQ / "frame-000000.depth.png"), cv2.IMREAD_UNCHANGED)
+    v, u = np.nonzero(d[::8, ::8])
+    z = d[::8, ::8][v, u] * 1e-3
+    k = K()
+    pts = np.stack([(u * 8 - k[0, 2]) / k[0, 0] * z, (v * 8 - k[1, 2]) / k[1, 1] * z, z], 1)
+    pts = pts @ P["0"][:3, :3].T + P["0"][:3, 3]
+    c = np.median(pts, axis=0)
+    write_envelope(tmp_path / "env.json", Envelope(object_name="corner", center_m=(c[0], c[1], c[2] - 1.0),
+                                                   radius_m=0.4, height_m=2.0))
+    import_sequence(ImportSpec(SEQ, tmp_path / "imp", k, poses=P, pose_source="p", envelope=tmp_path / "env.json"))
+    fs = FusionSettings(depth=DepthFilterSettings(max_depth_m=5.0, discontinuity_abs_m=0.02), voxel_size_m=0.01,
+                        min_frames=2, min_view_bins=1)
+    r = process_imported(tmp_path / "imp", tmp_path / "out", fs)
+    assert r["envelope"]["source"] == "manip_envelope.json"
+    fused = read_ply(tmp_path / "out" / "fused.ply").points
+    assert 100 < len(fused) < 22665  # the whole room fuses to 22,665 points with these settings
+    assert np.max(np.linalg.norm(fused[:, :2] - c[:2], axis=1)) < 0.4 + fs.envelope_margin_m + 0.01

@@ -28,8 +28,9 @@ SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--f
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
 OUTPUT_PATHS = {"--out", "--report"}
 INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics",
-               "--trajectory", "--flange-poses"}
-FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics"}
+               "--trajectory", "--flange-poses", "--envelope"}
+FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics",
+             "--envelope"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.
 CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config"}
 # Words that name a physical quantity: an option containing one ends in its unit.

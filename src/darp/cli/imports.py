@@ -3,7 +3,7 @@
     darp import SEQ -o OUT --intrinsics K.txt [--depth-scale-m 0.001]
                 (--trajectory FILE|DIR --trajectory-format tum|log|pose-txt|nerfstudio
                  | --flange-poses poses.csv|DIR -c handeye-calibration.json [--unit mm] [--quaternion wxyz])
-                [--arm NAME] [--every N]
+                [--arm NAME] [--every N] [--envelope manip_envelope.json]
     darp process OUT -o RESULTS [--settings S.yaml]
 
 See docs/any-arm.md.
@@ -72,6 +72,9 @@ def import_command(
                                                         "pose CSV.")] = QuaternionOrder.xyzw,
     arm: Annotated[str, typer.Option("--arm", help="Name of the arm (the calibration's arm with -c).")] = "",
     every: Annotated[int, typer.Option("--every", min=1, help="Keep every N-th frame.")] = 1,
+    envelope: Annotated[Path | None, typer.Option("--envelope", help="manip_envelope.json (object cylinder in the "
+                                                  "poses' world frame) to crop fusion and evaluation to.",
+                                                  exists=True, dir_okay=False, show_default=False)] = None,
 ) -> None:
     """Import an RGB-D sequence with poses as a survey that darp process fuses, meshes and evaluates."""
     from darp.calibration.anyarm import PoseConventions, load_intrinsics
@@ -130,7 +133,7 @@ def import_command(
     if K is None:
         raise typer.BadParameter("no intrinsics: give --intrinsics", param_hint="'--intrinsics'")
     record = import_sequence(ImportSpec(sequence, out, K, dist, depth_scale_m, poses, source, name, every,
-                                         distortion_model=model))
+                                         distortion_model=model, envelope=envelope))
     typer.echo(f"wrote {out} ({record['frames']} frames, {record['heldout']} held out; median depth "
                f"{record['median_depth_m']:.2f} m; neighbouring frames agree to "
                f"{record['pose_check']['neighbour_median_mm']:.1f} mm median)")

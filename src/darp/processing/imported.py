@@ -81,6 +81,7 @@ class ImportSpec:
     every: int = 1
     heldout_every: int = 5
     distortion_model: str = "Brown Conrady"  # librealsense's name of the model of ``dist``
+    envelope: Path | None = None  # manip_envelope.json in the world frame of the poses (copied into the survey)
 
 
 def find_frames(folder: Path) -> tuple[dict[str, Path], dict[str, Path]]:
@@ -246,6 +247,14 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
                           keyframes=entries, extra={"import": str(spec.out / IMPORT_FILE)})
     write_keyframe_index(index)
     record.update({"frames": len(keys), "heldout": int(held.sum()), "image_size": [w, h]})
+    if spec.envelope is not None:
+        from darp.formats.envelope import ENVELOPE_FILE, read_envelope, write_envelope
+
+        env = read_envelope(spec.envelope)
+        if not env.has_geometry:
+            raise FormatError("the envelope has no centre/radius/height to crop to", spec.envelope)
+        write_envelope(spec.out / ENVELOPE_FILE, env)
+        record["envelope"] = str(spec.envelope)
     write_json_atomic(spec.out / IMPORT_FILE, record)
     return record
 
@@ -274,7 +283,10 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     kdir = folder / "keyframes"
     index = read_keyframe_index(kdir)
     settings = fusion or FusionSettings()
-    fz = VoxelFusion(settings, None)
+    from darp.formats.envelope import ENVELOPE_FILE, read_envelope
+
+    crop = settings.crop(read_envelope(folder / ENVELOPE_FILE)) if (folder / ENVELOPE_FILE).is_file() else None
+    fz = VoxelFusion(settings, crop)
     for kf in iter_keyframes(kdir, FUSE):
         fz.add(kf.posed_depth())
     result = fz.result()
@@ -288,7 +300,8 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     write_mesh(out / "mesh.ply", mesh)
     md = MeshDistance(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
     frames: list[PosedDepth] = [kf.posed_depth() for kf in iter_keyframes(kdir, HELDOUT)]
-    held = evaluate_heldout(frames, md, object_name=index.object_name or index.survey, settings=settings)
+    held = evaluate_heldout(frames, md, object_name=index.object_name or index.survey, settings=settings,
+                            region=crop)
     (out / EVALUATION_DIR).mkdir(exist_ok=True)
     _save_arrays(out / EVALUATION_DIR / HELDOUT_DISTANCES, held.distances)
     for arm, c in result.per_arm.items():
@@ -297,14 +310,16 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
                            held.distances, title=index.survey)
     fig = out / FIGURES_DIR / "imported_mesh.png"
     pooled = np.concatenate(list(held.distances.values())) if held.distances else np.empty(0)
-    _figure(mesh, [backproject(f, settings.depth).points for f in frames], fig, index.survey,
+    _figure(mesh, [backproject(f, settings.depth, crop).points for f in frames], fig, index.survey,
             float(np.median(pooled)) * 1e3 if pooled.size else float("nan"))
     figures["mesh"] = f"{FIGURES_DIR}/imported_mesh.png"
     res = {
         "schema": SCHEMA, "survey": folder.name, "survey_path": str(folder),
         "object": index.object_name or index.survey, "pose_source": POSE_SOURCE,
         "calibration": {"epoch": None, "path": None}, "composition": None,
-        "envelope": {"source": "none (imported: no envelope crop; depth range from the settings)"},
+        "envelope": ({"source": "manip_envelope.json", "center_m": list(crop.center_m), "radius_m": crop.radius_m,
+                      "height_m": crop.height_m} if crop is not None else
+                     {"source": "none (imported without --envelope: no crop; depth range from the settings)"}),
         "keyframes": {"total": len(index.keyframes), "fuse": len(index.select(FUSE)), "heldout": len(frames),
                       "arms": index.arms},
         "clouds": {**{a: len(c) for a, c in result.per_arm.items()}, "fused": len(cloud)},
