@@ -108,6 +108,25 @@ def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray
     print()
 
 
+def twin_path_equivalence(caps: object, generic: Path) -> None:
+    """darp's own solver (joint offsets held at 0) on the native captures vs the generic folder's solve."""
+    from darp.calibration.anyarm import solve_folder
+    from darp.calibration.detect import detect_captures
+    from darp.calibration.model import build_observations
+    from darp.calibration.refine import RefineSettings
+    from darp.calibration.solve import calibrate_observations
+
+    arms = caps.arms  # type: ignore[attr-defined]
+    obs = build_observations(detect_captures(caps), caps.board, arms)  # type: ignore[arg-type, attr-defined]
+    native = calibrate_observations(obs, RefineSettings(estimate_offsets=False), {a: np.zeros(6, bool) for a in arms})
+    gen = solve_folder(generic, folds=0, compare=False)
+    diffs = [float(np.abs(native.params.T_flange_cam[a] @ np.asarray(caps.for_arm(a)[0].T_depth_stream)  # type: ignore[attr-defined]
+                          - gen.params.T_flange_cam[a]).max()) for a in arms]
+    b2b = float(np.abs(native.params.T_ref_base[arms[-1]] - gen.params.T_ref_base[arms[-1]]).max())
+    print(f"twin path: generic folder vs darp's solver (offsets at 0): hand-eye max |diff| {max(diffs):.2e}, "
+          f"base-to-base {b2b:.2e} (matrix elements, m)")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--real", type=Path, default=REAL_DEFAULT, help="the Doosan real-data folder")
@@ -147,6 +166,7 @@ def main() -> None:
                     @ np.asarray(rec.T_depth_stream)
             print(f"== twin: seed {a.twin_seed}, {a.n} captures per arm, {a.profile} profile, images ==")
             table(generic, a.folds, a.fold_seeds, truth)
+            twin_path_equivalence(caps, generic)
 
 
 if __name__ == "__main__":
