@@ -232,3 +232,119 @@ def test_report_names_unfinished_and_missing_surveys(batch: dict, capsys) -> Non
 
     status = survey_status(copy)
     assert "a_good" in status["missing"] and "b_millis" in status["failed"]
+
+
+# -- fusion support adapted to visibility; crop margin from the calibration ----------------------------------
+def _down_camera(height_m: float = 0.5) -> tuple:
+    """A 64x48 camera at (0, 0, height) looking straight down (+z of the camera = -z of the world)."""
+    from darp.formats.realsense.types import Intrinsics
+
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[2, 3] = height_m
+    return Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5), T
+
+
+def test_in_view_counts_projection_and_occlusion() -> None:
+    from darp.reconstruction.backproject import PosedDepth
+    from darp.reconstruction.fusion import FrameView, in_view
+
+    intrinsics, T = _down_camera()
+    depth = np.full((48, 64), 500, np.uint16)  # a table 0.5 m below the camera (1 mm units)
+    depth[:, :8] = 0  # a hole on the left
+    view = FrameView.of(PosedDepth("arm110", 1, depth, 0.001, intrinsics, T), arm_bit=0, stride=2)
+    points = np.array([[0.0, 0.0, 0.0],     # on the table: in view
+                       [0.0, 0.0, 0.2],     # in front of the table: in view (nothing hides it)
+                       [0.0, 0.0, -0.05],   # 5 cm under the table: hidden by it
+                       [2.0, 0.0, 0.0],     # outside the image
+                       [-0.28, 0.0, 0.0],   # where the depth has a hole
+                       [0.0, 0.0, 0.6]])    # behind the camera
+    count, bins = in_view(points, [view, view], tolerance_m=0.01)
+    assert count.tolist() == [2, 2, 0, 0, 0, 0]
+    assert bins[0] != 0 and bins[2] == 0
+    assert in_view(points, [view], 0.01, arm_bits=0b10)[0].sum() == 0  # another arm's frames only
+
+
+def test_support_adapts_to_how_often_a_voxel_was_in_view() -> None:
+    from darp.reconstruction.fusion import FusionSettings, supported_voxels
+    from darp.reconstruction.voxel_stats import VoxelStats
+
+    n_frames = np.array([3, 2, 2, 1, 2], np.int32)
+    one_bin, two_bins = np.uint64(1), np.uint64(0b11)
+    stats = VoxelStats(keys=np.arange(5, dtype=np.int64), n_points=np.full(5, 4, np.int64),
+                       sum_xyz=np.zeros((5, 3)), sum_normal=np.zeros((5, 3)), sum_rgb=None, n_frames=n_frames,
+                       view_mask=np.array([two_bins, two_bins, two_bins, two_bins, one_bin], np.uint64),
+                       arm_mask=np.ones(5, np.uint8))
+    visible = {1: (2, two_bins), 2: (10, two_bins), 3: (1, one_bin), 4: (2, one_bin)}
+
+    def visibility(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rows = [i for i in range(5) if i not in (0,)][:len(points)]
+        return (np.array([visible[i][0] for i in rows], np.int32), np.array([visible[i][1] for i in rows], np.uint64))
+
+    settings = FusionSettings()
+    fixed = supported_voxels(stats, settings)
+    assert fixed.tolist() == [True, False, False, False, False]
+    adaptive = supported_voxels(stats, settings, visibility)
+    # 2 of the 2 frames that could see it: kept; 2 of 10: not; 1 frame: below the floor; one bin it was in view
+    # from and seen from it by both frames that could: kept
+    assert adaptive.tolist() == [True, True, False, False, True]
+    assert supported_voxels(stats, FusionSettings(adaptive_support=False), visibility).tolist() == fixed.tolist()
+
+
+def test_crop_margin_grows_with_the_calibrations_heldout_error() -> None:
+    from darp.reconstruction.fusion import FusionSettings, calibration_uncertainty_m
+
+    residuals = [{"heldout": {"corner_3d_mm": {"p90": 3.0}}}, {"heldout": {"corner_3d_mm": {"p90": 9.0}}}]
+    assert calibration_uncertainty_m(residuals) == pytest.approx(0.009)
+    assert calibration_uncertainty_m([{}, {"heldout": {}}]) is None  # a calibration that states nothing
+    settings = FusionSettings()
+    assert settings.crop_margin(None) == settings.envelope_margin_m
+    assert settings.crop_margin(0.002) == settings.envelope_margin_m  # a good calibration: the fixed floor
+    assert settings.crop_margin(0.009) == pytest.approx(0.018)
+
+
+# -- partial surveys ------------------------------------------------------------------------------------------
+def test_inspect_warns_about_a_partial_survey(survey_path: Path, tmp_path: Path, capsys) -> None:
+    copy = linked_copy(survey_path, tmp_path / "cube")
+    (copy / "PARTIAL.txt").write_text("partial: interrupted\n")
+    (copy / "cam348522076490.bag.partial").write_bytes(b"")
+    assert run(["inspect", str(copy), "-f", "csv"]) == 0
+    err = capsys.readouterr().err
+    assert (f"darp: warning: {copy}: partial survey: PARTIAL.txt says 'partial: interrupted'; "
+            "unfinalised recording(s) cam348522076490.bag.partial") in err
+
+
+# -- a noisier rig end to end -----------------------------------------------------------------------------
+@pytest.mark.slow
+def test_a_noisier_rig_processes_with_plausible_results(tmp_path: Path) -> None:
+    """0.05 deg encoder noise, joint-zero bias up to 3 deg, 10 mm / 3 deg mounts, 15 mm second base (the
+    fixed 0.02 rad/s threshold settled 0 frames here: "no keyframe selected")."""
+    import dataclasses
+
+    from darp.kinematics.rig import load_rig
+    from darp.twin.objects.model import make_object
+    from darp.twin.record import record_survey
+    from darp.twin.settings import JointErrorSettings, MountErrorSettings, TwinSettings
+    from darp.twin.waypoints import WaypointPlan, orbit_waypoints
+    from helpers.twin_surveys import TINY_PLACEMENT
+
+    obj, rig = make_object("cube"), load_rig()
+    centre = (TINY_PLACEMENT.x_m, TINY_PLACEMENT.y_m, 0.5 * obj.height_m)
+    plan = WaypointPlan({arm: tuple(orbit_waypoints(rig, arm, centre, 0.33, azimuths_deg=(-25.0, 0.0, 25.0),
+                                                    elevation_deg=40.0, dwell_s=0.8))
+                         for arm in ("arm110", "arm111")}, ("arm110", "arm111"))
+    settings = dataclasses.replace(
+        TwinSettings.from_profile("realistic", seed=23).with_camera(fps=6, width=424, height=240),
+        joints=JointErrorSettings(zero_bias_max_deg=3.0, encoder_noise_std_deg=0.05),
+        mounts=MountErrorSettings(10.0, 3.0, 15.0, 0.3, 0.05))
+    survey = tmp_path / "cube"
+    record_survey(survey, plan, obj, TINY_PLACEMENT, settings=settings)
+    out = tmp_path / "out"
+    assert run(["process", str(survey), "-c", str(survey / "truth" / "calibration.json"), "--out", str(out)]) == 0
+    results = json.loads((out / "cube" / "results.json").read_text())
+    assert results["status"] == "ok", results["warnings"]
+    for counts in results["keyframes"]["arms"].values():
+        assert counts["keyframes"] >= 9 and 0.1 < counts["still_threshold_rad_s"] <= 0.25
+        assert counts["speed_noise_rad_s"] == pytest.approx(np.sqrt(2) * np.radians(0.05) * 33, rel=0.35)
+    assert results["heldout"]["aggregate"]["within_10mm_pct"] > 85
+    assert results["truth"]["cloud"]["accuracy"]["median_mm"] < 1.0

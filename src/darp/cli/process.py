@@ -177,14 +177,11 @@ def process(
                                          progress=_stage_callback(progress, folder.name),
                                          on_note=lambda note: _warn(f"{folder.name}: {note}"))
 
-        def on_outcome(outcome: Any) -> None:
-            progress.advance(overall)
-            if outcome.status == FAILED:
-                error(outcome.message)
-
-        outcomes = process_batch(folders, out, run_one, on_outcome=on_outcome)
+        outcomes = process_batch(folders, out, run_one, on_outcome=lambda _: progress.advance(overall))
     done = [o.out for o in outcomes if o.status != FAILED]
     failed = [o for o in outcomes if o.status == FAILED]
+    for o in failed:  # after the progress display is gone: one clean line each
+        error(o.message)
     summary_path = write_summary(out, done, [o.to_dict() for o in failed])
     _print_table(done, failed)
     for o in outcomes:
@@ -192,8 +189,9 @@ def process(
             _warn(f"{o.name}: {warning}")
     typer.echo(f"wrote {summary_path}")
     if failed:
-        error(f"{len(failed)} of {len(outcomes)} surveys failed: {', '.join(o.name for o in failed)} "
-              f"(listed in {summary_path})")
+        if len(outcomes) > 1:
+            error(f"{len(failed)} of {len(outcomes)} surveys failed: {', '.join(o.name for o in failed)} "
+                  f"(listed in {summary_path})")
         raise typer.Exit(2)
 
 
