@@ -263,6 +263,10 @@ def test_in_view_counts_projection_and_occlusion() -> None:
     assert count.tolist() == [2, 2, 0, 0, 0, 0]
     assert bins[0] != 0 and bins[2] == 0
     assert in_view(points, [view], 0.01, arm_bits=0b10)[0].sum() == 0  # another arm's frames only
+    # weighted by the chance a pixel lands in the voxel: 1 mm voxels at 0.5 m, 50 px focal: (0.1 px)^2
+    weighted, _ = in_view(points, [view], 0.01, normals=np.tile([0.0, 0.0, 1.0], (6, 1)), voxel_size_m=0.001)
+    assert weighted[0] == pytest.approx(0.01) and weighted[2] == 0
+    assert in_view(points, [view], 0.01, voxel_size_m=0.05)[0][0] == 1.0  # at most one hit per frame
 
 
 def test_support_adapts_to_how_often_a_voxel_was_in_view() -> None:
@@ -277,7 +281,7 @@ def test_support_adapts_to_how_often_a_voxel_was_in_view() -> None:
                        arm_mask=np.ones(5, np.uint8))
     visible = {1: (2, two_bins), 2: (10, two_bins), 3: (1, one_bin), 4: (2, one_bin)}
 
-    def visibility(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def visibility(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rows = [i for i in range(5) if i not in (0,)][:len(points)]
         return (np.array([visible[i][0] for i in rows], np.int32), np.array([visible[i][1] for i in rows], np.uint64))
 

@@ -220,6 +220,7 @@ class FrameView:
     ppx: float
     ppy: float  # of the subsampled image
     depth_m: np.ndarray  # (h, w) float32, 0 = no depth
+    stride: int = 1  # the subsampling: full-resolution focal length = fx * stride
 
     @classmethod
     def of(cls, frame: PosedDepth, arm_bit: int, stride: int) -> FrameView:
@@ -230,17 +231,23 @@ class FrameView:
         k = frame.intrinsics
         return cls(arm_bit, R, -R @ T[:3, 3], T[:3, 3].copy(), k.fx / stride, k.fy / stride,
                    (k.ppx + 0.5) / stride - 0.5, (k.ppy + 0.5) / stride - 0.5,
-                   np.ascontiguousarray(depth_to_metres(frame.depth, frame.depth_scale)[::stride, ::stride]))
+                   np.ascontiguousarray(depth_to_metres(frame.depth, frame.depth_scale)[::stride, ::stride]), stride)
 
 
-def in_view(points: np.ndarray, views: Iterable[FrameView], tolerance_m: float,
-            arm_bits: int = 0xFF) -> tuple[np.ndarray, np.ndarray]:
+def in_view(points: np.ndarray, views: Iterable[FrameView], tolerance_m: float, arm_bits: int = 0xFF,
+            normals: np.ndarray | None = None, voxel_size_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """For each point (N, 3): how many of ``views`` (of the arms in ``arm_bits``) had it in view, and the
-    viewing-direction bins (uint64 mask) of those views (see the module docstring)."""
+    viewing-direction bins (uint64 mask) of those views (see the module docstring).
+
+    With ``voxel_size_m`` a frame counts by the chance that one of its pixels lands in the voxel: the
+    voxel's footprint in pixels, ``(voxel_size_m * fx / z)^2``, foreshortened by the angle between the
+    voxel's ``normals`` and the direction to the camera (at least 0.2), at most 1. A low-resolution
+    frame whose pixels are about the voxel's size does not hit every voxel it sees.
+    """
     from darp.reconstruction.voxel_stats import view_bins
 
     p = np.asarray(points, np.float64)
-    count = np.zeros(len(p), np.int32)
+    count = np.zeros(len(p), np.float64)
     bins = np.zeros(len(p), np.uint64)
     for view in views:
         if not (arm_bits >> view.arm_bit) & 1:
@@ -255,13 +262,22 @@ def in_view(points: np.ndarray, views: Iterable[FrameView], tolerance_m: float,
         idx = np.flatnonzero(inside)
         d = view.depth_m[v[idx].astype(np.int64), u[idx].astype(np.int64)]
         seen = idx[(d > 0) & (z[idx] <= d + tolerance_m)]
-        count[seen] += 1
+        if voxel_size_m is None:
+            count[seen] += 1.0
+        elif seen.size:
+            footprint = (voxel_size_m * view.fx * view.stride / z[seen]) ** 2
+            if normals is not None:
+                to_camera = view.centre - p[seen]
+                cos = np.abs(np.einsum("ij,ij->i", normals[seen], to_camera)) / np.linalg.norm(to_camera, axis=1)
+                footprint = footprint * np.maximum(cos, 0.2)
+            count[seen] += np.minimum(footprint, 1.0)
         if seen.size:
             bins[seen] |= np.left_shift(np.uint64(1), view_bins(view.centre - p[seen]).astype(np.uint64))
     return count, bins
 
 
-VisibilityFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+VisibilityFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""``visibility(centres (N, 3), unit normals (N, 3)) -> (frames expected to hit each voxel, bins in view)``."""
 
 
 def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
@@ -277,7 +293,9 @@ def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: Vi
     if idx.size == 0:
         return fixed
     centres = stats.sum_xyz[idx] / stats.n_points[idx].astype(np.float64)[:, None]
-    visible, visible_bins = visibility(centres)
+    length = np.linalg.norm(stats.sum_normal[idx], axis=1, keepdims=True)
+    normals = stats.sum_normal[idx] / np.where(length > 0, length, 1.0)
+    visible, visible_bins = visibility(centres, normals)
     frames = stats.n_frames[idx]
     frames_ok = (frames >= settings.min_frames) | (frames >= np.ceil(settings.support_fraction * visible))
     bins_ok = n_views[idx] >= np.minimum(settings.min_view_bins, np.maximum(popcount64(visible_bins), 1))
@@ -444,7 +462,8 @@ class VoxelFusion:
         def visibility(bits: int) -> VisibilityFn | None:
             if not self.views:
                 return None
-            return lambda points: in_view(points, self.views, tolerance, bits)
+            voxel = self.settings.voxel_size_m
+            return lambda points, normals: in_view(points, self.views, tolerance, bits, normals, voxel)
 
         for bit, arm in enumerate(arms):
             c: dict[str, int] = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
