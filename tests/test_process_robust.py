@@ -147,8 +147,9 @@ def linked_copy(survey: Path, target: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def batch(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """Three surveys: one good but partial (PARTIAL.txt), one with its joint log in milliseconds, one with
-    its envelope centre 1e9 m away; processed with an implausibility bound the good one exceeds."""
+    """Four surveys: one good but partial (PARTIAL.txt), one with its joint log in milliseconds, one with
+    its envelope centre 1e9 m away, one with every joint at 1e6 rad; processed with an implausibility
+    bound the good one exceeds."""
     root = tmp_path_factory.mktemp("batch")
     surveys = root / "surveys"
     good = linked_copy(survey_path, surveys / "a_good")
@@ -165,6 +166,13 @@ def batch(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     envelope = json.loads((far / "manip_envelope.json").read_text())
     envelope["center_m"] = [1e9, 0.0, envelope["center_m"][2]]
     (far / "manip_envelope.json").write_text(json.dumps(envelope))
+    huge = linked_copy(survey_path, surveys / "d_huge")
+    joints = [header.index(f"q{j}") for j in range(1, 7)]
+    for row in rows:
+        row[col] = f"{float(row[col]) / 1000:.6f}"  # back to seconds
+        for j in joints:
+            row[j] = "1e6"
+    (huge / "arm_poses.csv").write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
     settings = root / "settings.yaml"
     settings.write_text("evaluation: {max_heldout_median_mm: 0.01, figures: false}\n")
     out = root / "out"
@@ -184,11 +192,13 @@ def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(batch: dict,
     # catch it before the keyframes stage does)
     assert any("survey b_millis" in e and " failed: " in e and "arm_poses.csv" in e for e in errors), errors
     assert any("survey c_far" in e and " failed: " in e and "manip_envelope.json" in e for e in errors), errors
-    assert errors[-1].startswith("darp: error: 2 of 3 surveys failed: b_millis, c_far")
+    assert any("survey d_huge" in e and " failed: " in e and "arm_poses.csv" in e for e in errors), errors
+    assert errors[-1].startswith("darp: error: 3 of 4 surveys failed: b_millis, c_far, d_huge")
     assert "Traceback" not in captured.err
     # the good survey went on, flagged: partial survey and a held-out median above the (tiny) bound
     table = " ".join(captured.out.split())
     assert "a_good (!) calib" in table and "b_millis FAILED" in table and "c_far FAILED" in table, captured.out
+    assert "d_huge FAILED" in table
     assert any("a_good: partial survey" in line for line in captured.err.splitlines())
     per = json.loads((out / "a_good" / "results.json").read_text())
     assert per["status"] == "implausible"
@@ -196,10 +206,10 @@ def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(batch: dict,
     assert any("above the plausible bound 0.01 mm" in w for w in per["warnings"])
     summary = json.loads((out / "results.json").read_text())
     assert summary["status"] == "failed" and [s["name"] for s in summary["surveys"]] == ["a_good"]
-    assert sorted(f["name"] for f in summary["failed"]) == ["b_millis", "c_far"]
+    assert sorted(f["name"] for f in summary["failed"]) == ["b_millis", "c_far", "d_huge"]
     assert all(f["stage"] and f["reason"] for f in summary["failed"])
     assert summary["warnings"]["a_good"] == per["warnings"]
-    for name in ("b_millis", "c_far"):  # failed folders: marked, no output under a final name
+    for name in ("b_millis", "c_far", "d_huge"):  # failed folders: marked, no output under a final name
         folder = out / name
         assert (folder / UNFINISHED_FILE).read_text().startswith("failed: ") or not folder.exists()
         assert not any((folder / f).exists() for f in ("fused.ply", "mesh.ply", "results.json"))
@@ -208,7 +218,7 @@ def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(batch: dict,
     err = capsys.readouterr().err
     md = (out / "report.md").read_text()
     assert "## Surveys that are not ordinary results" in md
-    for name, kind in (("b_millis", "failed"), ("c_far", "failed"), ("a_good", "implausible")):
+    for name, kind in (("b_millis", "failed"), ("c_far", "failed"), ("d_huge", "failed"), ("a_good", "implausible")):
         assert f"| {name} | {kind} |" in md, name
         assert f"darp: warning: {name}: {kind}: " in err
 
@@ -320,7 +330,7 @@ def test_inspect_warns_about_a_partial_survey(survey_path: Path, tmp_path: Path,
 
 # -- a noisier rig end to end -----------------------------------------------------------------------------
 @pytest.mark.slow
-def test_a_noisier_rig_processes_with_plausible_results(tmp_path: Path) -> None:
+def test_a_noisier_rig_processes_with_plausible_results(tmp_path: Path, capsys) -> None:
     """0.05 deg encoder noise, joint-zero bias up to 3 deg, 10 mm / 3 deg mounts, 15 mm second base (the
     fixed 0.02 rad/s threshold settled 0 frames here: "no keyframe selected")."""
     import dataclasses
@@ -334,7 +344,7 @@ def test_a_noisier_rig_processes_with_plausible_results(tmp_path: Path) -> None:
 
     obj, rig = make_object("cube"), load_rig()
     centre = (TINY_PLACEMENT.x_m, TINY_PLACEMENT.y_m, 0.5 * obj.height_m)
-    plan = WaypointPlan({arm: tuple(orbit_waypoints(rig, arm, centre, 0.33, azimuths_deg=(-25.0, 0.0, 25.0),
+    plan = WaypointPlan({arm: tuple(orbit_waypoints(rig, arm, centre, 0.33, azimuths_deg=(-25.0, 25.0),
                                                     elevation_deg=40.0, dwell_s=0.8))
                          for arm in ("arm110", "arm111")}, ("arm110", "arm111"))
     settings = dataclasses.replace(
@@ -344,11 +354,19 @@ def test_a_noisier_rig_processes_with_plausible_results(tmp_path: Path) -> None:
     survey = tmp_path / "cube"
     record_survey(survey, plan, obj, TINY_PLACEMENT, settings=settings)
     out = tmp_path / "out"
-    assert run(["process", str(survey), "-c", str(survey / "truth" / "calibration.json"), "--out", str(out)]) == 0
+    (tmp_path / "settings.yaml").write_text("evaluation: {figures: false}\n")
+    assert run(["process", str(survey), "-c", str(survey / "truth" / "calibration.json"), "--out", str(out),
+                "--settings", str(tmp_path / "settings.yaml")]) == 0
     results = json.loads((out / "cube" / "results.json").read_text())
     assert results["status"] == "ok", results["warnings"]
     for counts in results["keyframes"]["arms"].values():
-        assert counts["keyframes"] >= 9 and 0.1 < counts["still_threshold_rad_s"] <= 0.25
+        assert counts["keyframes"] >= 6 and 0.1 < counts["still_threshold_rad_s"] <= 0.25
         assert counts["speed_noise_rad_s"] == pytest.approx(np.sqrt(2) * np.radians(0.05) * 33, rel=0.35)
     assert results["heldout"]["aggregate"]["within_10mm_pct"] > 85
     assert results["truth"]["cloud"]["accuracy"]["median_mm"] < 1.0
+    # the old fixed threshold on the same survey: no settled frame, and the error says why, naming the log
+    (tmp_path / "fixed.yaml").write_text("keyframes: {noise_factor: 0}\n")
+    assert run(["keyframes", str(survey), "-c", str(survey / "truth" / "calibration.json"), "--out",
+                str(tmp_path / "kf"), "--settings", str(tmp_path / "fixed.yaml")]) == 2
+    err = capsys.readouterr().err
+    assert "arm_poses.csv: no keyframe selected: arm110: of " in err and "none is settled" in err, err

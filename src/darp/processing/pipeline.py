@@ -288,6 +288,11 @@ def no_keyframe_error(job: SurveyJob, selections: dict[str, Any]) -> Reconstruct
                          f"{traj.log_span_s[0]:.3f} .. {traj.log_span_s[1]:.3f} s, {cam}; time_s must be host-clock "
                          "seconds, increasing)")
             blame = log_file
+        elif outside_range(traj.poses.q_rad[traj.poses.posed]) > 0.5:
+            q = traj.poses.q_rad[traj.poses.posed]
+            parts.append(f"{arm}: the joint log's values (up to {float(np.nanmax(np.abs(q))):.3g} rad) are outside "
+                         "the Z1's joint range in most frames (radians expected)")
+            blame = log_file
         elif c.get("settled", 0) == 0:
             parts.append(f"{arm}: of {c['posed']} posed frames none is settled (stillness threshold "
                          f"{sel.still_threshold_rad_s:.3f} rad/s, measured joint-speed noise "
@@ -303,6 +308,17 @@ def no_keyframe_error(job: SurveyJob, selections: dict[str, Any]) -> Reconstruct
             parts.append(f"{arm}: {c.get('in_view', 0)} frames in view gave no keyframe")
     detail = "; ".join(parts) or "the survey has no arm"
     return ReconstructionError(f"no keyframe selected: {detail}", blame)
+
+
+def outside_range(q_rad: np.ndarray, tol_rad: float = 0.2) -> float:
+    """Share of the rows of ``q_rad`` (N, 6) outside the Z1's joint limits (by more than ``tol_rad``)."""
+    from darp.kinematics.z1 import within_limits
+
+    q = np.asarray(q_rad, np.float64).reshape(-1, 6)
+    if q.size == 0:
+        return 0.0
+    inside = np.asarray(within_limits(np.nan_to_num(q, nan=0.0, posinf=1e9, neginf=-1e9), tol_rad=tol_rad))
+    return float(1.0 - inside.mean())
 
 
 def _clear_keyframes(folder: Path, arms: Any) -> None:
