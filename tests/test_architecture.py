@@ -30,6 +30,8 @@ ALLOWED: dict[str, set[str]] = {
     "dataset": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation"},
     "export": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation",
                       "dataset"},
+    "view": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation",
+                    "dataset"},
     "cli": set(),  # the top: anything
 }
 REALSENSE_MAY_USE = {"darp.formats.atomic", "darp.formats.text"}

@@ -26,7 +26,7 @@ from darp.cli import app
 # A short form always stands for the same long name, and a long name that has one has it everywhere.
 SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--format", "-w": "--waypoints"}
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
-OUTPUT_PATHS = {"--out", "--report"}
+OUTPUT_PATHS = {"--out", "--report", "--save"}  # --save: darp view's recording (no window)
 INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints"}
 FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.

@@ -23,6 +23,7 @@ from darp.cli import process as _process  # noqa: F401
 from darp.cli import recording as _recording  # noqa: F401
 from darp.cli import rig as _rig  # noqa: F401
 from darp.cli import twin as _twin  # noqa: F401
+from darp.cli import view as _view  # noqa: F401
 from darp.cli._app import app
 
 
