@@ -32,6 +32,8 @@ ALLOWED: dict[str, set[str]] = {
                       "dataset"},
     "view": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation",
                     "dataset"},
+    "batch": BASE | {"formats", "formats.realsense", "kinematics", "backend", "geometry", "calibration",
+                     "acquisition", "twin", "reconstruction", "evaluation", "processing"},
     "cli": set(),  # the top: anything
 }
 REALSENSE_MAY_USE = {"darp.formats.atomic", "darp.formats.text"}

@@ -16,6 +16,7 @@ from darp.cli import calib as _calib  # noqa: F401
 from darp.cli import collect as _collect  # noqa: F401
 from darp.cli import demo as _demo  # noqa: F401
 from darp.cli import export as _export  # noqa: F401
+from darp.cli import generate as _generate  # noqa: F401
 from darp.cli import hardware as _hardware  # noqa: F401
 from darp.cli import inspect as _inspect  # noqa: F401
 from darp.cli import poses as _poses  # noqa: F401

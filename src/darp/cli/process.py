@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import typer
 
 from darp.cli._app import app
+from darp.cli._batch import ExecutorOption, process_on_executor
 from darp.cli._options import calibration_option, input_argument, out_option
 
 CALIBRATION_HELP = "Calibration JSON of the rig epoch."
@@ -134,6 +135,7 @@ def process(
     settings_file: SettingsFile = None,
     resume: Annotated[bool, typer.Option("--resume", help="Skip stages already done with the same inputs and "
                                          "settings.")] = False,
+    executor: ExecutorOption = None,
 ) -> None:
     """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall."""
     _need_calibration(calibration, truth_poses)
@@ -152,9 +154,11 @@ def process(
         raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
                                  param_hint="'SURVEYS...'")
     done: list[Path] = []
+    if executor is not None:  # one task per survey on Ray (darp.batch); the loop below then has nothing to do
+        done = process_on_executor(folders, out, calibration, truth_poses, settings_file, resume, executor)
     with _progress_bars() as progress:
         overall = progress.add_task("surveys", total=len(folders))
-        for folder in folders:
+        for folder in folders if executor is None else []:
             job = _job(folder, out / folder.name, calibration, truth_poses, settings,
                        _stage_callback(progress, folder.name))
             process_survey(job, PROCESS_STAGES, resume=resume)
