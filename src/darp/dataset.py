@@ -46,6 +46,7 @@ class ProcessedSurvey:
     folder: Path
     name: str
     survey_path: Path | None  # the raw survey (from results.json), None if unknown or gone
+    calibration_path: Path | None = None  # the calibration it was processed with (None: truth or unknown)
 
     @property
     def keyframes_dir(self) -> Path:
@@ -83,17 +84,33 @@ def find_processed(path: str | Path) -> list[ProcessedSurvey]:
     return [_processed(p) for p in candidates]
 
 
+def _resolve(recorded: Any, folder: Path) -> Path | None:
+    """A path results.json recorded: as is, or (relative to where darp process ran) against the current
+    folder or one of the processed folder's ancestors; None if it is nowhere."""
+    if not recorded:
+        return None
+    path = Path(str(recorded))
+    if path.is_absolute():
+        return path if path.exists() else None
+    for base in (Path.cwd(), *folder.resolve().parents):
+        if (base / path).exists():
+            return base / path
+    return None
+
+
 def _processed(folder: Path) -> ProcessedSurvey:
-    survey_path = None
+    payload: Any = {}
     results = folder / RESULTS_FILE
     if results.is_file():
         try:
             payload = json.loads(results.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise FormatError(f"invalid JSON: {err}", results) from err
-        if isinstance(payload, dict) and payload.get("survey_path"):
-            survey_path = Path(payload["survey_path"])
-    return ProcessedSurvey(folder, folder.name, survey_path)
+    if not isinstance(payload, dict):
+        payload = {}
+    calibration = payload.get("calibration")
+    return ProcessedSurvey(folder, folder.name, _resolve(payload.get("survey_path"), folder),
+                           _resolve(calibration.get("path") if isinstance(calibration, dict) else None, folder))
 
 
 def read_object_truth(truth_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:

@@ -147,7 +147,7 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
     survey_path = processed.survey_path if processed is not None else path
     if survey_path is not None and not survey_path.is_dir():
         survey_path = None
-    calibration = _calibration(survey_path, calibration_path)
+    calibration = _calibration(survey_path, calibration_path or (processed.calibration_path if processed else None))
     rec = rr.RecordingStream("darp", recording_id=f"darp-{path.resolve().name}")
     if save is not None:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
