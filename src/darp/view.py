@@ -21,7 +21,6 @@ with eq. 1 poses (the calibration given, the twin's true one, or the rig's nomin
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,6 +40,7 @@ from darp.reconstruction.keyframe_io import iter_keyframes
 
 ARM_RATE_HZ = 10.0  # joint states logged per second of the timeline
 HELDOUT_RANGE_M = 0.010  # the colour map's top (10 mm: the paper's coarser threshold)
+ENTITY = {"cylinder": "cylinders", "capsule": "capsules", "box": "boxes"}
 ARM_COLOURS = {"arm110": (230, 120, 40), "arm111": (40, 140, 230)}
 
 
@@ -69,31 +69,48 @@ def _quaternions(R: np.ndarray) -> np.ndarray:
     return np.asarray(Rotation.from_matrix(R).as_quat(), np.float64).reshape(-1, 4)  # x, y, z, w
 
 
-def log_arm(rec: Any, rr: Any, arm: str, q: np.ndarray, calibration: Calibration) -> None:
-    """One joint state of one arm: its collision primitives and the chain of link origins."""
+def arm_columns(arm: str, q_states: np.ndarray, calibration: Calibration) -> dict[str, Any]:
+    """Collision primitives and link origins of ``arm`` at every joint state (N, 6), as flat arrays:
+    per kind its rows' ``R``, ``centre``, ``half`` (N * k) and ``k``; ``origins`` (N, 7, 3)."""
     cal = calibration.arms[arm]
-    q_true = np.asarray(q, np.float64) + cal.joint_offsets_rad
-    prims = arm_primitives(q_true, cal.T_world_base)
-    colour = ARM_COLOURS.get(arm, (200, 200, 200))
-    axis = prims.R[:, :, 2]
-    for kind in ("cylinder", "capsule", "box"):
-        sel = prims.kinds == KINDS.index(kind)
-        if not sel.any():
+    q_true = np.asarray(q_states, np.float64) + cal.joint_offsets_rad
+    sets = [arm_primitives(q, cal.T_world_base) for q in q_true]
+    out: dict[str, Any] = {"origins": np.stack([(cal.T_world_base @ z1.link_transforms(q))[:, :3, 3]
+                                                 for q in q_true])}
+    for kind in KINDS:
+        sel = sets[0].kinds == KINDS.index(kind)
+        out[kind] = {"k": int(sel.sum()), "R": np.concatenate([p.R[sel] for p in sets]),
+                     "centre": np.concatenate([p.centre[sel] for p in sets]),
+                     "half": np.concatenate([p.half[sel] for p in sets])}
+    return out
+
+
+def log_arm_states(rec: Any, rr: Any, arm: str, times_s: np.ndarray, q_states: np.ndarray,
+                   calibration: Calibration) -> None:
+    """Every joint state of one arm in one call per entity (rerun's columnar API): its collision
+    primitives and the chain of link origins on the ``time`` timeline."""
+    cols = arm_columns(arm, q_states, calibration)
+    n = len(times_s)
+    index = [rr.TimeColumn("time", timestamp=np.asarray(times_s, np.float64))]
+    colour = np.array(ARM_COLOURS.get(arm, (200, 200, 200)), np.uint8)
+    for kind in KINDS:
+        c = cols[kind]
+        if c["k"] == 0:
             continue
-        quats = [rr.Quaternion(xyzw=x) for x in _quaternions(prims.R[sel])]
-        half = prims.half[sel]
+        half, quats = c["half"], _quaternions(c["R"])
+        colours = np.tile(colour, (len(half), 1))
         if kind == "cylinder":
-            rec.log(f"world/{arm}/links/cylinders", rr.Cylinders3D(
-                lengths=2 * half[:, 2], radii=half[:, 0], centers=prims.centre[sel], quaternions=quats, colors=colour))
+            data = rr.Cylinders3D.columns(lengths=2 * half[:, 2], radii=half[:, 0], centers=c["centre"],
+                                          quaternions=quats, colors=colours)
         elif kind == "capsule":  # rerun's capsule starts at its translation and runs along +z
-            start = prims.centre[sel] - axis[sel] * half[:, 2:3]
-            rec.log(f"world/{arm}/links/capsules", rr.Capsules3D(
-                lengths=2 * half[:, 2], radii=half[:, 0], translations=start, quaternions=quats, colors=colour))
+            start = c["centre"] - c["R"][:, :, 2] * half[:, 2:3]
+            data = rr.Capsules3D.columns(lengths=2 * half[:, 2], radii=half[:, 0], translations=start,
+                                         quaternions=quats, colors=colours)
         else:
-            rec.log(f"world/{arm}/links/boxes", rr.Boxes3D(
-                half_sizes=half, centers=prims.centre[sel], quaternions=quats, colors=colour))
-    origins = (cal.T_world_base @ z1.link_transforms(q_true))[:, :3, 3]
-    rec.log(f"world/{arm}/skeleton", rr.LineStrips3D([origins], colors=colour))
+            data = rr.Boxes3D.columns(half_sizes=half, centers=c["centre"], quaternions=quats, colors=colours)
+        rec.send_columns(f"world/{arm}/links/{ENTITY[kind]}", indexes=index, columns=data.partition([c["k"]] * n))
+    rec.send_columns(f"world/{arm}/skeleton", indexes=index,
+                     columns=rr.LineStrips3D.columns(strips=list(cols["origins"]), colors=np.tile(colour, (n, 1))))
 
 
 def log_camera(rec: Any, rr: Any, arm: str, T_world_cam: np.ndarray, K: np.ndarray, size: tuple[int, int],
@@ -113,14 +130,12 @@ def log_camera(rec: Any, rr: Any, arm: str, T_world_cam: np.ndarray, K: np.ndarr
         rec.log(f"{path}/ir", rr.Image(ir))
 
 
-def _arm_states(log_t: np.ndarray, log_q: np.ndarray, rate_hz: float) -> Iterator[tuple[float, np.ndarray]]:
-    """Joint states of the log at about ``rate_hz`` (nearest rows)."""
+def _arm_rows(log_t: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Rows of the joint log at about ``rate_hz`` (the nearest row to each tick)."""
     if not len(log_t):
-        return
+        return np.empty(0, np.int64)
     times = np.arange(log_t[0], log_t[-1] + 1e-9, 1.0 / rate_hz)
-    rows = np.unique(np.clip(np.searchsorted(log_t, times), 0, len(log_t) - 1))
-    for i in rows:
-        yield float(log_t[i]), log_q[i]
+    return np.unique(np.clip(np.searchsorted(log_t, times), 0, len(log_t) - 1))
 
 
 def _calibration(survey_path: Path | None, calibration_path: Path | None) -> Calibration:
@@ -189,10 +204,9 @@ def _log_arms(rec: Any, rr: Any, survey: Survey, calibration: Calibration) -> in
     for arm in log.arms:
         if arm not in calibration.arms:
             continue
-        for t, q in _arm_states(log.times(arm), log.joints(arm), ARM_RATE_HZ):
-            rec.set_time("time", timestamp=t)
-            log_arm(rec, rr, arm, q, calibration)
-            n += 1
+        rows = _arm_rows(log.times(arm), ARM_RATE_HZ)
+        log_arm_states(rec, rr, arm, log.times(arm)[rows], log.joints(arm)[rows], calibration)
+        n += len(rows)
     return n
 
 
@@ -288,4 +302,4 @@ def rrd_entities(path: str | Path) -> dict[str, set[str]]:
     return entities
 
 
-__all__ = ["ViewStats", "log_arm", "log_camera", "rrd_entities", "view"]
+__all__ = ["ViewStats", "arm_columns", "log_arm_states", "log_camera", "rrd_entities", "view"]
