@@ -51,6 +51,22 @@ def load() -> float:
     return round(os.getloadavg()[0], 2)
 
 
+def import_only() -> float:
+    """What a fresh worker pays before its survey: importing darp's processing (numpy, Open3D, OpenCV...)."""
+    t0 = time.perf_counter()
+    import darp.batch.tasks  # noqa: F401
+
+    return time.perf_counter() - t0
+
+
+def fixed_cost(n: int) -> dict[str, float]:
+    """Wall seconds per task of ``n`` tasks that only import darp, one at a time on one Ray worker."""
+    t0 = time.perf_counter()
+    imports = run_tasks(import_only, [()] * n, Executor("ray"))
+    return {"per_task_s": round((time.perf_counter() - t0) / n, 2),
+            "import_s": round(sum(imports) / n, 2)}
+
+
 def process_all(surveys: list[Path], out: Path, executor: Executor, workers: int) -> dict[str, Any]:
     shutil.rmtree(out, ignore_errors=True)
     calls = [(str(s), str(out / s.name), None, True, None, False) for s in surveys]
@@ -62,6 +78,7 @@ def process_all(surveys: list[Path], out: Path, executor: Executor, workers: int
         t0 = time.perf_counter()
         ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
         init_s = time.perf_counter() - t0
+    fixed = fixed_cost(len(surveys)) if executor.kind == "ray" and workers == 1 else None
     cpu0, t0 = cpu_s(), time.perf_counter()
     try:
         run_tasks(process_one, calls, executor)
@@ -72,7 +89,8 @@ def process_all(surveys: list[Path], out: Path, executor: Executor, workers: int
 
             ray.shutdown()
     return {"executor": str(executor), "workers": workers, "wall_s": round(wall, 2), "ray_init_s": round(init_s, 2),
-            "driver_cpu_s": round(cpu_s() - cpu0, 2), "load_before": before, "load_after": load()}
+            "driver_cpu_s": round(cpu_s() - cpu0, 2), "load_before": before, "load_after": load(),
+            "fixed_cost": fixed}
 
 
 def main() -> None:
@@ -125,6 +143,11 @@ def main() -> None:
     print(f"Ray overhead vs plain loop (1 worker): {result['ray_overhead_pct']} % (target <= 5 %); "
           f"with Ray's start-up: {result['ray_overhead_with_init_pct']} %")
     print(f"scaling 1 -> 2 workers: efficiency {result['scaling_efficiency_pct']} % (target >= 90 %)")
+    fixed = ray1["fixed_cost"]
+    per_survey = loop["wall_s"] / args.surveys
+    print(f"fixed cost of a Ray task (fresh worker, import darp): {fixed['per_task_s']} s, of which import "
+          f"{fixed['import_s']} s; per survey in the loop {per_survey:.2f} s: the overhead it explains "
+          f"{100 * fixed['per_task_s'] / per_survey:.0f} %")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     if args.work is None:
