@@ -8,6 +8,7 @@ from typing import Annotated, Any
 import typer
 
 from darp.cli._app import app, error
+from darp.cli._batch import ExecutorOption, process_on_executor
 from darp.cli._options import calibration_option, input_argument, out_option
 
 CALIBRATION_HELP = "Calibration JSON of the rig epoch."
@@ -134,22 +135,21 @@ def process(
     settings_file: SettingsFile = None,
     resume: Annotated[bool, typer.Option("--resume", help="Skip stages already done with the same inputs and "
                                          "settings.")] = False,
+    executor: ExecutorOption = None,
 ) -> None:
     """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall.
 
     A folder written by ``darp import`` is processed from its keyframes (fusion, mesh, held-out evaluation).
     """
-    from darp.processing.imported import is_imported, process_imported
+    from darp.processing.imported import is_imported
 
     imported = [s for s in surveys if is_imported(s)]
     surveys = [s for s in surveys if not is_imported(s)]
     if surveys:
         _need_calibration(calibration, truth_poses)
 
-    from darp.errors import DarpError
     from darp.formats.survey import find_survey_folders
-    from darp.processing.batch import FAILED, process_batch, process_survey_folder
-    from darp.processing.pipeline import StageFailure
+    from darp.processing.batch import FAILED
     from darp.processing.results import write_summary
 
     settings = _settings(settings_file)
@@ -159,6 +159,35 @@ def process(
     if duplicated:
         raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
                                  param_hint="'SURVEYS...'")
+    if executor is not None:  # one task per survey on Ray (darp.batch), failures contained the same way
+        outcomes = process_on_executor(folders, out, calibration, truth_poses, settings_file, resume, executor)
+    else:
+        outcomes = _process_here(folders, out, calibration, truth_poses, settings, resume, imported)
+    done = [o.out for o in outcomes if o.status != FAILED]
+    failed = [o for o in outcomes if o.status == FAILED]
+    for o in failed:  # after the progress display is gone: one clean line each
+        error(o.message)
+    summary_path = write_summary(out, done, [o.to_dict() for o in failed])
+    _print_table(done, failed)
+    for o in outcomes:
+        for warning in o.warnings:
+            _warn(f"{o.name}: {warning}")
+    typer.echo(f"wrote {summary_path}")
+    if failed:
+        if len(outcomes) > 1:
+            error(f"{len(failed)} of {len(outcomes)} surveys failed: {', '.join(o.name for o in failed)} "
+                  f"(listed in {summary_path})")
+        raise typer.Exit(2)
+
+
+def _process_here(folders: list[Path], out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
+                  resume: bool, imported: list[Path]) -> list[Any]:
+    """The batch in this process, one survey after another, with per-stage progress bars."""
+    from darp.errors import DarpError
+    from darp.processing.batch import process_batch, process_survey_folder
+    from darp.processing.imported import process_imported
+    from darp.processing.pipeline import StageFailure
+
     loaded: dict[str, Any] = {}
 
     def calibration_for(folder: Path) -> Any:
@@ -187,22 +216,7 @@ def process(
                                          progress=_stage_callback(progress, folder.name),
                                          on_note=lambda note: _warn(f"{folder.name}: {note}"))
 
-        outcomes = process_batch(folders, out, run_one, on_outcome=lambda _: progress.advance(overall))
-    done = [o.out for o in outcomes if o.status != FAILED]
-    failed = [o for o in outcomes if o.status == FAILED]
-    for o in failed:  # after the progress display is gone: one clean line each
-        error(o.message)
-    summary_path = write_summary(out, done, [o.to_dict() for o in failed])
-    _print_table(done, failed)
-    for o in outcomes:
-        for warning in o.warnings:
-            _warn(f"{o.name}: {warning}")
-    typer.echo(f"wrote {summary_path}")
-    if failed:
-        if len(outcomes) > 1:
-            error(f"{len(failed)} of {len(outcomes)} surveys failed: {', '.join(o.name for o in failed)} "
-                  f"(listed in {summary_path})")
-        raise typer.Exit(2)
+        return process_batch(folders, out, run_one, on_outcome=lambda _: progress.advance(overall))
 
 
 def _print_table(done: list[Path], failed: list[Any]) -> None:
