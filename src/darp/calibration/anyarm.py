@@ -194,8 +194,10 @@ def load_intrinsics(path: str | Path) -> CameraModel:
     """Intrinsics from a 3x3 text/.npy, an .npz (``cameraMatrix``/``K``, ``distCoeffs``/``dist``), JSON, or a
     RealSense recording (``.bag``/``.db3``: its colour stream, to which aligned depth is registered).
 
-    JSON: ``{"K": 3x3}`` or ``{"fx", "fy", "cx"|"ppx", "cy"|"ppy"}``, optional ``"dist"``/``"coeffs"``;
-    a nerfstudio-style ``fl_x``/``fl_y`` works too. A text file may hold the 3x3 then one distortion line.
+    JSON: ``{"K": 3x3}``, Open3D's ``camera_intrinsic.json`` (``intrinsic_matrix``, column-major) or
+    ``{"fx", "fy", "cx"|"ppx", "cy"|"ppy"}``, optional ``"dist"``/``"coeffs"``; a nerfstudio-style
+    ``fl_x``/``fl_y`` works too (its cx/cy taken as given: see ``darp import`` for nerfstudio's +0.5).
+    A text file may hold the 3x3 then one distortion line.
     """
     p = Path(path)
     if not p.is_file():
@@ -219,6 +221,8 @@ def load_intrinsics(path: str | Path) -> CameraModel:
             d = json.loads(p.read_text(encoding="utf-8"))
             if "K" in d or "camera_matrix" in d:
                 K = np.asarray(d.get("K", d.get("camera_matrix")), np.float64)
+            elif "intrinsic_matrix" in d:  # Open3D's PinholeCameraIntrinsic: 9 values, column-major
+                K = np.asarray(d["intrinsic_matrix"], np.float64).reshape(3, 3).T
             else:
                 fx = d.get("fx", d.get("fl_x"))
                 fy = d.get("fy", d.get("fl_y", fx))

@@ -1,5 +1,6 @@
 """``darp import``: an RGB-D sequence from any camera and arm -> an imported survey that ``darp process`` takes.
 
+    darp import NERFSTUDIO|TUM|OPEN3D_FOLDER -o OUT     (poses, pairing and, where given, intrinsics from the folder)
     darp import SEQ -o OUT --intrinsics K.txt [--depth-scale-m 0.001]
                 (--trajectory FILE|DIR --trajectory-format tum|log|pose-txt|nerfstudio
                  | --flange-poses poses.csv|DIR -c handeye-calibration.json [--unit mm] [--quaternion wxyz])
@@ -20,6 +21,7 @@ import typer
 
 from darp.cli._app import app
 from darp.cli._options import calibration_option, input_argument, out_option
+from darp.formats.trajectories import TUM_MAX_DT_S
 
 
 class TrajectoryFormat(StrEnum):
@@ -55,8 +57,10 @@ def import_command(
                                                     "transforms.json gives its own; a RealSense .bag/.db3 its "
                                                     "colour stream's.", exists=True,
                                                     dir_okay=False, show_default=False)] = None,
-    depth_scale_m: Annotated[float, typer.Option("--depth-scale-m", help="Metres per depth unit (0.001: mm).")
-                             ] = 0.001,
+    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", help="Metres per depth unit (0.001: mm); "
+                                                        "default: the folder format's (TUM 1/5000, nerfstudio's "
+                                                        "depth_unit_scale_factor), else 0.001.",
+                                                        show_default=False)] = None,
     trajectory: Annotated[Path | None, typer.Option("--trajectory", help="World-from-camera poses (a file, or "
                                                     "the folder of per-frame pose.txt).", exists=True,
                                                     show_default=False)] = None,
@@ -75,30 +79,52 @@ def import_command(
     envelope: Annotated[Path | None, typer.Option("--envelope", help="manip_envelope.json (object cylinder in the "
                                                   "poses' world frame) to crop fusion and evaluation to.",
                                                   exists=True, dir_okay=False, show_default=False)] = None,
+    max_time_difference_s: Annotated[float, typer.Option("--max-time-difference-s", min=0.0, help="TUM folders: "
+                                                         "the most a depth frame's stamp may differ from its colour "
+                                                         "image's and its pose's.")] = TUM_MAX_DT_S,
 ) -> None:
     """Import an RGB-D sequence with poses as a survey that darp process fuses, meshes and evaluates."""
     from darp.calibration.anyarm import PoseConventions, load_intrinsics
     from darp.formats.calibration import read_calibration
-    from darp.formats.trajectories import read_nerfstudio, read_trajectory
+    from darp.formats.trajectories import (
+        detect_posed_folder,
+        read_nerfstudio_folder,
+        read_open3d_folder,
+        read_trajectory,
+        read_tum_folder,
+    )
     from darp.processing.imported import ImportSpec, import_sequence
 
-    if (trajectory is None) == (flange_poses is None):
+    posed = None
+    if trajectory is None and flange_poses is None:
+        detected = detect_posed_folder(sequence)
+        if detected is None:
+            raise typer.BadParameter("give exactly one of --trajectory and --flange-poses (SEQUENCE is not a "
+                                     "nerfstudio, TUM RGB-D or Open3D folder whose poses darp finds itself)",
+                                     param_hint="'--trajectory'")
+        kind = detected
+    elif trajectory is not None and flange_poses is not None:
         raise typer.BadParameter("give exactly one of --trajectory and --flange-poses", param_hint="'--trajectory'")
+    else:
+        kind = trajectory_format.value
     K = None
     dist = np.zeros(5)
     model = "Brown Conrady"
     if intrinsics is not None:
         cam = load_intrinsics(intrinsics)
         K, dist, model = cam.K, cam.dist, cam.model
-    if trajectory is not None:
-        if trajectory_format is TrajectoryFormat.nerfstudio:
-            poses, intr = read_nerfstudio(trajectory)
-            if K is None and {"fl_x", "cx", "cy"} <= set(intr):
-                K = np.array([[intr["fl_x"], 0, intr["cx"]], [0, intr.get("fl_y", intr["fl_x"]), intr["cy"]],
-                              [0, 0, 1]])
+    if flange_poses is None:
+        if kind == "nerfstudio":
+            posed = read_nerfstudio_folder(trajectory or sequence)
+        elif kind == "tum" and (sequence / "depth.txt").is_file():
+            posed = read_tum_folder(sequence, trajectory, max_time_difference_s)
+        elif kind == "log" and (sequence / "depth").is_dir():
+            posed = read_open3d_folder(sequence, trajectory)
+        if posed is not None:
+            poses, source = posed.poses, posed.source
         else:
-            poses = read_trajectory(trajectory, trajectory_format.value)
-        source = str(trajectory)
+            assert trajectory is not None
+            poses, source = read_trajectory(trajectory, kind), str(trajectory)
         name = arm or "arm"
     else:
         assert flange_poses is not None
@@ -130,10 +156,18 @@ def import_command(
         a = cal.arms[name]
         poses = {k: a.T_world_base @ F @ a.T_wrist_cam for k, F in raw.items()}
         source = str(flange_poses)
+    by_key: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    if K is None and posed is not None and posed.intrinsics:
+        by_key = posed.intrinsics
+        K, dist = by_key[min(by_key, key=lambda k: int(k) if k.isdigit() else 0)]
     if K is None:
         raise typer.BadParameter("no intrinsics: give --intrinsics", param_hint="'--intrinsics'")
-    record = import_sequence(ImportSpec(sequence, out, K, dist, depth_scale_m, poses, source, name, every,
-                                         distortion_model=model, envelope=envelope))
+    scale = depth_scale_m or (posed.depth_scale_m if posed is not None else None) or 0.001
+    spec = ImportSpec(sequence, out, K, dist, scale, poses, source, name, every, distortion_model=model,
+                      envelope=envelope, intrinsics_by_key=by_key)
+    if posed is not None:
+        spec.colour_files, spec.depth_files, spec.stamps = posed.colour, posed.depth, posed.stamps
+    record = import_sequence(spec)
     typer.echo(f"wrote {out} ({record['frames']} frames, {record['heldout']} held out; median depth "
                f"{record['median_depth_m']:.2f} m; neighbouring frames agree to "
                f"{record['pose_check']['neighbour_median_mm']:.1f} mm median)")

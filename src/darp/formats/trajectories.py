@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import re
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -162,5 +163,202 @@ def write_log(path: str | Path, poses: dict[str, np.ndarray]) -> None:
     write_text_atomic(path, "\n".join(blocks) + "\n")
 
 
-__all__ = ["FORMATS", "frame_key", "read_log", "read_nerfstudio", "read_pose_txt", "read_trajectory", "read_tum",
-           "write_log", "write_tum"]
+
+
+# --- posed RGB-D folders: frames paired with their poses (and intrinsics) in each format's own way ---------------
+
+TUM_DEPTH_SCALE_M = 1.0 / 5000.0  # TUM RGB-D: 16-bit PNG, 5000 per metre
+TUM_MAX_DT_S = 0.02  # the TUM tools' default max_difference when associating by timestamp
+
+
+@dataclass
+class PosedFrames:
+    """A posed RGB-D folder read in its format's own pairing: image files, poses and (where the folder gives
+    them) intrinsics by frame key (the frame's position, ``"0"``, ``"1"``, ..., or its number in the name).
+
+    ``intrinsics`` maps a key to ``(K, dist)`` with OpenCV's pixel centres at integer coordinates (a
+    format with centres at +0.5, like nerfstudio's, is converted on reading); ``depth_scale_m`` is
+    metres per depth unit where the format fixes or declares it; ``stamps`` seconds where it has them.
+    """
+
+    kind: str
+    colour: dict[str, Path] = field(default_factory=dict)
+    depth: dict[str, Path] = field(default_factory=dict)
+    poses: dict[str, np.ndarray] = field(default_factory=dict)
+    intrinsics: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    depth_scale_m: float | None = None
+    stamps: dict[str, float] = field(default_factory=dict)
+    source: str = ""
+
+
+def _stamped_list(path: Path) -> list[tuple[float, str]]:
+    """A TUM ``rgb.txt``/``depth.txt``: ``timestamp filename`` lines."""
+    out = []
+    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines()):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split()
+        try:
+            out.append((float(parts[0]), parts[1]))
+        except (ValueError, IndexError):
+            raise FormatError(f"line {n + 1} is not 'timestamp filename'", path) from None
+    if not out:
+        raise FormatError("no 'timestamp filename' lines", path)
+    return out
+
+
+def _nearest(stamps: np.ndarray, t: float) -> tuple[int, float]:
+    """Index and |difference| of the stamp nearest to ``t`` (``stamps`` sorted)."""
+    i = int(np.searchsorted(stamps, t))
+    best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - t))
+    return best, abs(float(stamps[best]) - t)
+
+
+def read_tum_folder(folder: str | Path, groundtruth: str | Path | None = None,
+                    max_dt_s: float = TUM_MAX_DT_S) -> PosedFrames:
+    """A TUM RGB-D sequence folder: ``depth.txt`` frames, each with the nearest ``rgb.txt`` image and the nearest
+    ground-truth pose (``groundtruth.txt`` or ``groundtruth``) within ``max_dt_s`` seconds, as the TUM tools'
+    ``associate.py`` pairs them. Keys are the depth frames' positions in ``depth.txt``. Intrinsics from a
+    ``calibration.txt`` (``fx fy cx cy [k1 k2 p1 p2 k3]``) when the folder has one; depth 5000 per metre."""
+    root = Path(folder)
+    depth_list = root / "depth.txt"
+    if not depth_list.is_file():
+        raise FormatError("not a TUM RGB-D folder: no depth.txt", root)
+    gt = Path(groundtruth) if groundtruth is not None else root / "groundtruth.txt"
+    if gt.is_dir():
+        raise FormatError("a TUM trajectory is a file (groundtruth.txt), not a folder", gt)
+    if not gt.is_file():
+        raise FormatError("no groundtruth.txt: give the trajectory with --trajectory", root)
+    depths = _stamped_list(depth_list)
+    rgbs = sorted(_stamped_list(root / "rgb.txt")) if (root / "rgb.txt").is_file() else []
+    truth = read_tum(gt)
+    gt_keys = sorted(truth, key=float)
+    gt_t = np.array([float(k) for k in gt_keys])
+    rgb_t = np.array([t for t, _ in rgbs])
+    out = PosedFrames("tum", depth_scale_m=TUM_DEPTH_SCALE_M, source=str(gt))
+    for n, (t, name) in enumerate(depths):
+        key = str(n)
+        out.depth[key] = root / name
+        out.stamps[key] = t
+        if len(rgb_t):
+            j, dt = _nearest(rgb_t, t)
+            if dt <= max_dt_s:
+                out.colour[key] = root / rgbs[j][1]
+        j, dt = _nearest(gt_t, t)
+        if dt <= max_dt_s:
+            out.poses[key] = truth[gt_keys[j]]
+    if not out.poses:
+        raise FormatError(f"no depth frame has a ground-truth pose within {max_dt_s:g} s (depth {depths[0][0]:.3f}"
+                          f"..{depths[-1][0]:.3f} s, poses {gt_t[0]:.3f}..{gt_t[-1]:.3f} s): another sequence's "
+                          "trajectory, or a clock offset?", gt)
+    calib = root / "calibration.txt"
+    if calib.is_file():
+        rows = [r for r in _rows(calib) if len(r) >= 4]
+        if not rows:
+            raise FormatError("no 'fx fy cx cy [k1 k2 p1 p2 k3]' line", calib)
+        fx, fy, cx, cy, *dist = rows[0]
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        d = np.array((list(dist) + [0.0] * 5)[:5])
+        out.intrinsics = dict.fromkeys(out.depth, (K, d))
+    return out
+
+
+NERFSTUDIO_PIXEL_CENTRE = 0.5  # nerfstudio (like COLMAP) puts pixel centres at +0.5; darp/OpenCV at integers
+
+
+def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
+    """A nerfstudio dataset: ``transforms.json`` (or its folder). Frames pair by ``file_path`` and
+    ``depth_file_path`` (relative to the JSON's folder); keys are the frames' positions in ``frames``.
+    Intrinsics per frame or at the top level (``fl_x fl_y cx cy k1 k2 p1 p2 [k3]``), with ``cx``/``cy`` moved
+    from nerfstudio's +0.5 pixel centres to OpenCV's integer ones (``ppx = cx - 0.5``); the depth unit from
+    ``depth_unit_scale_factor`` (nerfstudio's default 0.001 when absent)."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / "transforms.json"
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise FormatError(f"cannot read ({err})", p) from None
+    frames = data.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise FormatError("no 'frames' list", p)
+    root = p.parent
+    out = PosedFrames("nerfstudio", depth_scale_m=float(data.get("depth_unit_scale_factor", 1e-3)), source=str(p))
+    for n, fr in enumerate(frames):
+        key, where = str(n), f"frame {n} ({fr.get('file_path')})"
+        M = np.asarray(fr.get("transform_matrix"), float)
+        if M.shape != (4, 4):
+            raise FormatError(f"{where}: transform_matrix is not 4x4", p)
+        out.poses[key] = _rigid(M @ OPENGL_TO_OPENCV, p, where)
+        if fr.get("file_path"):
+            out.colour[key] = root / str(fr["file_path"])
+        if not fr.get("depth_file_path"):
+            raise FormatError(f"{where}: no depth_file_path (darp imports RGB-D frames)", p)
+        out.depth[key] = root / str(fr["depth_file_path"])
+        get = {k: fr.get(k, data.get(k)) for k in ("fl_x", "fl_y", "cx", "cy", "k1", "k2", "p1", "p2", "k3")}
+        if get["fl_x"] is not None and get["cx"] is not None and get["cy"] is not None:
+            fx = float(get["fl_x"])
+            fy = float(get["fl_y"] if get["fl_y"] is not None else fx)
+            K = np.array([[fx, 0.0, float(get["cx"]) - NERFSTUDIO_PIXEL_CENTRE],
+                          [0.0, fy, float(get["cy"]) - NERFSTUDIO_PIXEL_CENTRE], [0.0, 0.0, 1.0]])
+            dist = np.array([float(get[k] or 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
+            out.intrinsics[key] = (K, dist)
+    if out.intrinsics and len(out.intrinsics) != len(out.poses):
+        raise FormatError(f"{len(out.poses) - len(out.intrinsics)} frame(s) have no fl_x/cx/cy (per frame or at the "
+                          "top level)", p)
+    return out
+
+
+def read_open3d_intrinsic(path: str | Path) -> tuple[np.ndarray, int, int]:
+    """Open3D's ``PinholeCameraIntrinsic`` JSON: (K, width, height); ``intrinsic_matrix`` is column-major."""
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+        K = np.asarray(d["intrinsic_matrix"], np.float64).reshape(3, 3).T
+        return K, int(d.get("width", 0)), int(d.get("height", 0))
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
+        raise FormatError(f"not an Open3D camera_intrinsic.json ({err})", p) from None
+
+
+def read_open3d_folder(folder: str | Path, log: str | Path | None = None) -> PosedFrames:
+    """An Open3D/Redwood folder: ``color/`` and ``depth/`` images keyed by the number in their names, paired
+    with ``trajectory.log`` blocks by their frame id (the first number of each header line); intrinsics from
+    ``camera_intrinsic.json`` when present; depth 1000 per metre (Open3D's default ``depth_scale``)."""
+    root = Path(folder)
+    traj = Path(log) if log is not None else root / "trajectory.log"
+    out = PosedFrames("log", poses=read_log(traj), depth_scale_m=None, source=str(traj))
+    images = [".png", ".jpg", ".jpeg"]
+    for sub, target in (("color", out.colour), ("image", out.colour), ("rgb", out.colour), ("depth", out.depth)):
+        if (root / sub).is_dir():
+            for f in sorted((root / sub).iterdir()):
+                if f.suffix.lower() in images:
+                    k = frame_key(f.name)
+                    if k in target:
+                        raise FormatError(f"two images for frame {k} ({target[k].name}, {f.name})", root / sub)
+                    target[k] = f
+    if not out.depth:
+        raise FormatError("no depth/ folder of images", root)
+    js = root / "camera_intrinsic.json"
+    if js.is_file():
+        K, _, _ = read_open3d_intrinsic(js)
+        out.intrinsics = dict.fromkeys(out.depth, (K, np.zeros(5)))
+    return out
+
+
+def detect_posed_folder(folder: str | Path) -> str | None:
+    """The posed-folder format of ``folder`` (``nerfstudio``, ``tum``, ``log``), or None."""
+    root = Path(folder)
+    if (root / "transforms.json").is_file():
+        return "nerfstudio"
+    if (root / "depth.txt").is_file() and (root / "groundtruth.txt").is_file():
+        return "tum"
+    if (root / "trajectory.log").is_file():
+        return "log"
+    return None
+
+
+__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_MAX_DT_S", "PosedFrames",
+           "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
+           "read_open3d_folder", "read_open3d_intrinsic", "read_pose_txt", "read_tum_folder", "read_trajectory",
+           "read_tum", "write_log", "write_tum"]

@@ -82,6 +82,11 @@ class ImportSpec:
     heldout_every: int = 5
     distortion_model: str = "Brown Conrady"  # librealsense's name of the model of ``dist``
     envelope: Path | None = None  # manip_envelope.json in the world frame of the poses (copied into the survey)
+    # a posed folder's own pairing (darp.formats.trajectories.PosedFrames); else find_frames(sequence)
+    colour_files: dict[str, Path] | None = None
+    depth_files: dict[str, Path] | None = None
+    intrinsics_by_key: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # per frame (K, dist)
+    stamps: dict[str, float] = field(default_factory=dict)  # seconds per frame key, where the format has them
 
 
 def find_frames(folder: Path) -> tuple[dict[str, Path], dict[str, Path]]:
@@ -179,7 +184,13 @@ def pose_direction_check(frames: list[tuple[Path, np.ndarray, np.ndarray]], scal
 
 def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     """Write the imported survey (keyframes folder and import.json); returns the import record."""
-    colour, depth = find_frames(spec.sequence)
+    if spec.depth_files is not None:
+        colour, depth = dict(spec.colour_files or {}), dict(spec.depth_files)
+        for f in depth.values():
+            if not f.is_file():
+                raise FormatError("depth image not found (listed by the sequence's index)", f)
+    else:
+        colour, depth = find_frames(spec.sequence)
     record: dict[str, Any] = {"sequence": str(spec.sequence), "pose_source": spec.pose_source,
                               "depth_scale_m": spec.depth_scale_m, "K": spec.K.tolist(), "warnings": []}
 
@@ -219,11 +230,15 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     check_translation_scale(np.array([spec.poses[k] for k in keys]), record["median_depth_m"], spec.pose_source)
     sample = [(depth[k], _read_depth(depth[k]), spec.poses[k]) for k in keys[:6]]
     record["pose_check"] = pose_direction_check(sample, spec.depth_scale_m, spec.K, spec.pose_source)
-    intr = Intrinsics(w, h, float(spec.K[0, 0]), float(spec.K[1, 1]), float(spec.K[0, 2]), float(spec.K[1, 2]),
-                      spec.distortion_model, tuple(float(v) for v in (list(spec.dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
+
+    def intrinsics_of(key: str) -> Intrinsics:
+        K, dist = spec.intrinsics_by_key.get(key, (spec.K, spec.dist))
+        return Intrinsics(w, h, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                          spec.distortion_model, tuple(float(v) for v in (list(dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
+
     folder = spec.out / "keyframes"
     held = heldout_mask(len(keys), spec.heldout_every)
-    entries = []
+    entries, files = [], []
     for i, k in enumerate(keys):
         d = _read_depth(depth[k])
         if d.shape != (h, w):
@@ -233,20 +248,23 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
             c = cv2.imread(str(colour[k]), cv2.IMREAD_COLOR)
             if c is not None and c.shape[:2] == (h, w):
                 rgb = np.ascontiguousarray(c[:, :, ::-1])
-        kf = Keyframe(arm=spec.arm, serial="imported", frame_number=int(_num(k)), timestamp_ms=float(i),
-                      t_s=float(i), split=HELDOUT if held[i] else FUSE, view=i, T_world_cam=spec.poses[k],
+        t_s = spec.stamps.get(k, float(i))
+        kf = Keyframe(arm=spec.arm, serial="imported", frame_number=int(_num(k)), timestamp_ms=t_s * 1e3,
+                      t_s=t_s, split=HELDOUT if held[i] else FUSE, view=i, T_world_cam=spec.poses[k],
                       rgb=rgb, depth=d, ir_left=np.zeros((h, w), np.uint8), ir_right=np.zeros((h, w), np.uint8),
-                      support_mask=d > 0, intrinsics=intr, depth_scale=spec.depth_scale_m,
+                      support_mask=d > 0, intrinsics=intrinsics_of(k), depth_scale=spec.depth_scale_m,
                       streams=("depth", "color") if k in colour else ("depth",))
         rel = f"{spec.arm}/{int(_num(k)):06d}.npz"
         write_keyframe(folder / rel, kf)
         entries.append(kf.index_entry(rel))
+        files.append({"key": k, "frame_number": kf.frame_number, "keyframe": rel, "depth": str(depth[k]),
+                      "colour": str(colour[k]) if k in colour else None})
     index = KeyframeIndex(folder=folder, survey=spec.sequence.name, object_name=spec.sequence.name,
                           pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every},
                           arms={spec.arm: {"serial": "imported", "keyframes": len(keys), "heldout": int(held.sum())}},
                           keyframes=entries, extra={"import": str(spec.out / IMPORT_FILE)})
     write_keyframe_index(index)
-    record.update({"frames": len(keys), "heldout": int(held.sum()), "image_size": [w, h]})
+    record.update({"frames": len(keys), "heldout": int(held.sum()), "image_size": [w, h], "files": files})
     if spec.envelope is not None:
         from darp.formats.envelope import ENVELOPE_FILE, read_envelope, write_envelope
 
