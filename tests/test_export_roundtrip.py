@@ -54,10 +54,12 @@ def test_export_then_import_reproduces_poses_intrinsics_and_depth(processed_path
         _compare(kf, original[(arm, int(number))], UNITS_PER_M["nerfstudio"])
         checked["nerfstudio"] += 1
 
-    for arm in arms:
-        # TUM: the folder's own pairing through rgb.txt / depth.txt / groundtruth.txt, calibration.txt, 5000 per m
-        out = tmp_path / f"in-tum-{arm}"
-        assert run(["import", str(tmp_path / "tum" / arm), "-o", str(out)]) == 0
+    for n, arm in enumerate(arms):
+        # TUM: the folder's own pairing through rgb.txt / depth.txt / groundtruth.txt, calibration.txt, 5000 per m;
+        # detected for the first arm, the trajectory named for the second
+        folder, out = tmp_path / "tum" / arm, tmp_path / f"in-tum-{arm}"
+        named = ["--trajectory", str(folder / "groundtruth.txt"), "--trajectory-format", "tum"] if n else []
+        assert run(["import", str(folder), "-o", str(out), *named]) == 0
         by_stamp = {f"{kf.t_s:.6f}": kf for (a, _), kf in original.items() if a == arm}
         for kf, files in _imported(out):
             want = by_stamp[Path(files["depth"]).stem]
@@ -111,6 +113,8 @@ def test_tum_import_without_intrinsics_or_matching_poses_is_a_one_line_error(
     assert run(["import", str(far), "-o", str(tmp_path / "out2")]) == 2
     err = capsys.readouterr().err
     assert "darp: error:" in err and "groundtruth.txt" in err and "no depth frame has a ground-truth pose" in err
+    assert run(["import", str(tmp_path), "-o", str(tmp_path / "out3")]) == 2  # darp export tum's per-arm parent
+    assert "its sub-folders far, seq are: import each" in capsys.readouterr().err
 
 
 def test_nerfstudio_and_open3d_intrinsics_conventions(tmp_path: Path) -> None:

@@ -99,8 +99,11 @@ def import_command(
     if trajectory is None and flange_poses is None:
         detected = detect_posed_folder(sequence)
         if detected is None:
+            subs = [d.name for d in sorted(sequence.iterdir()) if d.is_dir() and detect_posed_folder(d)] if (
+                sequence.is_dir()) else []
+            hint = f"; its sub-folders {', '.join(subs)} are: import each" if subs else ""
             raise typer.BadParameter("give exactly one of --trajectory and --flange-poses (SEQUENCE is not a "
-                                     "nerfstudio, TUM RGB-D or Open3D folder whose poses darp finds itself)",
+                                     f"nerfstudio, TUM RGB-D or Open3D folder whose poses darp finds itself{hint})",
                                      param_hint="'--trajectory'")
         kind = detected
     elif trajectory is not None and flange_poses is not None:
@@ -122,9 +125,9 @@ def import_command(
             posed = read_open3d_folder(sequence, trajectory)
         if posed is not None:
             poses, source = posed.poses, posed.source
-        else:
-            assert trajectory is not None
-            poses, source = read_trajectory(trajectory, kind), str(trajectory)
+        else:  # a trajectory file or folder with a generic image folder (find_frames)
+            traj = trajectory if trajectory is not None else sequence / "trajectory.log"
+            poses, source = read_trajectory(traj, kind), str(traj)
         name = arm or "arm"
     else:
         assert flange_poses is not None

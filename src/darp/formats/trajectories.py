@@ -108,7 +108,8 @@ def read_pose_txt(folder: str | Path, pattern: str = "*.pose.txt") -> dict[str, 
 
 
 def read_nerfstudio(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, float]]:
-    """nerfstudio ``transforms.json``: poses (OpenCV axes) by frame key, and its intrinsics (fl_x, ...)."""
+    """nerfstudio ``transforms.json``: poses (OpenCV axes) by frame key, and its top-level intrinsics (fl_x, ...)
+    as written (cx/cy with nerfstudio's +0.5 pixel centres; :func:`read_nerfstudio_folder` converts them)."""
     p = Path(path)
     try:
         data = json.loads(p.read_text(encoding="utf-8"))
