@@ -99,6 +99,10 @@ def test_tum_folder_pairs_by_nearest_timestamp_within_the_max_difference(tmp_pat
     assert "2" not in posed.poses  # ground truth ends at 11.49 s
     assert posed.depth_scale_m == pytest.approx(1 / 5000) and posed.stamps["1"] == pytest.approx(10.5)
     assert not posed.intrinsics  # no calibration.txt: darp import asks for --intrinsics
+    # one-to-one, closest first (associate.py): the colour image at 10.505 s goes to the depth frame at 10.503 s
+    posed = read_tum_folder(_tum_folder(tmp_path / "pair", [10.50, 10.503], [10.505], [10.50, 10.503]))
+    assert list(posed.colour) == ["1"] and sorted(posed.poses) == ["0", "1"]
+    assert posed.poses["1"][0, 3] == pytest.approx(10.503)
     with pytest.raises(FormatError, match="within 0.001 s"):
         read_tum_folder(_tum_folder(tmp_path / "far", [20.0, 20.5], [20.0], [10.0 + 0.01 * n for n in range(150)]),
                         max_dt_s=0.001)

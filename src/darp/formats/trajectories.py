@@ -209,19 +209,31 @@ def _stamped_list(path: Path) -> list[tuple[float, str]]:
     return out
 
 
-def _nearest(stamps: np.ndarray, t: float) -> tuple[int, float]:
-    """Index and |difference| of the stamp nearest to ``t`` (``stamps`` sorted)."""
-    i = int(np.searchsorted(stamps, t))
-    best = min((j for j in (i - 1, i) if 0 <= j < len(stamps)), key=lambda j: abs(stamps[j] - t))
-    return best, abs(float(stamps[best]) - t)
+def associate(a: np.ndarray, b: np.ndarray, max_dt_s: float) -> dict[int, int]:
+    """One-to-one timestamp association as the TUM tools' ``associate.py`` makes it: every pair closer than
+    ``max_dt_s``, closest first, each stamp used once; ``{index in a: index in b}``."""
+    order = np.argsort(b, kind="stable")
+    sb = b[order]
+    pairs = []
+    for i, t in enumerate(a):
+        lo, hi = np.searchsorted(sb, t - max_dt_s, "left"), np.searchsorted(sb, t + max_dt_s, "right")
+        pairs += [(abs(float(sb[j]) - float(t)), i, int(order[j])) for j in range(lo, hi)]
+    out: dict[int, int] = {}
+    used: set[int] = set()
+    for dt, i, j in sorted(pairs):
+        if dt <= max_dt_s and i not in out and j not in used:
+            out[i] = j
+            used.add(j)
+    return out
 
 
 def read_tum_folder(folder: str | Path, groundtruth: str | Path | None = None,
                     max_dt_s: float = TUM_MAX_DT_S) -> PosedFrames:
-    """A TUM RGB-D sequence folder: ``depth.txt`` frames, each with the nearest ``rgb.txt`` image and the nearest
-    ground-truth pose (``groundtruth.txt`` or ``groundtruth``) within ``max_dt_s`` seconds, as the TUM tools'
-    ``associate.py`` pairs them. Keys are the depth frames' positions in ``depth.txt``. Intrinsics from a
-    ``calibration.txt`` (``fx fy cx cy [k1 k2 p1 p2 k3]``) when the folder has one; depth 5000 per metre."""
+    """A TUM RGB-D sequence folder: ``depth.txt`` frames, each with an ``rgb.txt`` image and a pose from
+    ``groundtruth`` (default: the folder's ``groundtruth.txt``) within ``max_dt_s`` seconds, associated
+    one-to-one, closest first, as the TUM tools' ``associate.py`` pairs them (:func:`associate`). Keys are the
+    depth frames' positions in ``depth.txt``. Intrinsics from a ``calibration.txt`` (``fx fy cx cy [k1 k2 p1
+    p2 k3]``) when the folder has one; depth 5000 per metre."""
     root = Path(folder)
     depth_list = root / "depth.txt"
     if not depth_list.is_file():
@@ -236,19 +248,18 @@ def read_tum_folder(folder: str | Path, groundtruth: str | Path | None = None,
     truth = read_tum(gt)
     gt_keys = sorted(truth, key=float)
     gt_t = np.array([float(k) for k in gt_keys])
-    rgb_t = np.array([t for t, _ in rgbs])
+    depth_t = np.array([t for t, _ in depths])
     out = PosedFrames("tum", depth_scale_m=TUM_DEPTH_SCALE_M, source=str(gt))
+    to_rgb = associate(depth_t, np.array([t for t, _ in rgbs]), max_dt_s)
+    to_gt = associate(depth_t, gt_t, max_dt_s)
     for n, (t, name) in enumerate(depths):
         key = str(n)
         out.depth[key] = root / name
         out.stamps[key] = t
-        if len(rgb_t):
-            j, dt = _nearest(rgb_t, t)
-            if dt <= max_dt_s:
-                out.colour[key] = root / rgbs[j][1]
-        j, dt = _nearest(gt_t, t)
-        if dt <= max_dt_s:
-            out.poses[key] = truth[gt_keys[j]]
+        if n in to_rgb:
+            out.colour[key] = root / rgbs[to_rgb[n]][1]
+        if n in to_gt:
+            out.poses[key] = truth[gt_keys[to_gt[n]]]
     if not out.poses:
         raise FormatError(f"no depth frame has a ground-truth pose within {max_dt_s:g} s (depth {depths[0][0]:.3f}"
                           f"..{depths[-1][0]:.3f} s, poses {gt_t[0]:.3f}..{gt_t[-1]:.3f} s): another sequence's "
@@ -360,6 +371,6 @@ def detect_posed_folder(folder: str | Path) -> str | None:
 
 
 __all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_MAX_DT_S", "PosedFrames",
-           "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
+           "associate", "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
            "read_open3d_folder", "read_open3d_intrinsic", "read_pose_txt", "read_tum_folder", "read_trajectory",
            "read_tum", "write_log", "write_tum"]
