@@ -53,6 +53,13 @@ def test_export_then_import_reproduces_poses_intrinsics_and_depth(processed_path
         arm, number = Path(files["depth"]).stem.rsplit("_", 1)
         _compare(kf, original[(arm, int(number))], UNITS_PER_M["nerfstudio"])
         checked["nerfstudio"] += 1
+    # no --envelope: processing estimates the object cylinder as for a DARP survey, near the survey's own one
+    assert run(["process", str(out), "-o", str(tmp_path / "processed-nerfstudio")]) == 0
+    estimated = json.loads((tmp_path / "processed-nerfstudio" / out.name / "results.json").read_text())["envelope"]
+    given = json.loads((processed_path / "results.json").read_text())["envelope"]
+    assert estimated["source"] == "estimated"
+    assert np.linalg.norm(np.subtract(estimated["center_m"][:2], given["center_m"][:2])) < 0.02
+    assert abs(estimated["height_m"] - given["height_m"]) < 0.02
 
     for n, arm in enumerate(arms):
         # TUM: the folder's own pairing through rgb.txt / depth.txt / groundtruth.txt, calibration.txt, 5000 per m;

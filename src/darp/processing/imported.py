@@ -303,7 +303,13 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     settings = fusion or FusionSettings()
     from darp.formats.envelope import ENVELOPE_FILE, read_envelope
 
-    crop = settings.crop(read_envelope(folder / ENVELOPE_FILE)) if (folder / ENVELOPE_FILE).is_file() else None
+    envelope_info: dict[str, Any]
+    if (folder / ENVELOPE_FILE).is_file():
+        crop = settings.crop(read_envelope(folder / ENVELOPE_FILE))
+        envelope_info = {"source": "manip_envelope.json", "center_m": list(crop.center_m), "radius_m": crop.radius_m,
+                         "height_m": crop.height_m}
+    else:
+        crop, envelope_info = _estimated_crop(kdir, settings)
     fz = VoxelFusion(settings, crop)
     for kf in iter_keyframes(kdir, FUSE):
         fz.add(kf.posed_depth())
@@ -335,9 +341,7 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
         "schema": SCHEMA, "survey": folder.name, "survey_path": str(folder),
         "object": index.object_name or index.survey, "pose_source": POSE_SOURCE,
         "calibration": {"epoch": None, "path": None}, "composition": None,
-        "envelope": ({"source": "manip_envelope.json", "center_m": list(crop.center_m), "radius_m": crop.radius_m,
-                      "height_m": crop.height_m} if crop is not None else
-                     {"source": "none (imported without --envelope: no crop; depth range from the settings)"}),
+        "envelope": envelope_info,
         "keyframes": {"total": len(index.keyframes), "fuse": len(index.select(FUSE)), "heldout": len(frames),
                       "arms": index.arms},
         "clouds": {**{a: len(c) for a, c in result.per_arm.items()}, "fused": len(cloud)},
@@ -347,6 +351,23 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     }
     write_json_atomic(out / RESULTS_FILE, to_jsonable(res))
     return res
+
+
+def _estimated_crop(kdir: Path, settings: FusionSettings) -> tuple[Any, dict[str, Any]]:
+    """The object cylinder estimated from the fuse keyframes (as for a DARP survey without an envelope), or
+    no crop with a warning when no object stands on a table at z = 0 where the cameras look."""
+    from darp.reconstruction.envelope_estimate import envelope_from_frames, robust_look_at, search_region
+
+    frames = [kf.posed_depth() for kf in iter_keyframes(kdir, FUSE)]
+    try:
+        look_at, _ = robust_look_at(np.stack([f.T_world_cam for f in frames]))
+        estimate = envelope_from_frames(frames, look_at, search_region(look_at, []), depth_settings=settings.depth,
+                                        path=kdir)
+    except ReconstructionError as err:
+        warnings.warn(f"{kdir}: no envelope given and none could be estimated ({err.message}); fusing without a "
+                      "crop (give --envelope to darp import to crop to the object)", ImportWarning, stacklevel=3)
+        return None, {"source": "none (no --envelope and no object found to estimate one: no crop)"}
+    return settings.crop(estimate.envelope()), estimate.to_dict()
 
 
 def _figure(mesh: Any, held_points: list[np.ndarray], path: Path, title: str, median_mm: float) -> None:
