@@ -7,14 +7,19 @@ library error (:class:`darp.errors.DarpError`) or a file that cannot be opened.
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import os
+import signal
 import sys
+import threading
 import warnings
 from collections.abc import Callable
 from typing import Any, Protocol, cast
 
 import typer
 
-from darp.errors import DarpError, DarpWarning
+from darp.errors import DarpError, DarpWarning, Interrupted
 
 
 class _ClickError(Protocol):
@@ -74,18 +79,77 @@ def _warning_printer(fallback: Callable[..., Any]) -> Callable[..., None]:
     return show
 
 
+# Signals that end a command like Ctrl-C does (the same cleanup runs), with the shell's exit code 128 + signal.
+_ENDING_SIGNALS = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+_ERRNO_WORDS = {errno.ENOSPC: "no space left on device", errno.EROFS: "read-only file system",
+                errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file too large",
+                errno.EACCES: "permission denied", errno.EPERM: "operation not permitted"}
+_received: list[int] = []  # signals received during this run (typer turns the interrupt into exit 130)
+
+
+def _raise_interrupted(signum: int, frame: object) -> None:
+    _received.append(signum)
+    if len(_received) == 1:  # the first signal interrupts; later ones leave the cleanup alone
+        raise Interrupted(signum)
+
+
+def _output_hint(argv: list[str] | None) -> str | None:
+    """The ``-o/--out`` value of the command line, to name the output when an OS error names no file."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    for i, arg in enumerate(args):
+        if arg in ("-o", "--out") and i + 1 < len(args):
+            return args[i + 1]
+        if arg.startswith("--out="):
+            return arg.split("=", 1)[1]
+    return None
+
+
+def os_error_message(err: OSError, argv: list[str] | None = None) -> str:
+    """One line for an OS error: the file it concerns (or the command's output) and what went wrong."""
+    words = _ERRNO_WORDS.get(err.errno or 0) or (err.strerror or str(err)).lower()
+    name = err.filename
+    if name is None:
+        hint = _output_hint(argv)
+        return f"{hint}: {words} (while writing the output)" if hint else words
+    return f"{os.fsdecode(name)}: {words}"
+
+
 def run(argv: list[str] | None = None) -> int:
-    """Run the app, mapping every error to one line and exit code 2 (130 when interrupted), and each
-    DarpWarning to one ``darp: warning:`` line."""
+    """Run the app, mapping every error to one line and exit code 2 (130 on SIGINT, 143 on SIGTERM, 129 on
+    SIGHUP: each runs the same cleanup as Ctrl-C), and each DarpWarning to one ``darp: warning:`` line."""
     import darp.cli  # noqa: F401  (registers the command modules)
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("always", DarpWarning)  # every file's warning reaches the printer (once each)
-        warnings.showwarning = _warning_printer(warnings.showwarning)
-        return _run(argv)
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = {s: signal.signal(s, _raise_interrupted) for s in _ENDING_SIGNALS} if in_main else {}
+    _received.clear()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", DarpWarning)  # every file's warning reaches the printer (once each)
+            warnings.showwarning = _warning_printer(warnings.showwarning)
+            try:
+                rc = _run_app(argv)
+            except KeyboardInterrupt as err:  # a signal during the cleanup of the first one
+                rc = _interrupted(err)
+            if _received and rc not in (128 + _received[0],):
+                rc = _interrupted(Interrupted(_received[0]))
+            return rc
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
-def _run(argv: list[str] | None) -> int:
+def _interrupted(err: BaseException) -> int:
+    signum = err.signum if isinstance(err, Interrupted) else (_received[0] if _received else int(signal.SIGINT))
+    try:
+        name = signal.Signals(signum).name
+    except ValueError:
+        name = str(signum)
+    with contextlib.suppress(OSError, ValueError):  # stderr gone with the terminal (SIGHUP)
+        typer.echo("darp: interrupted" if signum == signal.SIGINT else f"darp: stopped by {name}", err=True)
+    return 128 + signum
+
+
+def _run_app(argv: list[str] | None) -> int:
     try:
         # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
         rc = app(args=argv, prog_name="darp", standalone_mode=False)
@@ -95,13 +159,17 @@ def _run(argv: list[str] | None) -> int:
     except typer.Exit as err:
         return int(err.exit_code or 0)
     except typer.Abort:
+        if _received:
+            return _interrupted(Interrupted(_received[0]))
         typer.echo("darp: aborted", err=True)
         return 130
-    except KeyboardInterrupt:
-        typer.echo("darp: interrupted", err=True)
-        return 130
-    except (FileNotFoundError, IsADirectoryError, PermissionError) as err:
-        error(f"{err.filename}: {err.strerror}")
+    except KeyboardInterrupt as err:  # SIGINT, or SIGTERM / SIGHUP as darp.errors.Interrupted
+        return _interrupted(err)
+    except OSError as err:  # a full disk, a read-only file system, a file that cannot be opened
+        error(os_error_message(err, argv))
+        return 2
+    except RecursionError:
+        error("an input file is nested too deeply to read")
         return 2
     except _CLICK_ERRORS as exc:  # bad arguments: unknown option, missing argument, bad value
         usage = cast(_ClickError, exc)

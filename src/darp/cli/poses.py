@@ -49,7 +49,7 @@ def poses(
     rig = load_rig(rig_file)
     cal = read_calibration(calibration) if calibration is not None else rig.nominal_calibration()
     serial_to_arm = {arm.serial: arm_id for arm_id, arm in cal.arms.items()}
-    opened = open_survey(survey, serial_to_arm=serial_to_arm)
+    opened = open_survey(survey, serial_to_arm=serial_to_arm, mapping_source=calibration)
     if calibration is None:
         warn(f"no --calibration given: using the nominal transforms of rig {rig.name!r} and zero joint "
              "offsets; poses can be centimetres off")
