@@ -28,6 +28,7 @@ ALLOWED: dict[str, set[str]] = {
     "evaluation": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction"},
     "processing": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation"},
     "cli": set(),  # the top: anything
+    "__main__": {"cli"},  # the console entry point: loads the cli
 }
 REALSENSE_MAY_USE = {"darp.formats.atomic", "darp.formats.text"}
 

@@ -13,6 +13,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import warnings
 from collections.abc import Callable
 from typing import Any, Protocol, cast
@@ -85,12 +86,45 @@ _ERRNO_WORDS = {errno.ENOSPC: "no space left on device", errno.EROFS: "read-only
                 errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file too large",
                 errno.EACCES: "permission denied", errno.EPERM: "operation not permitted"}
 _received: list[int] = []  # signals received during this run (typer turns the interrupt into exit 130)
+_state = {"redeliver": False, "done": True, "announced": False}
+REDELIVER_S = 2.0  # a first interrupt swallowed by a library (trimesh's ``except BaseException`` around its
+HARD_EXIT_S = 8.0  # imports) is raised again after this long; a run still alive after HARD_EXIT_S just exits
 
 
 def _raise_interrupted(signum: int, frame: object) -> None:
+    """Raise :class:`Interrupted` in the main thread on the first signal (the cleanup runs as for Ctrl-C);
+    ignore repeats during the cleanup, except the watchdog's one re-delivery."""
+    if _state["redeliver"]:
+        _state["redeliver"] = False
+        raise Interrupted(_received[0] if _received else signum)
     _received.append(signum)
-    if len(_received) == 1:  # the first signal interrupts; later ones leave the cleanup alone
+    if len(_received) == 1:
+        threading.Thread(target=_watchdog, args=(signum,), name="darp-signal-watchdog", daemon=True).start()
         raise Interrupted(signum)
+
+
+def _watchdog(signum: int) -> None:
+    """Make sure a signal ends the run: re-deliver it once, then exit without cleanup."""
+    time.sleep(REDELIVER_S)
+    if _state["done"]:
+        return
+    _state["redeliver"] = True
+    import _thread
+
+    _thread.interrupt_main(signal.Signals(signum))
+    time.sleep(HARD_EXIT_S - REDELIVER_S)
+    if not _state["done"]:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stderr.write(f"darp: stopped by {_signal_name(signum)} (cleanup cut short)\n")
+            sys.stderr.flush()
+        os._exit(128 + signum)
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return str(signum)
 
 
 def _output_hint(argv: list[str] | None) -> str | None:
@@ -120,8 +154,9 @@ def run(argv: list[str] | None = None) -> int:
     import darp.cli  # noqa: F401  (registers the command modules)
 
     in_main = threading.current_thread() is threading.main_thread()
-    previous = {s: signal.signal(s, _raise_interrupted) for s in _ENDING_SIGNALS} if in_main else {}
     _received.clear()
+    _state.update(redeliver=False, done=False, announced=False)
+    previous = {s: signal.signal(s, _raise_interrupted) for s in _ENDING_SIGNALS} if in_main else {}
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", DarpWarning)  # every file's warning reaches the printer (once each)
@@ -130,22 +165,22 @@ def run(argv: list[str] | None = None) -> int:
                 rc = _run_app(argv)
             except KeyboardInterrupt as err:  # a signal during the cleanup of the first one
                 rc = _interrupted(err)
-            if _received and rc not in (128 + _received[0],):
+            if _received and not _state["announced"]:
                 rc = _interrupted(Interrupted(_received[0]))
             return rc
     finally:
+        _state["done"] = True
         for s, handler in previous.items():
             signal.signal(s, handler)
 
 
 def _interrupted(err: BaseException) -> int:
     signum = err.signum if isinstance(err, Interrupted) else (_received[0] if _received else int(signal.SIGINT))
-    try:
-        name = signal.Signals(signum).name
-    except ValueError:
-        name = str(signum)
-    with contextlib.suppress(OSError, ValueError):  # stderr gone with the terminal (SIGHUP)
-        typer.echo("darp: interrupted" if signum == signal.SIGINT else f"darp: stopped by {name}", err=True)
+    if not _state["announced"]:
+        _state["announced"] = True
+        with contextlib.suppress(OSError, ValueError):  # stderr gone with the terminal (SIGHUP)
+            typer.echo("darp: interrupted" if signum == signal.SIGINT else f"darp: stopped by {_signal_name(signum)}",
+                       err=True)
     return 128 + signum
 
 
@@ -178,4 +213,8 @@ def _run_app(argv: list[str] | None) -> int:
         else:
             error(usage.format_message())
         return int(getattr(usage, "exit_code", 2))
+    except Exception:
+        if _received:  # the interrupt surfaced wrapped in another error (ctypes' ArgumentError, an ImportError)
+            return _interrupted(Interrupted(_received[0]))
+        raise
     return int(rc or 0) if isinstance(rc, int) else 0
