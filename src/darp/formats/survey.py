@@ -25,6 +25,8 @@ from darp.formats.realsense.recording import Recording, open_recording
 
 DEFAULT_SERIAL_TO_ARM: dict[str, str] = {"348522076490": "arm110", "405622074504": "arm111"}
 ARM_POSES_FILE = "arm_poses.csv"
+PARTIAL_FILE = "PARTIAL.txt"  # in a survey folder being written: written first, removed last (SIGKILL-proof)
+WRITTEN_BY_FILE = ".darp-written"  # in a folder darp created whole: --overwrite may delete such a folder only
 TRUTH_DIR = "truth"
 RECORDING_SUFFIXES = (".bag", ".db3")
 _RECORDING_NAME = re.compile(r"^cam(?P<serial>[0-9A-Za-z]+)\.(?:bag|db3)$")
