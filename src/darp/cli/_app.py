@@ -57,8 +57,8 @@ app = typer.Typer(
 
 
 def error(message: str) -> None:
-    """Print one ``darp: error:`` line on stderr."""
-    typer.echo(f"darp: error: {message}", err=True)
+    """Print one ``darp: error:`` line on stderr (a message over several lines is joined into one)."""
+    typer.echo(f"darp: error: {' '.join(message.split())}", err=True)
 
 
 def _warning_printer(fallback: Callable[..., Any]) -> Callable[..., None]:
