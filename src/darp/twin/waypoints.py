@@ -106,7 +106,7 @@ def _waypoint(entry: Any, where: str, dwell: float, speed: float | None) -> Wayp
     keys = [k for k in ("q_rad", "q_deg", "named") if k in entry]
     if len(keys) != 1:
         raise ConfigError(f"{where}: give exactly one of q_rad, q_deg, named")
-    unknown = sorted(set(entry) - {"q_rad", "q_deg", "named", "dwell_s", "speed_rad_s"})
+    unknown = sorted(str(k) for k in set(entry) - {"q_rad", "q_deg", "named", "dwell_s", "speed_rad_s"})
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}")
     if keys[0] == "named":
@@ -127,7 +127,7 @@ def plan_from_dict(data: dict[str, Any]) -> WaypointPlan:
     schema = data.get("schema", SCHEMA)
     if schema != SCHEMA:
         raise ConfigError(f"schema: expected {SCHEMA!r}, got {schema!r}")
-    unknown = sorted(set(data) - {"schema", "speed_rad_s", "dwell_s", "order", "arms"})
+    unknown = sorted(str(k) for k in set(data) - {"schema", "speed_rad_s", "dwell_s", "order", "arms"})
     if unknown:
         raise ConfigError(f"unknown key(s) {', '.join(unknown)} (keys: schema, speed_rad_s, dwell_s, order, arms)")
     dwell = _positive(data["dwell_s"], "dwell_s", True) if "dwell_s" in data else DEFAULT_DWELL_S
