@@ -28,7 +28,7 @@ ALLOWED: dict[str, set[str]] = {
     "evaluation": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction"},
     "processing": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation"},
     "cli": set(),  # the top: anything
-    "__main__": {"cli"},  # the console entry point: loads the cli
+    "__main__": {"cli"} | BASE,  # the console entry point: loads the cli
 }
 REALSENSE_MAY_USE = {"darp.formats.atomic", "darp.formats.text"}
 
