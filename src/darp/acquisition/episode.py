@@ -129,8 +129,12 @@ class Episode:
             shutil.rmtree(self.partial_path)
         self.partial_path.mkdir(parents=True)
         # First file in, last file out: a folder holding PARTIAL.txt is unfinished, even after a SIGKILL.
-        (self.partial_path / PARTIAL_FILE).write_text(
-            "partial: running, or killed while running (the survey is incomplete)\n", encoding="utf-8")
+        try:
+            (self.partial_path / PARTIAL_FILE).write_text(
+                "partial: running, or killed while running (the survey is incomplete)\n", encoding="utf-8")
+        except OSError:  # a full or read-only disk: nothing was recorded, leave nothing behind
+            shutil.rmtree(self.partial_path, ignore_errors=True)
+            raise
         self.path = self.partial_path
         self.status = "running"
         self.events = EventLog(self.partial_path / EVENTS_FILE, clock)

@@ -55,7 +55,7 @@ def poses(
              "offsets; poses can be centimetres off")
 
     columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=err, transient=True) as progress:
+    with Progress(*columns, console=err, transient=True, disable=not err.is_terminal) as progress:
         task = progress.add_task("reading the joint log", total=len(opened.arms) + 1 + int(figure))
 
         def on_arm(arm: str) -> None:

@@ -76,7 +76,8 @@ def _progress_bars() -> Any:
     )
 
     return Progress(SpinnerColumn(), TextColumn("{task.description:<34}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+                    TimeElapsedColumn(), console=Console(stderr=True), transient=True,
+                    disable=not Console(stderr=True).is_terminal)  # no stray blank line before an error
 
 
 def _stage_callback(progress: Any, label: str) -> Any:

@@ -209,10 +209,11 @@ def record_survey(
                             "to delete it", partial)
         shutil.rmtree(partial)
     partial.mkdir(parents=True)
-    # The marker is the first file and the last removed: a folder holding it is unfinished, however the run ended.
-    (partial / PARTIAL_FILE).write_text("partial: darp twin record did not finish this survey (interrupted, "
-                                        "killed or failed); delete the folder\n", encoding="utf-8")
     try:
+        # The marker is the first file and the last removed: a folder holding it is unfinished, however the run
+        # ended.
+        (partial / PARTIAL_FILE).write_text("partial: darp twin record did not finish this survey (interrupted, "
+                                            "killed or failed); delete the folder\n", encoding="utf-8")
         with TwinRig(settings, rig=rig, obj=obj, placement=placement, camera_workers=camera_workers) as twin:
             unknown = [a for a in plan.arms if a not in twin.arms]
             if unknown:
