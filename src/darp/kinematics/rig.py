@@ -352,7 +352,8 @@ def default_rig_path() -> Path:
 def rig_from_dict(data: Mapping[str, Any], source: Path | None = None) -> Rig:
     """Build a :class:`Rig` from parsed YAML; errors name the field (the caller adds the file)."""
     reader = rig_yaml.FieldReader(data)
-    reader.only("schema", "name", "wrist_frame", "arms", "camera_body", "table", "workspace", "margins")
+    reader.only("schema", "name", "wrist_frame", "arms", "camera_body", "table", "workspace", "margins",
+                "hardware")  # hardware: the real rig's section, read by darp.hardware.settings
     schema = reader.get("schema", str, required=False)
     if schema is not None and schema != SCHEMA:
         raise ConfigError(f"schema: expected {SCHEMA!r}, got {schema!r}")
