@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml scripts/ensure_system_libs.sh
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "darp needs Python >= 3.11")'
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@$(PY) -m pip install -q --upgrade pip
-	@$(PY) -m pip install -q -e '.[test,bench]'
+	@$(PY) -m pip install -q -e '.[test,bench,ecosystem]'
 	@touch $(STAMP)
 
 setup: $(STAMP)

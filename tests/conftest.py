@@ -52,3 +52,14 @@ def survey_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from helpers.twin_surveys import record_tiny_survey
 
     return record_tiny_survey(tmp_path_factory.mktemp("twin") / "cube")
+
+
+@pytest.fixture(scope="session")
+def processed_path(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny twin survey processed once per session with its true poses (``<out>/cube/``): what the
+    export, dataset and viewer tests read."""
+    from darp.cli._app import run
+
+    out = tmp_path_factory.mktemp("processed")
+    assert run(["process", str(survey_path), "--truth-poses", "--out", str(out)]) == 0
+    return out / survey_path.name

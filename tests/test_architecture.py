@@ -27,6 +27,13 @@ ALLOWED: dict[str, set[str]] = {
     "reconstruction": BASE | {"formats", "formats.realsense", "kinematics", "geometry"},
     "evaluation": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction"},
     "processing": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation"},
+    "dataset": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation"},
+    "export": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation",
+                      "dataset"},
+    "view": BASE | {"formats", "formats.realsense", "kinematics", "geometry", "reconstruction", "evaluation",
+                    "dataset"},
+    "batch": BASE | {"formats", "formats.realsense", "kinematics", "backend", "geometry", "calibration",
+                     "acquisition", "twin", "reconstruction", "evaluation", "processing"},
     "cli": set(),  # the top: anything
     "__main__": {"cli"} | BASE,  # the console entry point: loads the cli
 }

@@ -24,11 +24,14 @@ import typer.utils
 from darp.cli import app
 
 # A short form always stands for the same long name, and a long name that has one has it everywhere.
-SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--format", "-w": "--waypoints"}
+SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--format", "-w": "--waypoints",
+               "-n": "--surveys"}  # darp twin generate -n N
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
-OUTPUT_PATHS = {"--out", "--report"}
-INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints"}
-FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings"}
+OUTPUT_PATHS = {"--out", "--report", "--save"}  # --save: darp view's recording (no window)
+INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics",
+               "--trajectory", "--flange-poses", "--envelope"}
+FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics",
+             "--envelope"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.
 CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config"}
 # Words that name a physical quantity: an option containing one ends in its unit.

@@ -21,9 +21,8 @@ import cv2
 import numpy as np
 
 from darp.calibration.geometry import mean_pose
-from darp.calibration.model import ChainParams, Observations, reprojection_errors
+from darp.calibration.model import ChainParams, Observations, flange_poses, reprojection_errors
 from darp.errors import CalibrationError
-from darp.kinematics import z1
 from darp.kinematics.transforms import invert_transform
 
 HAND_EYE_METHODS: dict[str, int] = {
@@ -76,17 +75,17 @@ def score(obs_arm: Observations, arm: str, X: np.ndarray, T_base_board: np.ndarr
 
     Without ``T_base_board`` the board pose is the mean of the per-capture predictions.
     """
-    A = z1.fk_batch(obs_arm.q_rad, wrist_frame)
+    A = flange_poses(obs_arm, np.arange(obs_arm.n_captures), np.zeros(6), wrist_frame)
     if T_base_board is None:
         T_base_board = mean_pose(A @ X @ obs_arm.T_depth_board_pnp)
     err = reprojection_errors(_single_arm_params(arm, X, T_base_board), obs_arm, wrist_frame)
     return T_base_board, float(np.median(err)) if err.size else float("inf")
 
 
-def _valid(T: np.ndarray) -> bool:
+def _valid(T: np.ndarray, max_translation_m: float = 1.0) -> bool:
     R = T[:3, :3]
     return bool(np.all(np.isfinite(T)) and abs(np.linalg.det(R) - 1.0) < 1e-3
-                and np.linalg.norm(T[:3, 3]) < 1.0)
+                and np.linalg.norm(T[:3, 3]) < max_translation_m)
 
 
 def opencv_hand_eye(obs: Observations, arm: str, wrist_frame: str = "flange") -> list[HandEyeEstimate]:
@@ -94,8 +93,11 @@ def opencv_hand_eye(obs: Observations, arm: str, wrist_frame: str = "flange") ->
     sub = _arm_obs(obs, arm)
     if sub.n_captures < MIN_CAPTURES:
         raise CalibrationError(f"{arm}: {sub.n_captures} usable captures; hand-eye needs at least {MIN_CAPTURES}")
-    A = z1.fk_batch(sub.q_rad, wrist_frame)  # T_base_flange
+    A = flange_poses(sub, np.arange(sub.n_captures), np.zeros(6), wrist_frame)  # T_base_flange
     B = sub.T_depth_board_pnp  # T_cam_board
+    # A wrist camera sits within 1 m of the flange; measured poses (any arm) may be eye-to-hand, where the
+    # solved "hand-eye" is the camera in the base, metres away.
+    reach = 1.0 if sub.T_base_flange is None else 20.0
     R_a, t_a = _rt(A)
     R_b, t_b = _rt(B)
     out: list[HandEyeEstimate] = []
@@ -105,7 +107,7 @@ def opencv_hand_eye(obs: Observations, arm: str, wrist_frame: str = "flange") ->
             X = _to_T(R, t)
         except cv2.error:
             X = np.full((4, 4), np.nan)
-        ok = _valid(X)
+        ok = _valid(X, reach)
         T_bb, px = score(sub, arm, X, None, wrist_frame) if ok else (np.full((4, 4), np.nan), float("inf"))
         out.append(HandEyeEstimate(arm, f"calibrateHandEye/{name}", X, T_bb, px, ok))
     R_fb, t_fb = _rt(invert_transform(A))  # base -> gripper
@@ -117,7 +119,7 @@ def opencv_hand_eye(obs: Observations, arm: str, wrist_frame: str = "flange") ->
             T_bb = invert_transform(T_board_base)
         except cv2.error:
             X, T_bb = np.full((4, 4), np.nan), np.full((4, 4), np.nan)
-        ok = _valid(X) and bool(np.all(np.isfinite(T_bb)))
+        ok = _valid(X, reach) and bool(np.all(np.isfinite(T_bb)))
         px = score(sub, arm, X, T_bb, wrist_frame)[1] if ok else float("inf")
         out.append(HandEyeEstimate(arm, f"calibrateRobotWorldHandEye/{name}", X, T_bb, px, ok))
     return out

@@ -60,9 +60,12 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
     for a, arm in enumerate(obs.arms):
         sel = obs.arm_index == a
         if np.any(sel):
-            Q = obs.q_rad[sel] + p.dq[arm]
-            F[sel] = z1.fk_batch(Q, wrist_frame)
-            links[sel] = z1.link_transforms_batch(Q)
+            if obs.T_base_flange is not None:  # measured flange poses (any arm): no joint offsets
+                F[sel] = obs.T_base_flange[sel]
+            else:
+                Q = obs.q_rad[sel] + p.dq[arm]
+                F[sel] = z1.fk_batch(Q, wrist_frame)
+                links[sel] = z1.link_transforms_batch(Q)
             B[sel], X[sel] = p.T_ref_base[arm], p.T_flange_cam[arm]
     S = obs.T_stream_depth
     Xi, Fi, Bi = invert_transform(X), invert_transform(F), invert_transform(B)

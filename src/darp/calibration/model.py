@@ -58,6 +58,9 @@ class Observations:
     uv: np.ndarray  # (C, 2) ideal pixels
     T_depth_board_pnp: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    # (M, 4, 4) measured base-from-flange poses of an arm darp has no model of (any arm,
+    # :mod:`darp.calibration.anyarm`); when set they replace ``fk(q + dq)`` and no joint offset applies.
+    T_base_flange: np.ndarray | None = None
 
     @property
     def n_captures(self) -> int:
@@ -74,7 +77,8 @@ class Observations:
                             T_stream_depth=self.T_stream_depth[idx], K=self.K[idx],
                             corner_capture=remap[self.corner_capture[keep]], corner_id=self.corner_id[keep],
                             P_board=self.P_board[keep], uv=self.uv[keep],
-                            T_depth_board_pnp=self.T_depth_board_pnp[idx])
+                            T_depth_board_pnp=self.T_depth_board_pnp[idx],
+                            T_base_flange=None if self.T_base_flange is None else self.T_base_flange[idx])
 
     def for_arm(self, arm: str) -> np.ndarray:
         """Boolean capture mask of ``arm``."""
@@ -107,13 +111,20 @@ def build_observations(detections: Sequence[Detection], board: CharucoBoardSpec,
     )
 
 
+def flange_poses(obs: Observations, sel: np.ndarray, dq: np.ndarray, wrist_frame: str = "flange") -> np.ndarray:
+    """``T_base_flange`` (n, 4, 4) of the selected captures: measured poses when given, else ``fk(q + dq)``."""
+    if obs.T_base_flange is not None:
+        return cast(np.ndarray, obs.T_base_flange[sel])
+    return cast(np.ndarray, z1.fk_batch(obs.q_rad[sel] + dq, wrist_frame))
+
+
 def camera_poses(params: ChainParams, obs: Observations, wrist_frame: str = "flange") -> np.ndarray:
     """``T_ref_cam`` (M, 4, 4) of every capture (depth optical frame) by eq. 1."""
     T = np.empty((obs.n_captures, 4, 4))
     for a, arm in enumerate(obs.arms):
         sel = obs.arm_index == a
         if np.any(sel):
-            T[sel] = (params.T_ref_base[arm] @ z1.fk_batch(obs.q_rad[sel] + params.dq[arm], wrist_frame)
+            T[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm], wrist_frame)
                       @ params.T_flange_cam[arm])
     return T
 
@@ -160,5 +171,5 @@ def pnp_pixels(obs: Observations) -> np.ndarray:
     return np.stack([K[:, 0, 0] * P[:, 0] / P[:, 2] + K[:, 0, 2], K[:, 1, 1] * P[:, 1] / P[:, 2] + K[:, 1, 2]], 1)
 
 
-__all__ = ["ChainParams", "Observations", "board_in_stream", "build_observations", "camera_poses", "per_capture",
-           "pnp_pixels", "predict_pixels", "predict_points", "reprojection_errors"]
+__all__ = ["ChainParams", "Observations", "board_in_stream", "build_observations", "camera_poses", "flange_poses",
+           "per_capture", "pnp_pixels", "predict_pixels", "predict_points", "reprojection_errors"]

@@ -15,13 +15,17 @@ import typer
 from darp.cli import calib as _calib  # noqa: F401
 from darp.cli import collect as _collect  # noqa: F401
 from darp.cli import demo as _demo  # noqa: F401
+from darp.cli import export as _export  # noqa: F401
+from darp.cli import generate as _generate  # noqa: F401
 from darp.cli import hardware as _hardware  # noqa: F401
+from darp.cli import imports as _imports  # noqa: F401
 from darp.cli import inspect as _inspect  # noqa: F401
 from darp.cli import poses as _poses  # noqa: F401
 from darp.cli import process as _process  # noqa: F401
 from darp.cli import recording as _recording  # noqa: F401
 from darp.cli import rig as _rig  # noqa: F401
 from darp.cli import twin as _twin  # noqa: F401
+from darp.cli import view as _view  # noqa: F401
 from darp.cli._app import app
 
 

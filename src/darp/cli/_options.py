@@ -64,6 +64,17 @@ class ExportStream(StrEnum):
     gyro = "gyro"
 
 
+class ExportFormat(StrEnum):
+    """What ``darp export`` writes (darp.export.FORMATS)."""
+
+    nerfstudio = "nerfstudio"
+    colmap = "colmap"
+    open3d = "open3d"
+    tum = "tum"
+    bop = "bop"
+    completion = "completion"
+
+
 class Paper(StrEnum):
     """Page of the printed board: auto (the smallest that fits) or darp.calibration.board.PAPER_SIZES_MM."""
 

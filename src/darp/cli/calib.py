@@ -7,8 +7,11 @@
                        -o DIR [--plan plan.json] [--stream color|ir1] [--overwrite]
     darp calib solve CAPTURES -o calibration.json [--report DIR] [--folds 5] [--truth FILE] [--epoch NAME]
     darp calib check CAPTURES -c calibration.json [--board-unmoved] [-o result.json] [--json]
+    darp calib handeye CAPTURES -o calibration.json [--intrinsics FILE] [--eye-to-hand] [--report DIR] [--folds 5]
+    darp calib export CAPTURES -o GENERIC_DIR     (a twin/Z1 capture folder as a generic any-arm folder)
 
-``check`` exits 0 when the calibration still holds and 1 when it is stale. See docs/calibration.md.
+``check`` exits 0 when the calibration still holds and 1 when it is stale. See docs/calibration.md;
+``handeye`` and ``export`` (any arm, any camera) are in docs/any-arm.md.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any
 
+import numpy as np
 import typer
 
 from darp.cli._app import app
@@ -267,3 +271,70 @@ def _print_check(result: Any) -> None:
         typer.echo(f"board seen by the two arms differs by {d['translation_mm']:.2f} mm / "
                    f"{d['rotation_deg']:.3f} deg")
     typer.echo("calibration holds" if result.ok else "calibration is stale: recalibrate")
+
+
+@calib_app.command("handeye")
+def handeye_command(
+    captures: Annotated[Path, input_argument("Generic captures folder (handeye.yaml, images/ or board_poses/, "
+                                             "poses.csv or poses/; see docs/any-arm.md).")],
+    out: Annotated[Path, out_option("Calibration JSON to write.")],
+    intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Camera intrinsics (3x3 .txt/.npy, .npz "
+                                                    "or .json); default the folder's intrinsics.*, else solved "
+                                                    "from the images.", exists=True, dir_okay=False,
+                                                    show_default=False)] = None,
+    eye_to_hand: Annotated[bool, typer.Option("--eye-to-hand", help="The camera is fixed and the board rides on "
+                                              "the flange (default: handeye.yaml's mode, else eye-in-hand).")
+                           ] = False,
+    report: Annotated[Path | None, typer.Option("--report", help="Report folder to write (figures, summary.md).",
+                                                show_default=False)] = None,
+    folds: Annotated[int, typer.Option("--folds", help="k of the k-fold held-out evaluation (0: none).")] = 5,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the fold assignment.")] = 0,
+    compare: Annotated[bool, typer.Option("--compare/--no-compare", help="Also score each OpenCV calibrateHandEye "
+                                          "method on the same held-out folds.")] = True,
+) -> None:
+    """Hand-eye calibration of any arm and camera from a generic captures folder, with held-out checks."""
+    import warnings
+
+    from darp.calibration.anyarm import solve_folder
+    from darp.calibration.anyarm_report import write_handeye_report
+    from darp.errors import DarpWarning
+    from darp.formats.calibration import write_calibration
+
+    outcome = solve_folder(captures, intrinsics=intrinsics, eye_to_hand=True if eye_to_hand else None,
+                           folds=folds, seed=seed, compare=compare)
+    for w in outcome.warnings:
+        warnings.warn(w, DarpWarning, stacklevel=1)
+    write_calibration(out, outcome.calibration)
+    if report is not None:
+        write_handeye_report(outcome, report)
+    r = outcome.calibration.report
+    typer.echo(f"wrote {out} ({r['mode']}; captures used: "
+               + ", ".join(f"{a} {n}" for a, n in r["n_captures"].items()) + ")")
+    typer.echo(f"  fit: reprojection median {r['fit']['reprojection_px']['median']:.3f} px")
+    held = r["heldout"]
+    if held.get("board_consistency_mm"):
+        typer.echo(f"  held-out board consistency ({held['folds']}-fold): mean "
+                   f"{held['board_consistency_mm']['mean']:.3f} mm / max {held['board_consistency_mm']['max']:.3f} mm, "
+                   f"mean {held['board_consistency_deg']['mean']:.3f} deg / max "
+                   f"{held['board_consistency_deg']['max']:.3f} deg")
+    for m, v in r.get("opencv_heldout_board_consistency", {}).items():
+        if "mm" in v:
+            typer.echo(f"  {m:30s} mean {v['mm']['mean']:.3f} mm / max {v['mm']['max']:.3f} mm")
+        else:
+            typer.echo(f"  {m:30s} {v.get('error', 'failed')}")
+    for name, T in r.get("base_to_base", {}).items():
+        t = np.asarray(T)[:3, 3] * 1e3
+        typer.echo(f"  base-to-base {name}: translation ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm")
+
+
+@calib_app.command("export")
+def export_command(
+    captures: Annotated[Path, input_argument("darp capture folder (from `darp calib capture`).")],
+    out: Annotated[Path, out_option("Generic captures folder to write (one sub-folder per arm).")],
+) -> None:
+    """Write a darp capture folder as a generic any-arm captures folder (flange poses from the Z1 model)."""
+    from darp.calibration.anyarm_export import export_captures
+    from darp.calibration.captures import read_captures
+
+    n = export_captures(read_captures(captures), out)
+    typer.echo(f"wrote {out} ({n} captures)")

@@ -42,6 +42,7 @@ def inspect_command(
         survey = open_survey(folder, serial_to_arm)
         item = survey_composition(survey)
         for note in item.notes:
-            typer.echo(f"darp: note: {folder}: {note}", err=True)
+            kind = "warning" if note.startswith("partial survey") else "note"  # an interrupted acquisition
+            typer.echo(f"darp: {kind}: {folder}: {note}", err=True)
         items.append(item)
     typer.echo(format_composition(items, fmt.value), nl=False)

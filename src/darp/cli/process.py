@@ -7,7 +7,8 @@ from typing import Annotated, Any
 
 import typer
 
-from darp.cli._app import app
+from darp.cli._app import app, error
+from darp.cli._batch import ExecutorOption, process_on_executor
 from darp.cli._options import calibration_option, input_argument, out_option, refuse_output_over_inputs
 
 CALIBRATION_HELP = "Calibration JSON of the rig epoch."
@@ -118,11 +119,11 @@ def keyframes(
         finally:
             job.close()
     table = Table(title=f"{job.survey.name}: keyframes")
-    for column in ("arm", "frames", "settled", "in view", "views", "keyframes", "held out"):
+    for column in ("arm", "frames", "settled", "in view", "views", "keyframes", "held out", "still <= rad/s"):
         table.add_column(column, justify="right")
     keys = ("frames", "settled", "in_view", "views", "keyframes", "heldout")
     for arm, c in summary["arms"].items():
-        table.add_row(arm, *(str(c.get(k, 0)) for k in keys))
+        table.add_row(arm, *(str(c.get(k, 0)) for k in keys), f"{c.get('still_threshold_rad_s', 0):.3f}")
     Console().print(table)
     _warn_estimated_envelope(job.survey.name, summary.get("envelope"))
     typer.echo(f"wrote {out}")
@@ -137,18 +138,25 @@ def process(
     settings_file: SettingsFile = None,
     resume: Annotated[bool, typer.Option("--resume", help="Skip stages already done with the same inputs and "
                                          "settings.")] = False,
+    executor: ExecutorOption = None,
 ) -> None:
-    """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall."""
-    _need_calibration(calibration, truth_poses)
-    from rich.console import Console
-    from rich.table import Table
+    """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall.
+
+    A folder written by ``darp import`` is processed from its keyframes (fusion, mesh, held-out evaluation).
+    """
+    from darp.processing.imported import is_imported
+
+    imported = [s for s in surveys if is_imported(s)]
+    surveys = [s for s in surveys if not is_imported(s)]
+    if surveys:
+        _need_calibration(calibration, truth_poses)
 
     from darp.formats.survey import find_survey_folders
-    from darp.processing.pipeline import process_survey
-    from darp.processing.results import PROCESS_STAGES, write_summary
+    from darp.processing.batch import FAILED
+    from darp.processing.results import write_summary
 
     settings = _settings(settings_file)
-    folders = find_survey_folders(surveys)
+    folders = imported + (find_survey_folders(surveys) if surveys else [])
     for folder in folders:  # <out>/<survey>/ must not be (or be inside, or hold) a raw survey
         refuse_output_over_inputs(out / folder.name, [folder], "--out", folder_output=True)
     names = [f.name for f in folders]
@@ -156,27 +164,81 @@ def process(
     if duplicated:
         raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
                                  param_hint="'SURVEYS...'")
-    done: list[Path] = []
+    if executor is not None:  # one task per survey on Ray (darp.batch), failures contained the same way
+        outcomes = process_on_executor(folders, out, calibration, truth_poses, settings_file, resume, executor)
+    else:
+        outcomes = _process_here(folders, out, calibration, truth_poses, settings, resume, imported)
+    done = [o.out for o in outcomes if o.status != FAILED]
+    failed = [o for o in outcomes if o.status == FAILED]
+    for o in failed:  # after the progress display is gone: one clean line each
+        error(o.message)
+    summary_path = write_summary(out, done, [o.to_dict() for o in failed])
+    _print_table(done, failed)
+    for o in outcomes:
+        for warning in o.warnings:
+            _warn(f"{o.name}: {warning}")
+    typer.echo(f"wrote {summary_path}")
+    if failed:
+        if len(outcomes) > 1:
+            error(f"{len(failed)} of {len(outcomes)} surveys failed: {', '.join(o.name for o in failed)} "
+                  f"(listed in {summary_path})")
+        raise typer.Exit(2)
+
+
+def _process_here(folders: list[Path], out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
+                  resume: bool, imported: list[Path]) -> list[Any]:
+    """The batch in this process, one survey after another, with per-stage progress bars."""
+    from darp.errors import DarpError
+    from darp.processing.batch import process_batch, process_survey_folder
+    from darp.processing.imported import process_imported
+    from darp.processing.pipeline import StageFailure
+
+    loaded: dict[str, Any] = {}
+
+    def calibration_for(folder: Path) -> Any:
+        if calibration is not None:
+            if "cal" not in loaded:
+                from darp.formats.calibration import read_calibration
+
+                loaded["cal"] = read_calibration(calibration)
+            return loaded["cal"]
+        from darp.twin.truth import read_truth
+
+        return read_truth(folder).calibration
+
     with _progress_bars() as progress:
         overall = progress.add_task("surveys", total=len(folders))
-        for folder in folders:
-            job = _job(folder, out / folder.name, calibration, truth_poses, settings,
-                       _stage_callback(progress, folder.name))
-            process_survey(job, PROCESS_STAGES, resume=resume)
-            done.append(job.out)
-            progress.advance(overall)
-    summary_path = write_summary(out, done)
+
+        def run_one(folder: Path, target: Path) -> dict[str, Any]:
+            if folder in imported:
+                return process_imported(folder, target, settings.fusion, settings.mesh)
+            try:
+                cal = calibration_for(folder)
+            except DarpError as err:
+                raise StageFailure(folder.name, "open", str(err), err.path) from err
+            return process_survey_folder(folder, target, cal, calibration_path=calibration, settings=settings,
+                                         truth_poses=truth_poses, resume=resume,
+                                         progress=_stage_callback(progress, folder.name),
+                                         on_note=lambda note: _warn(f"{folder.name}: {note}"))
+
+        return process_batch(folders, out, run_one, on_outcome=lambda _: progress.advance(overall))
+
+
+def _print_table(done: list[Path], failed: list[Any]) -> None:
+    """The held-out table: one row per processed survey (implausible ones flagged), one per failed survey."""
+    from rich import box
+    from rich.console import Console
+    from rich.table import Table
 
     from darp.processing.results import read_results
 
     def mm(value: Any) -> str:
         return "-" if value is None else f"{value:.2f}"
 
-    from rich import box
-
     # fits 80 columns: held-out point-to-mesh median / RMSE [mm] and % within 10 mm; truth: fused-cloud accuracy
     table = Table(title="held-out evaluation (mm) and clouds", box=box.SIMPLE_HEAD,
-                  caption="kf: keyframes; truth: fused cloud to the true mesh, median (mm)")
+                  caption="kf: keyframes; truth: fused cloud to the true mesh, median (mm); "
+                          "(!) implausible, see the warnings; FAILED: see the error lines")
     table.add_column("survey", justify="left", overflow="fold")
     for column in ("poses", "kf", "fused", "median", "RMSE", "<=10mm %", "truth"):
         table.add_column(column, justify="right", no_wrap=True)
@@ -185,12 +247,14 @@ def process(
         h = r["heldout"]["aggregate"]
         acc = ((r.get("truth") or {}).get("cloud") or {}).get("accuracy", {}).get("median_mm")
         source = {"calibration": "calib"}.get(r["pose_source"], r["pose_source"])
-        table.add_row(r["survey"], source, str(r["keyframes"]["total"]), f"{r['clouds'].get('fused', 0):,}",
+        name = r["survey"] + (" (!)" if r.get("warnings") else "")
+        table.add_row(name, source, str(r["keyframes"]["total"]), f"{r['clouds'].get('fused', 0):,}",
                       mm(h.get("median_mm")), mm(h.get("rmse_mm")), mm(h.get("within_10mm_pct")), mm(acc))
+    for o in failed:
+        table.add_row(o.name, "FAILED", "-", "-", "-", "-", "-", "-")
     Console().print(table)
     for folder, r in zip(done, results, strict=True):
         _warn_estimated_envelope(folder.name, r.get("envelope"))
-    typer.echo(f"wrote {summary_path}")
 
 
 @app.command("report")
@@ -198,8 +262,11 @@ def report(
     processed: Annotated[Path, input_argument("Output folder of darp process.")],
 ) -> None:
     """Write report.md and report.html (every table and figure across the processed surveys)."""
-    from darp.processing.report import write_report
+    from darp.processing.report import survey_status, write_report
 
     md_path, html_path = write_report(processed)
+    for kind, rows in survey_status(processed).items():
+        for name, reason in sorted(rows.items()):
+            _warn(f"{name}: {kind}: {reason}")
     typer.echo(f"wrote {md_path}")
     typer.echo(f"wrote {html_path}")

@@ -25,7 +25,9 @@ from darp.formats.realsense.recording import Recording, open_recording
 
 DEFAULT_SERIAL_TO_ARM: dict[str, str] = {"348522076490": "arm110", "405622074504": "arm111"}
 ARM_POSES_FILE = "arm_poses.csv"
-PARTIAL_FILE = "PARTIAL.txt"  # in a survey folder being written: written first, removed last (SIGKILL-proof)
+PARTIAL_FILE = "PARTIAL.txt"  # an unfinished survey folder: written first and removed last by twin record and
+#   collect (so a SIGKILLed run is marked too), rewritten with the reason by an interrupted or failed acquisition
+PARTIAL_RECORDING_SUFFIX = ".partial"  # cam<serial>.bag.partial: a recording that was never finalised
 WRITTEN_BY_FILE = ".darp-written"  # in a folder darp created whole: --overwrite may delete such a folder only
 TRUTH_DIR = "truth"
 RECORDING_SUFFIXES = (".bag", ".db3")
@@ -44,6 +46,7 @@ class Survey:
         envelope_path: Path | None,
         problems: tuple[str, ...],
         notes: tuple[str, ...],
+        partial: str | None = None,
     ) -> None:
         self.path = path
         self.recording_paths = recording_paths  # by arm
@@ -52,6 +55,7 @@ class Survey:
         self.envelope_path = envelope_path
         self.problems = problems  # what makes the survey incomplete (open_survey(strict=True) raises)
         self.notes = notes  # worth knowing, not blocking (e.g. no manip_envelope.json)
+        self.partial = partial  # why the survey is partial (PARTIAL.txt, *.bag.partial), or None
         self._log: ArmPoseLog | None = None
         self._envelope: Envelope | None = None
 
@@ -198,6 +202,10 @@ def open_survey(
     if not envelope.is_file():
         notes.append(f"no {ENVELOPE_FILE} (object envelope unknown)")
 
+    partial_reason = partial_survey_reason(path)
+    if partial_reason is not None:
+        notes.append(f"partial survey: {partial_reason}")
+
     if strict and problems:
         if not found and not arm_poses.is_file() and not unexpected:
             message = f"not a survey folder (no cam<serial>.bag recordings, no {ARM_POSES_FILE})"
@@ -211,7 +219,29 @@ def open_survey(
         envelope_path=envelope if envelope.is_file() else None,
         problems=tuple(problems),
         notes=tuple(notes),
+        partial=partial_reason,
     )
+
+
+def partial_survey_reason(path: str | Path) -> str | None:
+    """Why a survey folder is partial, or None: its ``PARTIAL.txt`` (an interrupted or failed acquisition;
+    its first line) and any ``*.partial`` recordings (never finalised, e.g. after SIGKILL)."""
+    path = Path(path)
+    reasons = []
+    marker = path / PARTIAL_FILE
+    if marker.is_file():
+        try:
+            first = marker.read_text(encoding="utf-8", errors="replace").strip().splitlines()
+        except OSError:
+            first = []
+        reasons.append(f"{PARTIAL_FILE} says {first[0]!r}" if first else f"{PARTIAL_FILE} present")
+    try:
+        leftovers = sorted(p.name for p in path.iterdir() if p.name.endswith(PARTIAL_RECORDING_SUFFIX))
+    except OSError:
+        leftovers = []
+    if leftovers:
+        reasons.append(f"unfinalised recording(s) {', '.join(leftovers)}")
+    return "; ".join(reasons) if reasons else None
 
 
 def looks_like_survey(path: str | Path) -> bool:

@@ -24,6 +24,14 @@ and its summary. With ``resume`` a stage whose fingerprint matches and whose out
 once a stage runs, every later stage runs too. **Memory** stays flat in survey length: poses need
 only the frame index, keyframes are decoded one time window at a time, and fusion and evaluation
 stream keyframes from disk.
+
+**Nothing unfinished looks finished.** ``UNFINISHED.txt`` is written into the survey's output folder
+before the first stage runs and removed only when the last stage has completed; it says which stage
+was running or failed and why, so an interrupted or failed run (SIGKILL included) leaves a folder that
+every reader (``darp report``, ``--resume``, the batch summary) treats as unfinished. A stage writes
+its files under temporary names (``*.partial``) and renames them when all are written; a stage that
+fails removes what it wrote. A failure is raised as :class:`StageFailure`: one line naming the survey,
+the stage and the reason.
 """
 
 from __future__ import annotations
@@ -41,8 +49,8 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import FormatError, ReconstructionError
-from darp.formats.atomic import write_json_atomic
+from darp.errors import DarpError, FormatError, ReconstructionError
+from darp.formats.atomic import write_json_atomic, write_text_atomic
 from darp.formats.calibration import Calibration, calibration_to_dict
 from darp.formats.envelope import Envelope
 from darp.formats.realsense.recording import Recording
@@ -51,7 +59,7 @@ from darp.formats.survey import Survey
 from darp.processing.settings import ProcessSettings
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.envelope_estimate import envelope_record, estimate_survey_envelope
-from darp.reconstruction.fusion import VoxelFusion, write_voxel_cloud
+from darp.reconstruction.fusion import VoxelFusion, calibration_uncertainty_m, write_voxel_cloud
 from darp.reconstruction.keyframe_io import (
     KeyframeIndex,
     export_arm_keyframes,
@@ -64,6 +72,8 @@ from darp.reconstruction.mesh import ball_pivoting_mesh, ball_pivoting_radii, me
 from darp.reconstruction.poses import SurveyPoses, recover_survey_poses, write_survey_poses
 
 STAGES_FILE = "stages.json"
+UNFINISHED_FILE = "UNFINISHED.txt"
+PARTIAL_SUFFIX = ".partial"
 POSES_DIR, KEYFRAMES_DIR, FIGURES_DIR = "poses", "keyframes", "figures"
 FUSED_FILE, MESH_FILE = "fused.ply", "mesh.ply"
 
@@ -102,8 +112,14 @@ class SurveyJob:
         return self.survey.arms
 
     def crop(self) -> EnvelopeCrop:
-        """The object-support region: the envelope cylinder with fusion's margins."""
-        return self.settings.fusion.crop(self.envelope())
+        """The object-support region: the envelope cylinder with fusion's margins (grown with the
+        calibration's stated held-out error, :func:`darp.reconstruction.fusion.calibration_uncertainty_m`)."""
+        return self.settings.fusion.crop(self.envelope(), calibration_uncertainty_m=self.calibration_uncertainty())
+
+    def calibration_uncertainty(self) -> float | None:
+        """The calibration's stated uncertainty (metres), or None when it states none."""
+        return calibration_uncertainty_m(self.calibration.arms[a].residuals for a in self.arms
+                                         if a in self.calibration.arms)
 
     def envelope(self) -> Envelope:
         """The survey's envelope; without centre/radius/height, one estimated from the survey's own
@@ -234,10 +250,11 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
     for arm, selection in selections.items():
         entries += export_arm_keyframes(job.recording(arm), selection, poses.trajectories[arm], folder,
                                         crop=crop, progress=tick)
-    arms = {arm: {"serial": poses.trajectories[arm].serial, **sel.counts} for arm, sel in selections.items()}
+    arms = {arm: {"serial": poses.trajectories[arm].serial, **sel.counts,
+                  "still_threshold_rad_s": round(sel.still_threshold_rad_s, 6),
+                  "speed_noise_rad_s": round(sel.speed_noise_rad_s, 6)} for arm, sel in selections.items()}
     if not entries:
-        raise ReconstructionError("no keyframe selected: no settled frame sees the object "
-                                  "(check the envelope, the calibration and the keyframe settings)", job.survey.path)
+        raise no_keyframe_error(job, selections)
     index = KeyframeIndex(folder=folder, survey=job.survey.name,
                           object_name=envelope.object_name,
                           pose_source="truth" if job.truth_poses else "calibration",
@@ -246,11 +263,62 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
                                  "support_mask": {"source": job.envelope_record()["source"],
                                                   "center_m": list(crop.center_m), "radius_m": crop.radius_m,
                                                   "height_m": crop.height_m, "table_z_m": crop.table_z_m,
-                                                  "margin_m": crop.margin_m, "table_margin_m": crop.table_margin_m}})
+                                                  "margin_m": crop.margin_m, "table_margin_m": crop.table_margin_m,
+                                                  "calibration_uncertainty_m": job.calibration_uncertainty()}})
     write_keyframe_index(index)
     n_held = sum(1 for e in entries if e.split != FUSE)
     return {"arms": arms, "keyframes": len(entries), "fuse": len(entries) - n_held, "heldout": n_held,
             "envelope": job.envelope_record()}
+
+
+def no_keyframe_error(job: SurveyJob, selections: dict[str, Any]) -> ReconstructionError:
+    """Why no keyframe was selected, blaming the input that explains it (joint log, envelope, ...)."""
+    survey = job.survey
+    log_file = survey.arm_poses_path or survey.path
+    env_file = survey.envelope_path or survey.path
+    parts = []
+    blame: Path = survey.path
+    for arm, sel in selections.items():
+        c = sel.counts
+        traj = job.poses().trajectories[arm]
+        if c.get("posed", 0) == 0:
+            span = traj.camera_span_s
+            cam = "no frames" if span is None else f"camera frames {span[0]:.3f} .. {span[1]:.3f} s"
+            parts.append(f"{arm}: none of {c.get('frames', 0)} frames lies inside the joint log (log "
+                         f"{traj.log_span_s[0]:.3f} .. {traj.log_span_s[1]:.3f} s, {cam}; time_s must be host-clock "
+                         "seconds, increasing)")
+            blame = log_file
+        elif outside_range(traj.poses.q_rad[traj.poses.posed]) > 0.5:
+            q = traj.poses.q_rad[traj.poses.posed]
+            parts.append(f"{arm}: the joint log's values (up to {float(np.nanmax(np.abs(q))):.3g} rad) are outside "
+                         "the Z1's joint range in most frames (radians expected)")
+            blame = log_file
+        elif c.get("settled", 0) == 0:
+            parts.append(f"{arm}: of {c['posed']} posed frames none is settled (stillness threshold "
+                         f"{sel.still_threshold_rad_s:.3f} rad/s, measured joint-speed noise "
+                         f"{sel.speed_noise_rad_s:.3f} rad/s)")
+            blame = log_file
+        elif c.get("in_view", 0) == 0:
+            centre = job.envelope().center_m
+            where = "unknown" if centre is None else "(" + ", ".join(f"{1000 * v:.0f}" for v in centre) + ") mm"
+            parts.append(f"{arm}: {c['settled']} settled frames but none sees the envelope centre {where}")
+            if blame == survey.path:
+                blame = env_file if job.envelope_record().get("source") != "estimated" else survey.path
+        else:
+            parts.append(f"{arm}: {c.get('in_view', 0)} frames in view gave no keyframe")
+    detail = "; ".join(parts) or "the survey has no arm"
+    return ReconstructionError(f"no keyframe selected: {detail}", blame)
+
+
+def outside_range(q_rad: np.ndarray, tol_rad: float = 0.2) -> float:
+    """Share of the rows of ``q_rad`` (N, 6) outside the Z1's joint limits (by more than ``tol_rad``)."""
+    from darp.kinematics.z1 import within_limits
+
+    q = np.asarray(q_rad, np.float64).reshape(-1, 6)
+    if q.size == 0:
+        return 0.0
+    inside = np.asarray(within_limits(np.nan_to_num(q, nan=0.0, posinf=1e9, neginf=-1e9), tol_rad=tol_rad))
+    return float(1.0 - inside.mean())
 
 
 def _clear_keyframes(folder: Path, arms: Any) -> None:
@@ -277,9 +345,16 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
         fusion.add(keyframe.posed_depth())
         job.report("fusion", k + 1, total + 1)
     result = fusion.result()
-    for arm, cloud in result.per_arm.items():
-        write_voxel_cloud(job.out / f"{arm}.ply", cloud)
-    write_voxel_cloud(job.out / FUSED_FILE, result.fused)
+    if len(result.fused) == 0:
+        points_in = result.stats.get("fused", {}).get("points_in", 0)
+        raise ReconstructionError(
+            f"fusion kept no point: {total} fuse keyframes left {points_in} points inside the envelope and no voxel "
+            f"had the support asked (min_frames {job.settings.fusion.min_frames}, min_view_bins "
+            f"{job.settings.fusion.min_view_bins})", job.keyframes_dir)
+    clouds = {**{f"{arm}.ply": cloud for arm, cloud in result.per_arm.items()}, FUSED_FILE: result.fused}
+    with staged_outputs(job.out, list(clouds)) as paths:
+        for name, cloud in clouds.items():
+            write_voxel_cloud(paths[name], cloud)
     job.report("fusion", total + 1, total + 1)
     return {"points": {**{arm: len(c) for arm, c in result.per_arm.items()}, "fused": len(result.fused)},
             "stats": result.stats}
@@ -295,10 +370,29 @@ def stage_mesh(job: SurveyJob) -> dict[str, Any]:
         raise FormatError("the fused cloud has no normals", job.out / FUSED_FILE)
     normals = cloud.normals / np.linalg.norm(cloud.normals, axis=1, keepdims=True)
     mesh = ball_pivoting_mesh(cloud.points, normals, cloud.colours, job.settings.mesh)
-    write_mesh(job.out / MESH_FILE, mesh)
+    if len(mesh.triangles) == 0:
+        raise ReconstructionError(f"ball pivoting made no triangle from the fused cloud's {len(cloud.points)} points "
+                                  "(too few or too sparse: more views per arm are needed)", job.out / FUSED_FILE)
+    with staged_outputs(job.out, [MESH_FILE]) as paths:
+        write_mesh(paths[MESH_FILE], mesh)
     job.report("mesh", 1, 1)
     return {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": mesh_area(mesh),
             "radii_m": ball_pivoting_radii(cloud.points, job.settings.mesh)}
+
+
+@contextlib.contextmanager
+def staged_outputs(folder: Path, names: Sequence[str]) -> Any:
+    """Write a stage's files under temporary names (``<name>.partial``), renamed to their final names
+    only when every one is written; on an error the temporary files go and no final name is touched."""
+    temporary = {name: folder / (name + PARTIAL_SUFFIX) for name in names}
+    try:
+        yield temporary
+    except BaseException:
+        for path in temporary.values():
+            path.unlink(missing_ok=True)
+        raise
+    for name, path in temporary.items():
+        path.replace(folder / name)
 
 
 RECONSTRUCTION_STAGES: tuple[Stage, ...] = (
@@ -307,6 +401,25 @@ RECONSTRUCTION_STAGES: tuple[Stage, ...] = (
     Stage("fusion", stage_fusion, (FUSED_FILE,), ("fusion",)),
     Stage("mesh", stage_mesh, (MESH_FILE,), ("mesh",)),
 )
+
+
+def _fail(job: SurveyJob, stages: Sequence[Stage], stage: Stage, stages_state: dict[str, Any], reason: str,
+          path: Path | None) -> None:
+    """Record the failure (stages.json, UNFINISHED.txt), remove the failed stage's outputs, raise StageFailure."""
+    for later in stages[stages.index(stage):]:
+        stages_state.pop(later.name, None)
+        for output in later.outputs:
+            target = job.out / output
+            if target.is_file():
+                target.unlink()
+    if stage.name == "fusion":
+        for arm in job.arms:
+            (job.out / f"{arm}.ply").unlink(missing_ok=True)
+    line = f"failed: {stage.name}: {reason}"
+    write_json_atomic(job.out / STAGES_FILE, {"survey": job.survey.name, "stages": stages_state,
+                                              "failed": {"stage": stage.name, "reason": reason}})
+    _mark_unfinished(job.out, line)
+    raise StageFailure(job.survey.name, stage.name, reason, path)
 
 
 # -- the driver ---------------------------------------------------------------------------------------------
@@ -338,18 +451,51 @@ def read_stage_state(out: Path) -> dict[str, Any]:
     return state if isinstance(state, dict) else {}
 
 
+class StageFailure(ReconstructionError):
+    """A survey failed in one stage: ``survey``, ``stage`` and ``reason`` (the original one-line error)."""
+
+    def __init__(self, survey: str, stage: str, reason: str, path: str | Path | None = None) -> None:
+        self.survey, self.stage, self.reason = survey, stage, reason
+        super().__init__(f"survey {survey}: {stage} failed: {reason}")
+        self.file = Path(path) if path is not None else None
+
+
+def unfinished_reason(out: str | Path) -> str | None:
+    """The first line of ``UNFINISHED.txt`` in a survey output folder, or None when the run completed."""
+    marker = Path(out) / UNFINISHED_FILE
+    if not marker.is_file():
+        return None
+    try:
+        text = marker.read_text(encoding="utf-8", errors="replace").strip()
+    except OSError:
+        return "unfinished (UNFINISHED.txt unreadable)"
+    return text.splitlines()[0] if text else "unfinished"
+
+
+def _mark_unfinished(out: Path, line: str) -> None:
+    write_text_atomic(out / UNFINISHED_FILE, f"{line}\nThis folder's processing did not complete: its outputs "
+                      "are not results. Run darp process again (--resume keeps the completed stages).\n")
+
+
 def process_survey(job: SurveyJob, stages: Sequence[Stage] = RECONSTRUCTION_STAGES, *,
                    resume: bool = False) -> dict[str, Any]:
-    """Run ``stages`` in order on one survey; returns ``{stage: {"skipped", "seconds", "summary"}}``."""
+    """Run ``stages`` in order on one survey; returns ``{stage: {"skipped", "seconds", "summary"}}``.
+
+    ``UNFINISHED.txt`` marks the output folder until the last stage completes. A stage that fails
+    raises :class:`StageFailure` (survey, stage, reason on one line), leaves ``stages.json`` and the
+    marker saying so, and removes the failed stage's outputs.
+    """
     job.out.mkdir(parents=True, exist_ok=True)
     fingerprints = stage_fingerprints(job, stages)
     state = read_stage_state(job.out) if resume else {}
     stages_state: dict[str, Any] = dict(state.get("stages", {}))
     report: dict[str, Any] = {}
+    _mark_unfinished(job.out, f"running: {', '.join(s.name for s in stages)}")
     try:
         _run_stages(job, stages, resume, fingerprints, stages_state, report)
     finally:
         job.close()
+    (job.out / UNFINISHED_FILE).unlink(missing_ok=True)
     return report
 
 
@@ -365,7 +511,14 @@ def _run_stages(job: SurveyJob, stages: Sequence[Stage], resume: bool, fingerpri
             continue
         rerun = True
         start = time.perf_counter()
-        summary = stage.run(job)
+        _mark_unfinished(job.out, f"running: {stage.name}")
+        try:
+            summary = stage.run(job)
+        except DarpError as err:
+            _fail(job, stages, stage, stages_state, str(err), err.path)
+        except (ValueError, RuntimeError, ArithmeticError, IndexError, KeyError, MemoryError) as err:
+            # a library failing inside a stage (Open3D, numpy, ...): still this survey's, named and contained
+            _fail(job, stages, stage, stages_state, f"{type(err).__name__}: {err}".splitlines()[0], None)
         seconds = round(time.perf_counter() - start, 3)
         stages_state[stage.name] = {"fingerprint": fingerprints[stage.name], "seconds": seconds, "summary": summary}
         for later in stages[stages.index(stage) + 1:]:
@@ -382,8 +535,10 @@ __all__ = [
     "POSES_DIR",
     "RECONSTRUCTION_STAGES",
     "STAGES_FILE",
+    "UNFINISHED_FILE",
     "ProgressFn",
     "Stage",
+    "StageFailure",
     "SurveyJob",
     "process_survey",
     "read_stage_state",
@@ -392,5 +547,7 @@ __all__ = [
     "stage_keyframes",
     "stage_mesh",
     "stage_poses",
+    "staged_outputs",
+    "unfinished_reason",
     "with_truth_poses",
 ]

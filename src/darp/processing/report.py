@@ -6,6 +6,12 @@ results, cross-arm consistency, truth metrics (twin surveys), and per object the
 figure, the partial/partial/fused figure and the held-out histogram, plus the multimodal observations
 panel. ``report.md`` links the images by relative path; ``report.html`` embeds them (base64), so it
 can be mailed on its own.
+
+The report never passes over a survey silently: its first section lists the surveys that **failed**
+(the batch summary's ``failed`` rows: stage and reason), are **unfinished** (an ``UNFINISHED.txt``
+in their output folder: interrupted or failed runs, whose outputs are not results), are **missing**
+(listed in the summary but without a completed ``results.json``), and those whose results are
+**implausible** (their ``warnings``). ``darp report`` repeats each on stderr as a warning.
 """
 
 from __future__ import annotations
@@ -17,10 +23,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from darp.errors import EvaluationError
+from darp.errors import DarpError, EvaluationError
 from darp.evaluation.composition import SurveyComposition, format_composition
 from darp.formats.atomic import write_text_atomic
-from darp.processing.results import RESULTS_FILE, aggregate_results, find_survey_results, read_results
+from darp.processing.results import (
+    RESULTS_FILE,
+    aggregate_results,
+    find_survey_results,
+    find_unfinished,
+    read_results,
+)
 
 MAX_OBSERVATION_OBJECTS = 4
 OBSERVATIONS_FIGURE = "figures/observations.png"
@@ -266,22 +278,70 @@ def to_html(blocks: Sequence[Block], root: Path, title: str) -> str:
     return "\n".join(parts)
 
 
+def survey_status(out: str | Path) -> dict[str, dict[str, str]]:
+    """What the report must say about surveys that are not ordinary results, each ``{survey: reason}``:
+    ``failed`` (batch summary), ``unfinished`` (UNFINISHED.txt), ``missing`` (in the summary, no completed
+    results.json) and ``implausible`` (their warnings, joined)."""
+    out = Path(out)
+    done = {f.name for f in find_survey_results(out)}
+    unfinished = find_unfinished(out)
+    summary: dict[str, Any] = {}
+    if (out / RESULTS_FILE).is_file():
+        try:
+            candidate = read_results(out)
+        except DarpError:  # a damaged summary: the folders still tell what was done
+            candidate = {}
+        if candidate.get("schema") == "darp-results-summary/1":
+            summary = candidate
+    failed = {str(row.get("folder") or row.get("name")): f"{row.get('stage')} failed: {row.get('reason')}"
+              for row in summary.get("failed") or [] if str(row.get("folder") or row.get("name")) not in done}
+    listed = [str(row.get("folder") or row.get("name")) for row in summary.get("surveys") or []]
+    missing = {name: f"in {RESULTS_FILE} but {out / name} holds no completed results" for name in listed
+               if name not in done and name not in unfinished and name not in failed}
+    implausible = {}
+    for folder in find_survey_results(out):
+        warnings = read_results(folder).get("warnings") or []
+        if warnings:
+            implausible[folder.name] = "; ".join(warnings)
+    unfinished = {name: reason for name, reason in unfinished.items() if name not in failed}
+    return {"failed": failed, "unfinished": unfinished, "missing": missing, "implausible": implausible}
+
+
+def status_blocks(status: dict[str, dict[str, str]]) -> list[Block]:
+    """The report's first section: surveys that are not ordinary results."""
+    rows = tuple((name, kind, reason) for kind in ("failed", "unfinished", "missing", "implausible")
+                 for name, reason in sorted(status.get(kind, {}).items()))
+    if not rows:
+        return [Block("p", "Every survey completed with plausible results.")]
+    return [Block("h2", "Surveys that are not ordinary results"),
+            Block("p", "Failed, unfinished and missing surveys are not in the tables below; implausible ones "
+                       "are, flagged (!)."),
+            Block("table", headers=("survey", "status", "reason"), rows=rows)]
+
+
 def write_report(out: str | Path) -> tuple[Path, Path]:
     """Write ``report.md`` and ``report.html`` into ``out`` (a ``darp process`` output folder)."""
     out = Path(out)
     folders = find_survey_results(out)
+    status = survey_status(out)
     if not folders:
-        raise EvaluationError(f"no processed survey here (no <survey>/{RESULTS_FILE}; run darp process first)", out)
+        problems = [f"{name} ({kind}: {reason})" for kind in ("failed", "unfinished", "missing")
+                    for name, reason in status[kind].items()]
+        hint = f"; {', '.join(problems)}" if problems else ""
+        raise EvaluationError(f"no processed survey here (no <survey>/{RESULTS_FILE} of a completed run; "
+                              f"run darp process first){hint}", out)
     per = [read_results(f) for f in folders]
     summary_path = out / RESULTS_FILE
     summary = read_results(summary_path) if summary_path.is_file() and folders != [out] else None
-    if summary is None or summary.get("schema") != "darp-results-summary/1":
-        summary = aggregate_results(folders)
+    if (summary is None or summary.get("schema") != "darp-results-summary/1" or summary.get("heldout") is None
+            or sorted(s.get("folder") for s in summary.get("surveys", [])) != sorted(f.name for f in folders)):
+        summary = aggregate_results(folders)  # stale or partial summary: recomputed from the completed surveys
     sources = sorted({r.get("pose_source", "calibration") for r in per})
     title = "darp processing report"
+    names = ", ".join(r["object"] + (" (!)" if r.get("warnings") else "") for r in per)
     blocks = [Block("h1", title),
-              Block("p", f"{len(per)} survey(s): {', '.join(r['object'] for r in per)}. Camera poses from: "
-                         f"{', '.join(sources)}.")]
+              Block("p", f"{len(per)} survey(s): {names}. Camera poses from: {', '.join(sources)}.")]
+    blocks += status_blocks(status)
     blocks += composition_block(per)
     blocks += heldout_blocks(summary)
     blocks += object_blocks(per)
@@ -295,4 +355,4 @@ def write_report(out: str | Path) -> tuple[Path, Path]:
     return md_path, html_path
 
 
-__all__ = ["Block", "to_html", "to_markdown", "write_report"]
+__all__ = ["Block", "status_blocks", "survey_status", "to_html", "to_markdown", "write_report"]

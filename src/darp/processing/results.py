@@ -14,12 +14,19 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
                     (mm, % within 2/5/10 mm), F-score % at 2/5/10 mm, keyframe pose error vs the true poses
     figures         {kind: path relative to the survey folder}
     stages          {stage: seconds}
+    status          "ok", or "implausible" when ``warnings`` is not empty
+    warnings        implausible results, each one line: an arm's cloud empty, fewer keyframes per arm than
+                    keyframes.min_keyframes, no held-out point, a held-out median above
+                    evaluation.max_heldout_median_mm, a partial survey (PARTIAL.txt / *.bag.partial)
     paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
                     within 5 / 10 mm, 224 keyframes, 1,563,466 points)
 
 Across surveys (``<out>/results.json``, schema ``darp-results-summary/1``)::
 
-    surveys         [{name, object, pose_source, folder}]
+    status          "ok", "warnings" (some survey implausible) or "failed" (some survey failed)
+    surveys         [{name, object, pose_source, folder, status, warnings}] of the processed surveys
+    failed          [{name, survey_path, folder, status, stage, reason}]: surveys that did not complete
+    warnings        {survey: [warning]} of the processed surveys
     heldout         {objects: [per-object rows], aggregate (pooled points), arms (pooled per arm), paper}
     cross_arm       {survey: per-survey cross_arm}
     truth           {objects: {survey: truth}, aggregate: pooled accuracy/completeness/F-score} or null
@@ -51,11 +58,41 @@ from darp.processing.evaluate import (
     evaluate_processed_survey,
     load_distances,
 )
-from darp.processing.pipeline import RECONSTRUCTION_STAGES, Stage, SurveyJob, read_stage_state
+from darp.processing.pipeline import (
+    RECONSTRUCTION_STAGES,
+    Stage,
+    SurveyJob,
+    read_stage_state,
+    unfinished_reason,
+)
 
 RESULTS_FILE = "results.json"
 SCHEMA = "darp-results/1"
 SUMMARY_SCHEMA = "darp-results-summary/1"
+
+
+def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
+    """The implausible parts of one survey's results, each one line (empty when nothing is implausible)."""
+    warnings: list[str] = []
+    if job.survey.partial is not None:
+        warnings.append(f"partial survey: {job.survey.partial}")
+    min_kf = job.settings.keyframes.min_keyframes
+    for arm, counts in (results["keyframes"].get("arms") or {}).items():
+        n = int(counts.get("keyframes", 0) or 0)
+        if n < min_kf:
+            warnings.append(f"{arm}: {n} keyframes, fewer than the minimum {min_kf}")
+    clouds = results.get("clouds") or {}
+    for arm in job.arms:
+        if int(clouds.get(arm, 0) or 0) == 0:
+            warnings.append(f"{arm}: its fused cloud is empty (the arm adds nothing to the result)")
+    median = (results["heldout"].get("aggregate") or {}).get("median_mm")
+    bound = job.settings.evaluation.max_heldout_median_mm
+    if median is None:
+        warnings.append("no held-out point: the held-out evaluation measured nothing")
+    elif median > bound:
+        warnings.append(f"held-out median {median:.2f} mm above the plausible bound {bound:g} mm "
+                        "(calibration or poses off?)")
+    return warnings
 
 
 def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]:
@@ -64,7 +101,7 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
     summary = {name: state.get("summary") or {} for name, state in stages.items()}
     keyframes = summary.get("keyframes", {})
     heldout = evaluation["heldout"]
-    return {
+    results = {
         "schema": SCHEMA,
         "survey": job.survey.name,
         "survey_path": str(job.survey.path),
@@ -85,6 +122,10 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
         "stages": {name: state.get("seconds") for name, state in stages.items()},
         "paper": PAPER_HELDOUT,
     }
+    warnings = plausibility_warnings(results, job)
+    results["status"] = "implausible" if warnings else "ok"
+    results["warnings"] = warnings
+    return results
 
 
 def stage_evaluation(job: SurveyJob) -> dict[str, Any]:
@@ -122,14 +163,25 @@ def read_results(path: str | Path) -> dict[str, Any]:
 
 
 def find_survey_results(out: str | Path) -> list[Path]:
-    """Survey output folders under ``out`` (those holding a per-survey results.json), sorted by name."""
+    """Survey output folders under ``out`` holding a per-survey results.json of a COMPLETED run (no
+    ``UNFINISHED.txt``), sorted by name; :func:`find_unfinished` lists the others."""
     out = Path(out)
     if not out.is_dir():
         raise EvaluationError("no such output folder", out)
-    folders = [p for p in sorted(out.iterdir()) if p.is_dir() and (p / RESULTS_FILE).is_file()]
     if (out / RESULTS_FILE).is_file() and read_results(out).get("schema") == SCHEMA:
-        folders = [out]
-    return folders
+        return [] if unfinished_reason(out) is not None else [out]
+    return [p for p in sorted(out.iterdir())
+            if p.is_dir() and (p / RESULTS_FILE).is_file() and unfinished_reason(p) is None]
+
+
+def find_unfinished(out: str | Path) -> dict[str, str]:
+    """Survey output folders under ``out`` (or ``out`` itself) whose processing did not complete:
+    ``{folder name: reason}`` from their ``UNFINISHED.txt``."""
+    out = Path(out)
+    if not out.is_dir():
+        return {}
+    candidates = [out] if unfinished_reason(out) is not None else [p for p in sorted(out.iterdir()) if p.is_dir()]
+    return {p.name: reason for p in candidates if (reason := unfinished_reason(p)) is not None}
 
 
 def _heldout_result(folder: Path, results: dict[str, Any]) -> HeldoutResult:
@@ -159,29 +211,37 @@ def _pooled_truth(folders: Sequence[Path]) -> dict[str, Any] | None:
             "fscore_pct": fscore}
 
 
-def aggregate_results(folders: Sequence[str | Path]) -> dict[str, Any]:
-    """The summary across processed surveys (pooled held-out points, per-object rows, truth)."""
+def aggregate_results(folders: Sequence[str | Path],
+                      failed: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
+    """The summary across processed surveys (pooled held-out points, per-object rows, truth), with the
+    ``failed`` surveys (``SurveyOutcome.to_dict()`` rows) listed."""
     paths = [Path(f) for f in folders]
-    if not paths:
+    if not paths and not failed:
         raise EvaluationError("no processed surveys to aggregate")
     per = [read_results(f) for f in paths]
-    summary = HeldoutSummary(tuple(_heldout_result(f, r) for f, r in zip(paths, per, strict=True)))
+    summary = HeldoutSummary(tuple(_heldout_result(f, r) for f, r in zip(paths, per, strict=True))) if per else None
     truth_rows = {r["survey"]: r["truth"] for r in per if r.get("truth")}
+    warnings = {r["survey"]: list(r.get("warnings") or []) for r in per if r.get("warnings")}
     return {
         "schema": SUMMARY_SCHEMA,
+        "status": "failed" if failed else "warnings" if warnings else "ok",
         "surveys": [{"name": r["survey"], "object": r.get("object"), "pose_source": r.get("pose_source"),
-                     "folder": f.name} for f, r in zip(paths, per, strict=True)],
-        "heldout": summary.to_dict(),
+                     "folder": f.name, "status": r.get("status", "ok"), "warnings": list(r.get("warnings") or [])}
+                    for f, r in zip(paths, per, strict=True)],
+        "failed": [dict(row) for row in failed],
+        "warnings": warnings,
+        "heldout": None if summary is None else summary.to_dict(),
         "cross_arm": {r["survey"]: r.get("cross_arm") for r in per},
         "truth": None if not truth_rows else {"objects": truth_rows, "aggregate": _pooled_truth(paths)},
         "paper": PAPER_HELDOUT,
     }
 
 
-def write_summary(out: str | Path, folders: Sequence[str | Path]) -> Path:
-    """Aggregate ``folders`` and write ``<out>/results.json``."""
+def write_summary(out: str | Path, folders: Sequence[str | Path], failed: Sequence[dict[str, Any]] = ()) -> Path:
+    """Aggregate ``folders`` (and list ``failed``) and write ``<out>/results.json``."""
     path = Path(out) / RESULTS_FILE
-    write_json_atomic(path, to_jsonable(aggregate_results(folders)))
+    Path(out).mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, to_jsonable(aggregate_results(folders, failed)))
     return path
 
 
@@ -192,6 +252,8 @@ __all__ = [
     "SUMMARY_SCHEMA",
     "aggregate_results",
     "find_survey_results",
+    "find_unfinished",
+    "plausibility_warnings",
     "read_results",
     "stage_evaluation",
     "survey_results",

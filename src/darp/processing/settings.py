@@ -36,10 +36,13 @@ class EvaluationSettings:
     visibility_tolerance_m: float = 0.005  # a true sample is 'seen' when a keyframe's depth is this close
     figures: bool = True  # cross-arm, partial/fused and held-out histogram figures
     seed: int = 0  # random sampling of surfaces (truth metrics)
+    max_heldout_median_mm: float = 10.0  # a held-out median above this is flagged implausible (paper: 2.13)
 
     def __post_init__(self) -> None:
         if not (self.truth_sample_spacing_m > 0 and self.visibility_tolerance_m > 0):
             raise ConfigError("evaluation: truth_sample_spacing_m and visibility_tolerance_m must be > 0")
+        if not self.max_heldout_median_mm > 0:
+            raise ConfigError("evaluation: max_heldout_median_mm must be > 0")
 
 
 @dataclass(frozen=True)

@@ -161,7 +161,8 @@ def still_view_poses(trajectories: Mapping[str, Any], settings: KeyframeSettings
         order = np.argsort(traj.timestamps_ms, kind="stable")
         T = np.asarray(traj.poses.T_world_cam, np.float64)[order]
         posed = np.all(np.isfinite(T.reshape(len(T), 16)), axis=1)
-        settled = settled_mask(traj.poses.t_s[order], traj.poses.joint_speed_rad_s[order], settings) & posed
+        threshold = settings.still_threshold(float(getattr(traj, "speed_noise_rad_s", 0.0)))
+        settled = settled_mask(traj.poses.t_s[order], traj.poses.joint_speed_rad_s[order], settings, threshold) & posed
         edges = np.diff(np.concatenate(([0], settled.view(np.int8), [0])))
         for start, stop in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True):
             pose = T[(start + stop - 1) // 2]

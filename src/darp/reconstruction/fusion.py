@@ -5,9 +5,17 @@ cropped to the object envelope, and reduced to per-voxel statistics that are mer
 in (memory grows with the observed surface, not with the number of frames). At the end, per arm and
 for both arms together:
 
-1. **voxel support**: a voxel is kept only if at least ``min_frames`` distinct frames and
+1. **voxel support**: a voxel is kept if at least ``min_frames`` distinct frames and
    ``min_view_bins`` distinct viewing-direction bins (64 bins on the sphere, ~25 deg apart) saw it;
-   isolated and single-view measurements (flying pixels, multipath, one bad frame) fall out;
+   isolated and single-view measurements (flying pixels, multipath, one bad frame) fall out. With
+   ``adaptive_support`` the count asked is adapted to how often the voxel was *in view*: a voxel is
+   in view of a fused frame when it projects into the image, in front of the camera, no more than
+   ``visibility_tolerance_m`` behind that frame's measured depth there (not occluded, not in a hole).
+   A voxel seen by fewer than ``min_frames`` frames is still kept when at least ``min_frames_floor``
+   frames saw it and they are at least ``support_fraction`` of the frames it was in view of; and the
+   view bins asked are never more than the bins it was in view from. A sparse survey (one view per
+   arm, a corner seen by two frames) keeps what every frame that could see it confirmed; a voxel that
+   most frames looking at it did not measure still goes;
 2. each kept voxel becomes one point: the mean of its points, colours and camera-oriented normals;
 3. statistical outlier removal: points whose mean distance to their ``sor_neighbours`` nearest
    neighbours exceeds the cloud's mean of that distance by ``sor_std_ratio`` standard deviations go;
@@ -22,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,13 +64,19 @@ class FusionSettings:
     voxel_size_m: float = 0.0015  # 1.5 mm: ~1.6 pixel footprints at 0.35 m; several points per frame
     min_frames: int = 3  # distinct frames that must see a voxel
     min_view_bins: int = 2  # distinct viewing-direction bins that must see a voxel
-    envelope_margin_m: float = 0.01  # envelope crop: radial and top margin
+    envelope_margin_m: float = 0.01  # envelope crop: radial and top margin (at least; see calibration_margin_factor)
+    calibration_margin_factor: float = 2.0  # ... and at least this times the calibration's held-out p90 error
     table_margin_m: float = 0.003  # envelope crop: kept only above table + this
     sor_neighbours: int = 20  # statistical outlier removal: neighbours per point (0 = off)
     sor_std_ratio: float = 2.0  # ... and the tolerated excess of the mean neighbour distance, in std
     surface_fit_radius_voxels: float = 1.5  # local plane fit along the normal (0 = off), in voxels
     surface_fit_neighbours: int = 16  # at most this many neighbours enter a plane fit
     merge_rows: int = 400_000  # pending per-frame voxel rows merged into the state beyond this
+    adaptive_support: bool = True  # adapt the support asked to how often the voxel was in view (module doc)
+    min_frames_floor: int = 2  # ... but never fewer frames than this
+    support_fraction: float = 0.5  # ... and at least this fraction of the frames it was in view of
+    visibility_tolerance_m: float = 0.01  # in view: not more than this behind the frame's measured depth
+    visibility_stride_px: int = 4  # the in-view test reads every n-th depth pixel (memory: ~W*H/n^2 per frame)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.voxel_size_m) and 1e-4 <= self.voxel_size_m <= 0.1):
@@ -75,11 +89,39 @@ class FusionSettings:
             raise ReconstructionError("surface_fit_radius_voxels must be >= 0 and surface_fit_neighbours >= 2")
         if self.merge_rows < 1:
             raise ReconstructionError("merge_rows must be >= 1")
+        if not (self.calibration_margin_factor >= 0 and self.envelope_margin_m >= 0):
+            raise ReconstructionError("envelope_margin_m and calibration_margin_factor must be >= 0")
+        if not (self.min_frames_floor >= 1 and 0 < self.support_fraction <= 1 and self.visibility_tolerance_m > 0
+                and self.visibility_stride_px >= 1):
+            raise ReconstructionError("min_frames_floor and visibility_stride_px must be >= 1, support_fraction "
+                                      "in (0, 1] and visibility_tolerance_m > 0")
 
-    def crop(self, envelope: Envelope, table_z_m: float | None = None) -> EnvelopeCrop:
-        """The envelope crop with this fusion's margins."""
-        return EnvelopeCrop.from_envelope(envelope, table_z_m=table_z_m, margin_m=self.envelope_margin_m,
+    def crop(self, envelope: Envelope, table_z_m: float | None = None,
+             calibration_uncertainty_m: float | None = None) -> EnvelopeCrop:
+        """The envelope crop with this fusion's margins: the radial and top margin grow with the
+        calibration's stated uncertainty (:func:`calibration_uncertainty_m`) when it is given."""
+        return EnvelopeCrop.from_envelope(envelope, table_z_m=table_z_m,
+                                          margin_m=self.crop_margin(calibration_uncertainty_m),
                                           table_margin_m=self.table_margin_m)
+
+    def crop_margin(self, calibration_uncertainty_m: float | None = None) -> float:
+        """``envelope_margin_m``, or ``calibration_margin_factor`` x the calibration's uncertainty if larger."""
+        if calibration_uncertainty_m is None or not math.isfinite(calibration_uncertainty_m):
+            return self.envelope_margin_m
+        return max(self.envelope_margin_m, self.calibration_margin_factor * float(calibration_uncertainty_m))
+
+
+def calibration_uncertainty_m(residuals_by_arm: Iterable[dict[str, Any]]) -> float | None:
+    """The calibration's stated uncertainty: the largest held-out p90 corner error over the arms (metres)
+    from ``residuals.heldout.corner_3d_mm`` (written by ``darp calib solve``); None when none states it."""
+    worst = None
+    for residuals in residuals_by_arm:
+        held = residuals.get("heldout") if isinstance(residuals, dict) else None
+        corner = held.get("corner_3d_mm") if isinstance(held, dict) else None
+        p90 = corner.get("p90") if isinstance(corner, dict) else None
+        if isinstance(p90, (int, float)) and math.isfinite(p90) and 0 <= p90 < 1e4:
+            worst = max(worst or 0.0, float(p90) / 1000.0)
+    return worst
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,11 +207,110 @@ def fit_to_local_surface(points: np.ndarray, normals: np.ndarray, weights: np.nd
     return fitted
 
 
+@dataclass(frozen=True, eq=False)
+class FrameView:
+    """What the in-view test keeps of a fused frame: its pose and a subsampled metric depth image."""
+
+    arm_bit: int
+    R_cam_world: np.ndarray  # (3, 3)
+    t_cam_world: np.ndarray  # (3,)
+    centre: np.ndarray  # (3,) camera centre, world
+    fx: float
+    fy: float
+    ppx: float
+    ppy: float  # of the subsampled image
+    depth_m: np.ndarray  # (h, w) float32, 0 = no depth
+    stride: int = 1  # the subsampling: full-resolution focal length = fx * stride
+
+    @classmethod
+    def of(cls, frame: PosedDepth, arm_bit: int, stride: int) -> FrameView:
+        from darp.reconstruction.backproject import depth_to_metres
+
+        T = np.asarray(frame.T_world_cam, np.float64)
+        R = T[:3, :3].T
+        k = frame.intrinsics
+        return cls(arm_bit, R, -R @ T[:3, 3], T[:3, 3].copy(), k.fx / stride, k.fy / stride,
+                   (k.ppx + 0.5) / stride - 0.5, (k.ppy + 0.5) / stride - 0.5,
+                   np.ascontiguousarray(depth_to_metres(frame.depth, frame.depth_scale)[::stride, ::stride]), stride)
+
+
+def in_view(points: np.ndarray, views: Iterable[FrameView], tolerance_m: float, arm_bits: int = 0xFF,
+            normals: np.ndarray | None = None, voxel_size_m: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """For each point (N, 3): how many of ``views`` (of the arms in ``arm_bits``) had it in view, and the
+    viewing-direction bins (uint64 mask) of those views (see the module docstring).
+
+    With ``voxel_size_m`` a frame counts by the chance that one of its pixels lands in the voxel: the
+    voxel's footprint in pixels, ``(voxel_size_m * fx / z)^2``, foreshortened by the angle between the
+    voxel's ``normals`` and the direction to the camera (at least 0.2), at most 1. A low-resolution
+    frame whose pixels are about the voxel's size does not hit every voxel it sees.
+    """
+    from darp.reconstruction.voxel_stats import view_bins
+
+    p = np.asarray(points, np.float64)
+    count = np.zeros(len(p), np.float64)
+    bins = np.zeros(len(p), np.uint64)
+    for view in views:
+        if not (arm_bits >> view.arm_bit) & 1:
+            continue
+        cam = p @ view.R_cam_world.T + view.t_cam_world
+        z = cam[:, 2]
+        h, w = view.depth_m.shape
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.rint(view.fx * cam[:, 0] / z + view.ppx)
+            v = np.rint(view.fy * cam[:, 1] / z + view.ppy)
+        inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        idx = np.flatnonzero(inside)
+        d = view.depth_m[v[idx].astype(np.int64), u[idx].astype(np.int64)]
+        seen = idx[(d > 0) & (z[idx] <= d + tolerance_m)]
+        if voxel_size_m is None:
+            count[seen] += 1.0
+        elif seen.size:
+            footprint = (voxel_size_m * view.fx * view.stride / z[seen]) ** 2
+            if normals is not None:
+                to_camera = view.centre - p[seen]
+                cos = np.abs(np.einsum("ij,ij->i", normals[seen], to_camera)) / np.linalg.norm(to_camera, axis=1)
+                footprint = footprint * np.maximum(cos, 0.2)
+            count[seen] += np.minimum(footprint, 1.0)
+        if seen.size:
+            bins[seen] |= np.left_shift(np.uint64(1), view_bins(view.centre - p[seen]).astype(np.uint64))
+    return count, bins
+
+
+VisibilityFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+"""``visibility(centres (N, 3), unit normals (N, 3)) -> (frames expected to hit each voxel, bins in view)``."""
+
+
+def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
+                     counts: dict[str, int] | None = None) -> np.ndarray:
+    """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``)."""
+    n_views = popcount64(stats.view_mask)
+    fixed = (stats.n_frames >= settings.min_frames) & (n_views >= settings.min_view_bins)
+    if visibility is None or not settings.adaptive_support:
+        return fixed
+    floor = min(settings.min_frames_floor, settings.min_frames)
+    candidate = ~fixed & (stats.n_frames >= floor)
+    idx = np.flatnonzero(candidate)
+    if idx.size == 0:
+        return fixed
+    centres = stats.sum_xyz[idx] / stats.n_points[idx].astype(np.float64)[:, None]
+    length = np.linalg.norm(stats.sum_normal[idx], axis=1, keepdims=True)
+    normals = stats.sum_normal[idx] / np.where(length > 0, length, 1.0)
+    visible, visible_bins = visibility(centres, normals)
+    frames = stats.n_frames[idx]
+    frames_ok = (frames >= settings.min_frames) | (frames >= np.ceil(settings.support_fraction * visible))
+    bins_ok = n_views[idx] >= np.minimum(settings.min_view_bins, np.maximum(popcount64(visible_bins), 1))
+    supported = fixed.copy()
+    supported[idx] = frames_ok & bins_ok
+    if counts is not None:
+        counts["adapted"] = int((frames_ok & bins_ok).sum())
+    return supported
+
+
 def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],
-                     counts: dict[str, int] | None = None) -> VoxelCloud:
+                     counts: dict[str, int] | None = None, visibility: VisibilityFn | None = None) -> VoxelCloud:
     """Apply voxel support, average each voxel and remove statistical outliers."""
     n_views = popcount64(stats.view_mask)
-    supported = (stats.n_frames >= settings.min_frames) & (n_views >= settings.min_view_bins)
+    supported = supported_voxels(stats, settings, visibility, counts)
     kept = stats.select(supported)
     n = kept.n_points.astype(np.float64)[:, None]
     points = (kept.sum_xyz / n).astype(np.float32)
@@ -244,6 +385,7 @@ class VoxelFusion:
         self._colour: bool | None = None
         self.points_in: dict[str, int] = {}
         self.peak_rows = 0
+        self.views: list[FrameView] = []  # for the adaptive support's in-view test
 
     @property
     def frames(self) -> dict[str, int]:
@@ -262,7 +404,10 @@ class VoxelFusion:
         """Back-project, filter and accumulate one frame; returns the number of points it added."""
         self._check_new(frame.arm, frame.frame_id)
         cloud = backproject(frame, self.settings.depth, self.region)
-        return self._accumulate(frame.arm, frame.frame_id, cloud)
+        added = self._accumulate(frame.arm, frame.frame_id, cloud)
+        if self.settings.adaptive_support:
+            self.views.append(FrameView.of(frame, self.arms.index(frame.arm), self.settings.visibility_stride_px))
+        return added
 
     def add_cloud(self, arm: str, frame_id: int, cloud: FrameCloud) -> int:
         """Accumulate an already back-projected (and filtered) frame."""
@@ -312,13 +457,21 @@ class VoxelFusion:
         arms = tuple(self.arms)
         per_arm: dict[str, VoxelCloud] = {}
         counts: dict[str, Any] = {}
-        for arm in arms:
+        tolerance = self.settings.visibility_tolerance_m
+
+        def visibility(bits: int) -> VisibilityFn | None:
+            if not self.views:
+                return None
+            voxel = self.settings.voxel_size_m
+            return lambda points, normals: in_view(points, self.views, tolerance, bits, normals, voxel)
+
+        for bit, arm in enumerate(arms):
             c: dict[str, int] = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
             per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
-                                            self.settings, arms, c)
+                                            self.settings, arms, c, visibility(1 << bit))
             counts[arm] = c
         c = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
-        fused = cloud_from_stats(merge_stats(list(self._state.values())), self.settings, arms, c)
+        fused = cloud_from_stats(merge_stats(list(self._state.values())), self.settings, arms, c, visibility(0xFF))
         counts["fused"] = c
         counts["peak_rows"] = self.peak_rows
         return FusionResult(fused=fused, per_arm=per_arm, settings=self.settings, stats=counts)
@@ -346,13 +499,17 @@ def fuse(frames: Iterable[PosedDepth], settings: FusionSettings | None = None,
 __all__ = [
     "ARM_COLOURS",
     "FusionResult",
+    "FrameView",
     "FusionSettings",
     "VoxelCloud",
     "VoxelFusion",
+    "calibration_uncertainty_m",
     "cloud_from_stats",
     "fit_to_local_surface",
     "fuse",
+    "in_view",
     "merge_coincident",
     "statistical_outliers",
+    "supported_voxels",
     "write_voxel_cloud",
 ]

@@ -4,10 +4,15 @@ A survey records both cameras continuously (about 3,000 depth frames per camera 
 most frames are redundant or taken while the arm moves. Keyframes are chosen per arm from the pose
 recovery (:func:`darp.reconstruction.poses.recover_survey_poses`) in four steps:
 
-1. **Settled**: the frame has a pose, its own arm's largest joint speed is at most
-   ``max_joint_speed_rad_s`` (above the encoder-noise floor of a still arm, far below a move), and
-   the arm has been still for at least ``settle_s`` (a settled window after a move: the time since
-   the first still frame of the run). The other arm does not matter: it does not move this camera.
+1. **Settled**: the frame has a pose, its own arm's largest joint speed is at most the arm's
+   *stillness threshold*, and the arm has been still for at least ``settle_s`` (a settled window after
+   a move: the time since the first still frame of the run). The other arm does not matter: it does not
+   move this camera. The threshold comes from the survey's own joint log: the encoder noise of every
+   joint is measured robustly from the log's second differences (:func:`joint_speed_noise`: the median
+   absolute deviation ignores moves), and the threshold is ``noise_factor`` times the resulting speed
+   noise of one joint, never below ``max_joint_speed_rad_s`` (the floor for a clean log) and never above
+   ``max_still_speed_rad_s`` (slower than any move). A fixed threshold broke on a noisier rig: with
+   0.02 deg encoder noise a still arm reads ~0.035 rad/s, above the old fixed 0.02 rad/s.
 2. **In view**: the object centre (envelope centre) projects into the depth image, in front of the
    camera, at least ``view_margin_px`` inside the border.
 3. **Views**: consecutive settled frames form a *view* (a dwell), split where the viewing direction
@@ -31,6 +36,7 @@ the selection, so it is reproducible and independent of any random seed.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -47,7 +53,10 @@ FUSE, HELDOUT = "fuse", "heldout"
 class KeyframeSettings:
     """Every keyframe-selection parameter (see the module docstring and docs/processing-pipeline.md)."""
 
-    max_joint_speed_rad_s: float = 0.02  # a still Z1 logs ~0.005 rad/s of encoder noise; a move ~0.3-0.6
+    max_joint_speed_rad_s: float = 0.02  # stillness floor: a still Z1 logs ~0.005 rad/s of encoder noise
+    noise_factor: float = 4.0  # stillness threshold: this many times the log's measured speed noise (0: off)
+    max_still_speed_rad_s: float = 0.25  # ... but never above this (a move is ~0.3-0.6 rad/s)
+    min_keyframes: int = 3  # per arm: fewer is flagged as implausible in results.json and the report
     settle_s: float = 0.25  # the arm must have been still this long (a settled window after a move)
     view_split_deg: float = 2.0  # a still run drifting more than this from its first frame is split
     min_separation_deg: float = 6.0  # keyframes of different views are at least this far apart
@@ -60,6 +69,10 @@ class KeyframeSettings:
     def __post_init__(self) -> None:
         if not self.max_joint_speed_rad_s > 0:
             raise ReconstructionError(f"max_joint_speed_rad_s must be > 0, got {self.max_joint_speed_rad_s}")
+        if not (self.noise_factor >= 0 and self.max_still_speed_rad_s >= self.max_joint_speed_rad_s):
+            raise ReconstructionError("noise_factor must be >= 0 and max_still_speed_rad_s >= max_joint_speed_rad_s")
+        if self.min_keyframes < 0:
+            raise ReconstructionError(f"min_keyframes must be >= 0, got {self.min_keyframes}")
         if self.settle_s < 0 or self.view_split_deg <= 0 or self.min_separation_deg < 0:
             raise ReconstructionError("settle_s and min_separation_deg must be >= 0 and view_split_deg > 0")
         if self.per_view < 1 or (self.max_views is not None and self.max_views < 1):
@@ -71,6 +84,11 @@ class KeyframeSettings:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+    def still_threshold(self, speed_noise_rad_s: float = 0.0) -> float:
+        """The stillness threshold (rad/s) for a log whose one-joint speed noise is ``speed_noise_rad_s``."""
+        noise = float(speed_noise_rad_s) if math.isfinite(speed_noise_rad_s) else 0.0
+        return min(max(self.max_joint_speed_rad_s, self.noise_factor * noise), self.max_still_speed_rad_s)
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> KeyframeSettings:
@@ -91,6 +109,8 @@ class ArmKeyframes:
     heldout: np.ndarray  # (K,) bool: held out of fusion for evaluation
     directions: np.ndarray  # (K, 3) unit viewing directions (object centre -> camera)
     counts: dict[str, int] = field(default_factory=dict)  # frames, posed, settled, in_view, views ...
+    still_threshold_rad_s: float = 0.02  # the stillness threshold used (module docstring, step 1)
+    speed_noise_rad_s: float = 0.0  # the joint log's measured one-joint speed noise
 
     def __len__(self) -> int:
         return int(self.indices.size)
@@ -101,10 +121,38 @@ class ArmKeyframes:
 
 
 # -- building blocks -------------------------------------------------------------------------------
-def settled_mask(t_s: np.ndarray, joint_speed_rad_s: np.ndarray, settings: KeyframeSettings) -> np.ndarray:
+def joint_speed_noise(log_t_s: np.ndarray, log_q_rad: np.ndarray) -> float:
+    """The speed noise (rad/s, one standard deviation) of one joint's velocity between consecutive log rows.
+
+    Encoder noise of std ``s`` makes a second difference ``q[i+1] - 2 q[i] + q[i-1]`` noise of std
+    ``sqrt(6) s``; moves at constant speed add nothing to it and accelerations only in a minority of
+    rows, so the median absolute deviation (x 1.4826) measures ``s`` even in a log that moves most of
+    the time. The velocity between two rows ``dt`` apart then has noise ``sqrt(2) s / dt``; the
+    noisiest joint and the median row spacing are used. 0 for a log of fewer than 5 rows.
+    """
+    t = np.asarray(log_t_s, np.float64).reshape(-1)
+    q = np.asarray(log_q_rad, np.float64).reshape(t.size, -1)
+    finite = np.isfinite(t) & np.all(np.isfinite(q), axis=1)
+    t, q = t[finite], q[finite]
+    if t.size < 5:
+        return 0.0
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    if dt.size == 0:
+        return 0.0
+    d2 = q[2:] - 2.0 * q[1:-1] + q[:-2]
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    sigma_q = 1.4826 * mad / math.sqrt(6.0)
+    return float(math.sqrt(2.0) * float(np.max(sigma_q)) / float(np.median(dt)))
+
+
+def settled_mask(t_s: np.ndarray, joint_speed_rad_s: np.ndarray, settings: KeyframeSettings,
+                 threshold_rad_s: float | None = None) -> np.ndarray:
     """Boolean (N,): frames whose arm is slow and has been still for ``settle_s`` (frames in time order).
 
-    A NaN speed (a frame without a pose) counts as moving: it breaks the still run.
+    ``threshold_rad_s``: the stillness threshold (default ``settings.max_joint_speed_rad_s``; callers
+    with a joint log pass ``settings.still_threshold(joint_speed_noise(...))``). A NaN speed (a frame
+    without a pose) counts as moving: it breaks the still run.
     """
     t = np.asarray(t_s, np.float64)
     speed = np.asarray(joint_speed_rad_s, np.float64)
@@ -112,7 +160,8 @@ def settled_mask(t_s: np.ndarray, joint_speed_rad_s: np.ndarray, settings: Keyfr
         raise ReconstructionError(f"times {t.shape} and speeds {speed.shape} must be equal 1-D arrays")
     if t.size > 1 and np.any(np.diff(t) < 0):
         raise ReconstructionError("frame times must be in time order")
-    still = np.isfinite(speed) & (speed <= settings.max_joint_speed_rad_s)
+    limit = settings.max_joint_speed_rad_s if threshold_rad_s is None else float(threshold_rad_s)
+    still = np.isfinite(speed) & (speed <= limit)
     # start time of the still run each frame belongs to: a run starts at a still frame after a non-still one
     starts = still & ~np.concatenate(([False], still[:-1]))
     run_start = np.where(starts, t, -np.inf)
@@ -187,26 +236,29 @@ def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # -- selection ---------------------------------------------------------------------------------------
 def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joint_speed_rad_s: np.ndarray,
                          centre_m: np.ndarray | None, settings: KeyframeSettings | None = None,
-                         intrinsics: Intrinsics | None = None) -> ArmKeyframes:
+                         intrinsics: Intrinsics | None = None, speed_noise_rad_s: float = 0.0) -> ArmKeyframes:
     """Keyframes of one arm's frames (in time order): settled, in view, diverse, split (module docstring).
 
     ``centre_m`` is the object (envelope) centre, or None to use where the settled cameras look.
-    Without ``intrinsics`` the in-view test is skipped.
+    Without ``intrinsics`` the in-view test is skipped. ``speed_noise_rad_s``: the joint log's measured
+    speed noise (:func:`joint_speed_noise`), which sets the stillness threshold.
     """
     settings = settings or KeyframeSettings()
+    threshold = settings.still_threshold(speed_noise_rad_s)
     T = np.asarray(T_world_cam, np.float64)
     n = T.shape[0]
     if T.shape != (n, 4, 4):
         raise ReconstructionError(f"{arm}: poses must be (N, 4, 4), got {T.shape}")
     posed = np.all(np.isfinite(T.reshape(n, 16)), axis=1)
-    settled = settled_mask(t_s, joint_speed_rad_s, settings) & posed
+    settled = settled_mask(t_s, joint_speed_rad_s, settings, threshold) & posed
     if centre_m is None:
         centre = look_at_point(T[settled]) if settled.sum() >= 2 else None
     else:
         centre = np.asarray(centre_m, np.float64).reshape(3)
     counts = {"frames": n, "posed": int(posed.sum()), "settled": int(settled.sum())}
+    noise = {"still_threshold_rad_s": threshold, "speed_noise_rad_s": float(speed_noise_rad_s)}
     if centre is None:
-        return _empty(arm, {**counts, "in_view": 0, "views_found": 0, "views": 0})
+        return _empty(arm, {**counts, "in_view": 0, "views_found": 0, "views": 0}, **noise)
     directions = np.zeros((n, 3))
     directions[posed] = viewing_directions(T[posed], centre)
     candidate = settled & np.all(np.isfinite(directions), axis=1)
@@ -217,7 +269,7 @@ def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joi
     n_views = int(view_of.max()) + 1 if candidate.any() else 0
     counts["views_found"] = n_views
     if n_views == 0:
-        return _empty(arm, {**counts, "views": 0})
+        return _empty(arm, {**counts, "views": 0}, **noise)
 
     members = [spread(np.flatnonzero(view_of == v), settings.per_view) for v in range(n_views)]
     taken = _diverse_views(members, view_of, directions, T[:, :3, 3] - centre, settings)
@@ -227,7 +279,7 @@ def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joi
     counts["keyframes"] = int(indices.size)
     counts["heldout"] = int(heldout.sum())
     return ArmKeyframes(arm=arm, indices=indices, view_ids=view_of[indices], heldout=heldout,
-                        directions=directions[indices], counts=counts)
+                        directions=directions[indices], counts=counts, **noise)
 
 
 def _diverse_views(members: list[np.ndarray], view_of: np.ndarray, directions: np.ndarray,
@@ -255,9 +307,10 @@ def _diverse_views(members: list[np.ndarray], view_of: np.ndarray, directions: n
     return kept
 
 
-def _empty(arm: str, counts: dict[str, int]) -> ArmKeyframes:
+def _empty(arm: str, counts: dict[str, int], still_threshold_rad_s: float = 0.02,
+           speed_noise_rad_s: float = 0.0) -> ArmKeyframes:
     return ArmKeyframes(arm, np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, bool), np.empty((0, 3)),
-                        {**counts, "keyframes": 0, "heldout": 0})
+                        {**counts, "keyframes": 0, "heldout": 0}, still_threshold_rad_s, speed_noise_rad_s)
 
 
 def select_survey_keyframes(trajectories: Mapping[str, Any], centre_m: np.ndarray | None,
@@ -266,7 +319,9 @@ def select_survey_keyframes(trajectories: Mapping[str, Any], centre_m: np.ndarra
     """Keyframes of every arm of a pose recovery (``SurveyPoses.trajectories``: CameraTrajectory by arm).
 
     Frames are taken in timestamp order; ``intrinsics`` (depth stream, by arm) enable the in-view test
-    (an arm without them, missing or None, gets none).
+    (an arm without them, missing or None, gets none). A trajectory's ``speed_noise_rad_s`` (measured
+    from the joint log by :func:`darp.reconstruction.poses.recover_survey_poses`) sets its arm's
+    stillness threshold.
     """
     out: dict[str, ArmKeyframes] = {}
     for arm, traj in trajectories.items():
@@ -274,9 +329,9 @@ def select_survey_keyframes(trajectories: Mapping[str, Any], centre_m: np.ndarra
         poses = traj.poses
         picked = select_arm_keyframes(
             arm, poses.t_s[order], poses.T_world_cam[order], poses.joint_speed_rad_s[order], centre_m, settings,
-            None if intrinsics is None else intrinsics.get(arm))
+            None if intrinsics is None else intrinsics.get(arm), float(getattr(traj, "speed_noise_rad_s", 0.0)))
         out[arm] = ArmKeyframes(arm, order[picked.indices], picked.view_ids, picked.heldout, picked.directions,
-                                picked.counts)
+                                picked.counts, picked.still_threshold_rad_s, picked.speed_noise_rad_s)
     return out
 
 
@@ -286,6 +341,7 @@ __all__ = [
     "ArmKeyframes",
     "KeyframeSettings",
     "centre_in_view",
+    "joint_speed_noise",
     "look_at_point",
     "select_arm_keyframes",
     "select_survey_keyframes",

@@ -26,6 +26,7 @@ from darp.formats.schema import write_json_checked
 from darp.formats.survey import Survey
 from darp.kinematics.camera_poses import DEFAULT_MAX_GAP_S, STATUS_NAMES, CameraPoses, camera_poses
 from darp.kinematics.transforms import quaternion_to_rotation, rotation_to_quaternion
+from darp.reconstruction.keyframes import joint_speed_noise
 
 HOST_TIME_DOMAINS = ("Global Time", "System Time")
 SUMMARY_FILE = "summary.json"
@@ -45,6 +46,7 @@ class CameraTrajectory:
     poses: CameraPoses
     log_span_s: tuple[float, float]  # first and last joint-log time of this arm (host clock)
     log_rows: int
+    speed_noise_rad_s: float = 0.0  # the joint log's measured speed noise (keyframes.joint_speed_noise)
 
     @property
     def camera_span_s(self) -> tuple[float, float] | None:
@@ -63,6 +65,7 @@ class CameraTrajectory:
             **self.poses.counts(),
             "log_rows": self.log_rows,
             "log_span_s": list(self.log_span_s),
+            "speed_noise_rad_s": self.speed_noise_rad_s,
             "camera_span_s": None if self.camera_span_s is None else list(self.camera_span_s),
             "timestamp_domains": list(self.timestamp_domains),
         }
@@ -169,6 +172,7 @@ def recover_survey_poses(
             arm=arm, serial=serial, stream=stream, frame_numbers=frame_numbers,
             timestamps_ms=timestamps_ms, timestamp_domains=domains, poses=poses,
             log_span_s=(float(log_t[0]), float(log_t[-1])), log_rows=int(log_t.size),
+            speed_noise_rad_s=joint_speed_noise(log_t, log_q),
         )
     return result
 

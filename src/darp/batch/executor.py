@@ -1,0 +1,108 @@
+"""Run one function over many surveys: a plain loop, or Ray Core tasks (one per survey).
+
+Ray tasks request ``num_cpus`` and ``memory``, are retried ``max_retries`` times when their worker
+dies (a crash, the node lost; a ``DarpError`` is the input's fault and is not retried), and run in a
+fresh worker process each (``max_calls=1``: the twin's native renderer and Open3D keep process-wide
+state). Every output darp writes is atomic, so a retried task never sees or leaves a half-written
+file. ``ray`` starts a local Ray instance on this machine; ``ray:ADDRESS`` joins a running cluster
+(``ray:auto`` the one this node belongs to).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from darp.errors import ConfigError, DarpError
+
+ProgressFn = Callable[[int, int], None]  # (tasks done, tasks in all)
+DEFAULT_MEMORY_BYTES = 2 * 1024**3  # a survey's processing peaks near 1 GiB at 640x480 (docs/scaling.md)
+# Environment the workers need on a cluster (a local Ray inherits this process's environment anyway).
+WORKER_ENV = ("MUJOCO_GL", "PYOPENGL_PLATFORM", "OPENBLAS_CORETYPE", "PYTHONPATH")
+
+
+@dataclass(frozen=True)
+class Executor:
+    """Where a batch runs: ``local`` (a plain loop in this process) or ``ray`` (address None: local Ray)."""
+
+    kind: str = "local"
+    address: str | None = None
+
+    def __str__(self) -> str:
+        return self.kind if self.address is None else f"{self.kind}:{self.address}"
+
+
+def parse_executor(value: str | Executor) -> Executor:
+    """``local``, ``ray`` or ``ray:ADDRESS`` (e.g. ``ray:auto``, ``ray:10.0.0.5:6379``)."""
+    if isinstance(value, Executor):
+        return value
+    kind, _, address = value.partition(":")
+    if kind not in ("local", "ray") or (kind == "local" and address):
+        raise ConfigError(f"executor {value!r}: expected local, ray or ray:ADDRESS")
+    return Executor(kind, address or None)
+
+
+def run_tasks(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], executor: Executor, *,
+              num_cpus: float = 1.0, memory_bytes: int = DEFAULT_MEMORY_BYTES, max_retries: int = 2,
+              progress: ProgressFn | None = None, ray_init: dict[str, Any] | None = None) -> list[Any]:
+    """``[fn(*args) for args in calls]`` on the executor, results in the order of ``calls``.
+
+    The first task error is raised after every task has finished (its DarpError as is).
+    """
+    if executor.kind == "local":
+        results = []
+        for k, args in enumerate(calls):
+            results.append(fn(*args))
+            if progress is not None:
+                progress(k + 1, len(calls))
+        return results
+    return _run_ray(fn, calls, executor.address, num_cpus=num_cpus, memory_bytes=memory_bytes,
+                    max_retries=max_retries, progress=progress, ray_init=ray_init or {})
+
+
+def _run_ray(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], address: str | None, *, num_cpus: float,
+             memory_bytes: int, max_retries: int, progress: ProgressFn | None,
+             ray_init: dict[str, Any]) -> list[Any]:
+    try:
+        import ray
+    except ImportError:
+        raise DarpError("--executor ray needs Ray (pip install ray, or make setup)") from None
+    started_here = not ray.is_initialized()
+    if started_here:
+        env = {k: os.environ[k] for k in WORKER_ENV if k in os.environ}
+        options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
+                                   "logging_level": "ERROR", **ray_init}
+        if address is not None:
+            options["runtime_env"] = {"env_vars": env}
+        ray.init(address=address, **options)
+    try:
+        remote = ray.remote(num_cpus=num_cpus, memory=memory_bytes, max_retries=max_retries, max_calls=1,
+                            retry_exceptions=False)(fn)
+        refs = [remote.remote(*args) for args in calls]
+        order = {ref: k for k, ref in enumerate(refs)}
+        results: list[Any] = [None] * len(refs)
+        errors: list[tuple[int, BaseException]] = []
+        pending = list(refs)
+        while pending:
+            done, pending = ray.wait(pending, num_returns=1)
+            for ref in done:
+                try:
+                    results[order[ref]] = ray.get(ref)
+                except ray.exceptions.RayTaskError as err:
+                    cause = err.cause if isinstance(getattr(err, "cause", None), BaseException) else err
+                    errors.append((order[ref], cause))
+                except ray.exceptions.RayError as err:  # the worker died max_retries + 1 times
+                    errors.append((order[ref], DarpError(f"task {order[ref]} failed on Ray: {err}")))
+            if progress is not None:
+                progress(len(refs) - len(pending), len(refs))
+        if errors:
+            raise sorted(errors, key=lambda e: e[0])[0][1]
+        return results
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+__all__ = ["DEFAULT_MEMORY_BYTES", "Executor", "parse_executor", "run_tasks"]

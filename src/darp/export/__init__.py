@@ -1,0 +1,44 @@
+"""Exports of processed surveys into the formats other tools load (``darp export FORMAT``).
+
+The conventions of each format are in :mod:`darp.export.cameras` and :mod:`darp.export.objects`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from darp.dataset import ProcessedSurvey, find_processed
+from darp.export.cameras import export_colmap, export_nerfstudio, export_open3d, export_tum
+from darp.export.objects import export_bop, export_completion
+
+PER_SURVEY: dict[str, Callable[[ProcessedSurvey, Path], dict[str, Any]]] = {
+    "nerfstudio": export_nerfstudio, "colmap": export_colmap, "open3d": export_open3d, "tum": export_tum,
+}
+DATASET: dict[str, Callable[[list[ProcessedSurvey], Path], dict[str, Any]]] = {
+    "bop": export_bop, "completion": export_completion,
+}
+FORMATS = (*PER_SURVEY, *DATASET)
+
+
+def export(fmt: str, processed: str | Path, out: str | Path) -> dict[str, Any]:
+    """Export every processed survey at ``processed`` in format ``fmt`` under ``out``.
+
+    Per-survey formats (nerfstudio, colmap, open3d, tum) write ``out`` itself for one survey and
+    ``out/<survey>/`` for several; bop and completion write one dataset folder for all of them.
+    """
+    surveys = find_processed(processed)
+    out = Path(out)
+    if fmt in DATASET:
+        return {"format": fmt, "out": str(out), **DATASET[fmt](surveys, out)}
+    if fmt not in PER_SURVEY:
+        raise ValueError(f"unknown export format {fmt!r}")
+    summaries = {}
+    for survey in surveys:
+        target = out if len(surveys) == 1 else out / survey.name
+        summaries[survey.name] = {"out": str(target), **PER_SURVEY[fmt](survey, target)}
+    return {"format": fmt, "out": str(out), "surveys": summaries}
+
+
+__all__ = ["FORMATS", "export"]
