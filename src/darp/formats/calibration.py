@@ -160,8 +160,6 @@ def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
 
 def _check_ranges(arm: ArmCalibration, where: str, path: Path | None) -> None:
     """Refuse transforms and offsets outside the plausible ranges (docs/reliability.md)."""
-    if not arm.serial.strip():
-        raise FormatError(f"{where}.serial: empty", path)
     base = np.asarray(arm.T_world_base)[:3, 3]
     if float(np.max(np.abs(base))) > POSITION_ABS_MAX_M:
         shown = ", ".join(f"{v:.3g}" for v in base)
@@ -204,7 +202,7 @@ def calibration_from_dict(payload: dict[str, Any], path: str | Path | None = Non
     parsed = {name: _arm_from(name, value, path) for name, value in arms.items()}
     serials: dict[str, str] = {}
     for name, arm in parsed.items():
-        if arm.serial in serials:
+        if arm.serial and arm.serial in serials:  # any-arm calibrations may have no camera serial
             raise FormatError(f"arms.{name}.serial: camera {arm.serial} is also on arms.{serials[arm.serial]}", path)
         serials[arm.serial] = name
     return Calibration(
