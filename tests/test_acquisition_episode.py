@@ -64,6 +64,9 @@ def test_existing_episode_needs_overwrite(tmp_path: Path, existing: str) -> None
 def test_overwrite_replaces_only_when_the_new_episode_ends(tmp_path: Path) -> None:
     (tmp_path / "mug").mkdir()
     (tmp_path / "mug" / "old.txt").write_text("old")
+    with pytest.raises(AcquisitionError, match="not a survey folder darp wrote"):  # not darp's: never deleted
+        Episode(tmp_path, "mug", overwrite=True)
+    (tmp_path / "mug" / "events.jsonl").write_text("")  # an earlier episode's folder
     (tmp_path / "mug.partial").mkdir()  # a stale partial goes at once
     ep = Episode(tmp_path, "mug", overwrite=True)
     assert (tmp_path / "mug" / "old.txt").is_file()  # the accepted survey survives a re-run until it ends

@@ -35,6 +35,7 @@ ALLOWED: dict[str, set[str]] = {
     "batch": BASE | {"formats", "formats.realsense", "kinematics", "backend", "geometry", "calibration",
                      "acquisition", "twin", "reconstruction", "evaluation", "processing"},
     "cli": set(),  # the top: anything
+    "__main__": {"cli"} | BASE,  # the console entry point: loads the cli
 }
 REALSENSE_MAY_USE = {"darp.formats.atomic", "darp.formats.text"}
 

@@ -50,7 +50,8 @@ def files_digest(folder: Path) -> dict[str, str]:
 
 def test_survey_folder_is_complete_and_readable(ideal: Path) -> None:
     names = sorted(p.name for p in ideal.iterdir())
-    assert names == ["arm_poses.csv", "cam348522076490.bag", "cam405622074504.bag", "manip_envelope.json", "truth"]
+    assert names == [".darp-written", "arm_poses.csv", "cam348522076490.bag", "cam405622074504.bag",
+                     "manip_envelope.json", "truth"]  # .darp-written: --overwrite may replace this folder
     assert not ideal.with_name(ideal.name + ".partial").exists()
     survey = open_survey(ideal)
     assert survey.arms == ("arm110", "arm111")

@@ -64,6 +64,15 @@ class EvaluationError(DarpError):
     """Evaluation inputs are missing or inconsistent."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread by the command line's handler so that the same cleanup
+    as for Ctrl-C runs; the command exits with 128 + ``signum``."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = int(signum)
+        super().__init__(f"signal {self.signum}")
+
+
 class DarpWarning(UserWarning):
     """Root of darp's warnings: the input was used, but something about it needs saying. Library code
     issues them with :func:`warnings.warn`; the command line prints each once as a ``darp: warning:`` line."""

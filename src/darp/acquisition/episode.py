@@ -121,9 +121,20 @@ class Episode:
         if existing and not overwrite:
             what = ", ".join(str(p) for p in existing)
             raise AcquisitionError(f"{what} already exists; choose another name or pass --overwrite")
+        for old in existing:  # --overwrite deletes only folders an episode wrote
+            if old.is_dir() and any(old.iterdir()) and not (old / EVENTS_FILE).is_file():
+                raise AcquisitionError(f"is not a survey folder darp wrote (no {EVENTS_FILE}): refusing to delete "
+                                       "it with --overwrite", old)
         if self.partial_path.exists():
             shutil.rmtree(self.partial_path)
         self.partial_path.mkdir(parents=True)
+        # First file in, last file out: a folder holding PARTIAL.txt is unfinished, even after a SIGKILL.
+        try:
+            (self.partial_path / PARTIAL_FILE).write_text(
+                "partial: running, or killed while running (the survey is incomplete)\n", encoding="utf-8")
+        except OSError:  # a full or read-only disk: nothing was recorded, leave nothing behind
+            shutil.rmtree(self.partial_path, ignore_errors=True)
+            raise
         self.path = self.partial_path
         self.status = "running"
         self.events = EventLog(self.partial_path / EVENTS_FILE, clock)
@@ -148,6 +159,7 @@ class Episode:
                 shutil.rmtree(old)
         self.partial_path.rename(target)
         self.path = target
+        (target / PARTIAL_FILE).unlink(missing_ok=True)  # last: the outcome is written, the folder is whole
         return target
 
     def accept(self, message: str = "", extra: dict[str, Any] | None = None) -> Path:

@@ -14,6 +14,7 @@ beside it, so that a print at the wrong scale is caught with a ruler before it i
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -193,8 +194,10 @@ def write_board_pdf(spec: CharucoBoardSpec, path: str | Path, *, paper: str = "a
             page.text(left + k, y_bar + 3.6, str(k), fontsize=5, ha="center", va="bottom")
     page.text(left + 103.0, y_bar, "100 mm", fontsize=6, va="center")
     path = Path(path)
+    pdf = io.BytesIO()  # rendered in memory: a full disk then fails a plain write, not matplotlib's PDF stream
+    fig.savefig(pdf, format="pdf", metadata={"Title": spec_text(spec), "Creator": "darp calib board"})
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="pdf", metadata={"Title": spec_text(spec), "Creator": "darp calib board"})
+        tmp.write_bytes(pdf.getvalue())
     return {"paper": name, "page_mm": (page_w, page_h), "board_origin_mm": (left, page_h - bottom - h_mm),
             "board_size_mm": (w_mm, h_mm), "px_per_square": px_per_square}
 

@@ -40,6 +40,7 @@ from darp.errors import CalibrationError, FormatError
 from darp.formats.atomic import atomic_path
 from darp.formats.calibration import CharucoBoardSpec
 from darp.formats.calibration import board_from_dict as parse_board
+from darp.formats.limits import JOINT_ABS_MAX_RAD
 from darp.formats.realsense.types import Intrinsics
 from darp.formats.schema import (
     as_array,
@@ -51,6 +52,8 @@ from darp.formats.schema import (
     load_json_object,
     write_json_checked,
 )
+from darp.formats.survey import DEFAULT_SERIAL_TO_ARM
+from darp.formats.text import native_stderr_silenced
 
 INDEX_FILE = "captures.json"
 INDEX_SCHEMA = "darp-calib-captures/1"
@@ -107,7 +110,8 @@ class CaptureSet:
         path = self.image_path(record)
         if not path.is_file():
             raise FormatError(f"capture {record.capture_id}: image file is missing", path)
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        with native_stderr_silenced():  # libpng's own lines about a damaged file
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if image is None:
             raise FormatError(f"capture {record.capture_id}: not a readable image", path)
         if image.dtype != np.uint8:
@@ -205,12 +209,20 @@ def record_from_dict(data: dict[str, Any], path: Path | None) -> CaptureRecord:
             raise FormatError(f"image_size {size.astype(int).tolist()} differs from the intrinsics' "
                               f"{intr.width}x{intr.height}", path)
     std = data.get("q_std_rad")
+    arm = as_str(data["arm"], "arm", path)
+    on_arm = DEFAULT_SERIAL_TO_ARM.get(str(data["camera_serial"]))
+    if not arm.strip() or (on_arm is not None and arm != on_arm):
+        raise FormatError(f"arm: {arm!r} does not carry camera {data['camera_serial']} (it is on {on_arm})", path)
+    q = as_array(data["q_rad"], "q_rad", path, (6,))
+    if float(np.max(np.abs(q))) > JOINT_ABS_MAX_RAD:
+        raise FormatError(f"q_rad: {float(q[np.argmax(np.abs(q))])!r} rad is not a joint angle (beyond "
+                          f"+-{JOINT_ABS_MAX_RAD:.4f})", path)
     return CaptureRecord(
         capture_id=as_str(data["id"], "id", path),
-        arm=as_str(data["arm"], "arm", path),
+        arm=arm,
         camera_serial=str(data["camera_serial"]),
         time_s=as_float(data["time_s"], "time_s", path),
-        q_rad=as_array(data["q_rad"], "q_rad", path, (6,)),
+        q_rad=q,
         stream=stream,
         image_file=image,
         intrinsics=intr,

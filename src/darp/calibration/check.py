@@ -21,6 +21,7 @@ blamed on one of them: both arms are then reported stale.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, cast
 
 import numpy as np
@@ -104,20 +105,24 @@ def fit_board(params: ChainParams, obs: Observations, wrist_frame: str = "flange
     return cast(np.ndarray, start @ delta(res.x))
 
 
-def _limits(cal: Calibration, arm: str, s: CheckSettings) -> tuple[float, float]:
+def _limits(cal: Calibration, arm: str, s: CheckSettings, cal_path: Path | None = None) -> tuple[float, float]:
     held = cal.arms[arm].residuals.get("heldout") if cal.arms[arm].residuals else None
     if not held or "corner_3d_mm" not in held or "reprojection_px" not in held:
-        raise CalibrationError(f"the calibration has no held-out statistics for {arm} "
-                               "(solve with --folds >= 2 to make a calibration that can be checked)")
+        raise CalibrationError(f"arms.{arm}.residuals: no held-out statistics "
+                               "(solve with --folds >= 2 to make a calibration that can be checked)", cal_path)
     mm, px = held["corner_3d_mm"], held["reprojection_px"]
     return (max(s.k_median * float(mm["median"]), s.k_p90 * float(mm["p90"]), s.floor_mm),
             max(s.k_median * float(px["median"]), s.k_p90 * float(px["p90"]), s.floor_px))
 
 
 def check_calibration(cal: Calibration, captures: CaptureSet, settings: CheckSettings | None = None,
-                      detections: list[Detection] | None = None) -> CheckResult:
-    """Compare new captures with the calibration's predictions; see the module docstring."""
+                      detections: list[Detection] | None = None, *, cal_path: Path | None = None) -> CheckResult:
+    """Compare new captures with the calibration's predictions; see the module docstring. ``cal_path``
+    (the calibration's file) is named in the errors that are the calibration's."""
     s = settings or CheckSettings()
+    for arm in cal.arms:
+        if arm in captures.arms:
+            _limits(cal, arm, s, cal_path)  # before the detection's seconds
     for arm in captures.arms:
         if arm not in cal.arms:
             raise CalibrationError(f"captures of {arm}, which the calibration does not have "
@@ -130,6 +135,11 @@ def check_calibration(cal: Calibration, captures: CaptureSet, settings: CheckSet
     arms = tuple(a for a in sorted(cal.arms) if any(d.ok and d.arm == a for d in dets))
     if not arms:
         raise CalibrationError("no new capture has a usable board detection", captures.folder)
+    blind = [a for a in captures.arms if a not in arms]
+    if blind:
+        n = sum(1 for c in captures.captures if c.arm == blind[0])
+        raise CalibrationError(f"none of the {n} captures of {blind[0]} shows the board (blank or unreadable "
+                               f"images?): {blind[0]} cannot be checked", captures.folder)
     obs = build_observations(dets, captures.board, arms)
     stored = cal.report.get("T_world_board") if isinstance(cal.report, dict) else None
     if s.board_unmoved:
@@ -146,7 +156,7 @@ def check_calibration(cal: Calibration, captures: CaptureSet, settings: CheckSet
         n = int(np.count_nonzero(obs.arm_index == a))
         mm = summarise(errs["corner_3d_mm"][arm_of_corner == a])
         px = summarise(errs["reprojection_px"][arm_of_corner == a])
-        lim_mm, lim_px = _limits(cal, arm, s)
+        lim_mm, lim_px = _limits(cal, arm, s, cal_path)
         reasons = []
         if n < s.min_captures:
             reasons.append(f"only {n} usable captures")

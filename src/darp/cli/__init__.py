@@ -30,10 +30,20 @@ from darp.cli._app import app
 
 
 def main() -> None:
-    """Console entry point."""
+    """Console entry point. After a signal (exit 129/130/143) darp's own cleanup has run; the process then ends
+    at once, so that no library's exit hook (thread joins, a native ``exit(1)``) delays it or changes its code."""
+    import contextlib
+    import os
+
     from darp.cli._app import run
 
-    sys.exit(run())
+    rc = run()
+    if rc > 128:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(rc)
+    sys.exit(rc)
 
 
 __all__ = ["app", "main", "typer"]

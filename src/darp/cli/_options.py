@@ -261,3 +261,21 @@ __all__ = [
     "calibration_option", "input_argument", "out_option", "parse_camera_arm", "parse_joints", "parse_placement",
     "parse_resolution",
 ]
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    return path == folder or folder in path.parents
+
+
+def refuse_output_over_inputs(out: Path, inputs: list[Path], option: str = "--out", *,
+                              folder_output: bool = False) -> None:
+    """Refuse (exit 2) an output that is one of the inputs or lands inside an input folder; with
+    ``folder_output`` (an output folder that may be filled or replaced) also one that holds an input."""
+    target = out.expanduser().resolve()
+    for source in inputs:
+        held = source.expanduser().resolve()
+        clash = _inside(target, held) or (folder_output and _inside(held, target))
+        if clash:
+            what = "is" if target == held else ("is inside" if _inside(target, held) else "holds")
+            raise typer.BadParameter(f"{out} {what} the input {source}: refusing to write over an input",
+                                     param_hint=f"'{option}'")

@@ -34,6 +34,7 @@ from darp.cli._options import (
     calibration_option,
     input_argument,
     out_option,
+    refuse_output_over_inputs,
 )
 
 calib_app = typer.Typer(help="Calibrate the rig with a ChArUco board: hand-eye, bases, joint-zero offsets.",
@@ -192,6 +193,9 @@ def solve_command(
     from darp.calibration.solve import SolveSettings, solve_captures
     from darp.formats.calibration import read_calibration, write_calibration
 
+    refuse_output_over_inputs(out, [captures, *([truth] if truth else [])], "--out")
+    if report is not None:
+        refuse_output_over_inputs(report, [captures, *([truth] if truth else [])], "--report", folder_output=True)
     caps = read_captures(captures)
     truth_path = truth if truth is not None else caps.truth_calibration_path()
     truth_cal = read_calibration(truth_path) if truth_path is not None else None
@@ -241,8 +245,10 @@ def check_command(
     from darp.formats.calibration import read_calibration
     from darp.formats.schema import to_jsonable, write_json_checked
 
+    if out is not None:
+        refuse_output_over_inputs(out, [calibration, captures], "--out")
     result = check_calibration(read_calibration(calibration), read_captures(captures),
-                               CheckSettings(board_unmoved=board_unmoved))
+                               CheckSettings(board_unmoved=board_unmoved), cal_path=calibration)
     if out is not None:
         write_json_checked(out, result.to_dict())
     if as_json:

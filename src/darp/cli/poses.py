@@ -49,13 +49,13 @@ def poses(
     rig = load_rig(rig_file)
     cal = read_calibration(calibration) if calibration is not None else rig.nominal_calibration()
     serial_to_arm = {arm.serial: arm_id for arm_id, arm in cal.arms.items()}
-    opened = open_survey(survey, serial_to_arm=serial_to_arm)
+    opened = open_survey(survey, serial_to_arm=serial_to_arm, mapping_source=calibration)
     if calibration is None:
         warn(f"no --calibration given: using the nominal transforms of rig {rig.name!r} and zero joint "
              "offsets; poses can be centimetres off")
 
     columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=err, transient=True) as progress:
+    with Progress(*columns, console=err, transient=True, disable=not err.is_terminal) as progress:
         task = progress.add_task("reading the joint log", total=len(opened.arms) + 1 + int(figure))
 
         def on_arm(arm: str) -> None:

@@ -9,7 +9,7 @@ import typer
 
 from darp.cli._app import app, error
 from darp.cli._batch import ExecutorOption, process_on_executor
-from darp.cli._options import calibration_option, input_argument, out_option
+from darp.cli._options import calibration_option, input_argument, out_option, refuse_output_over_inputs
 
 CALIBRATION_HELP = "Calibration JSON of the rig epoch."
 SETTINGS_HELP = "Processing settings YAML/JSON (docs/processing-pipeline.md)."
@@ -51,7 +51,8 @@ def _job(survey_path: Path, out: Path, calibration: Path | None, truth_poses: bo
         from darp.twin.truth import read_truth
 
         cal = read_truth(survey_path).calibration
-    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in cal.arms.items()})
+    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in cal.arms.items()},
+                         mapping_source=calibration)
     for note in survey.notes:
         _warn(f"{survey.name}: {note}")
     return SurveyJob(survey=survey, out=out, calibration=cal, calibration_path=calibration, settings=settings,
@@ -76,7 +77,8 @@ def _progress_bars() -> Any:
     )
 
     return Progress(SpinnerColumn(), TextColumn("{task.description:<34}"), BarColumn(), MofNCompleteColumn(),
-                    TimeElapsedColumn(), console=Console(stderr=True), transient=True)
+                    TimeElapsedColumn(), console=Console(stderr=True), transient=True,
+                    disable=not Console(stderr=True).is_terminal)  # no stray blank line before an error
 
 
 def _stage_callback(progress: Any, label: str) -> Any:
@@ -101,6 +103,7 @@ def keyframes(
 ) -> None:
     """Select settled, view-diverse keyframes per arm and export them (aligned RGB, depth, IR, mask, pose)."""
     _need_calibration(calibration, truth_poses)
+    refuse_output_over_inputs(out, [survey], "--out", folder_output=True)
     from rich.console import Console
     from rich.table import Table
 
@@ -154,6 +157,8 @@ def process(
 
     settings = _settings(settings_file)
     folders = imported + (find_survey_folders(surveys) if surveys else [])
+    for folder in folders:  # <out>/<survey>/ must not be (or be inside, or hold) a raw survey
+        refuse_output_over_inputs(out / folder.name, [folder], "--out", folder_output=True)
     names = [f.name for f in folders]
     duplicated = sorted({n for n in names if names.count(n) > 1})
     if duplicated:

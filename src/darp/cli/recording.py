@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
+import warnings
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
@@ -19,7 +20,9 @@ import typer
 
 from darp.cli._app import app
 from darp.cli._options import ExportStream, input_argument, out_option
-from darp.errors import RecordingError
+from darp.errors import DarpWarning, RecordingError
+
+IMU_ABS_MAX = 1.0e4  # m/s^2 or rad/s: beyond any IMU's range (a D435i's: 16 g, 2000 deg/s)
 
 recording_app = typer.Typer(help="Inspect and export RealSense recordings (.bag, .db3).", no_args_is_help=True)
 app.add_typer(recording_app, name="recording")
@@ -280,6 +283,7 @@ def export_command(
         suffix = "." + fmt.value
         counts = dict.fromkeys(keys, 0)
         console = Console(stderr=True)
+        damaged: list[str] = []
         with contextlib.ExitStack() as stack:
             frames_csv = csv.writer(stack.enter_context(atomic_open(out / "frames.csv", "w", newline="")))
             frames_csv.writerow(["stream", "index", "frame_number", "timestamp_ms", "timestamp_domain", "file",
@@ -298,6 +302,10 @@ def export_command(
                 if key in ("accel", "gyro"):
                     sample = recording.read_frame(key, index).data
                     assert imu_csv is not None
+                    if not all(math.isfinite(float(v)) and abs(float(v)) <= IMU_ABS_MAX for v in sample):
+                        damaged.append(f"{key} {index}")  # a corrupt sample: left out, and said so below
+                        progress.advance(task)
+                        continue
                     imu_csv.writerow([key, index, info.frame_number, repr(info.timestamp_ms), info.timestamp_domain,
                                       *(repr(float(v)) for v in sample)])
                 else:
@@ -310,5 +318,8 @@ def export_command(
                 counts[key] += 1
                 progress.advance(task)
         write_json_atomic(out / "intrinsics.json", _metadata_json(recording, keys))
+    if damaged:
+        warnings.warn(DarpWarning(f"{len(damaged)} IMU sample(s) with non-finite or impossible values left out of "
+                                  f"imu.csv (first: {damaged[0]})", file), stacklevel=1)
     done = ", ".join(f"{n} {k}" for k, n in counts.items())
     typer.echo(f"exported {done} frames from {file} to {out}")

@@ -28,6 +28,7 @@ from darp.cli._options import (
     out_option,
     parse_placement,
     parse_resolution,
+    refuse_output_over_inputs,
 )
 
 twin_app = typer.Typer(help="The digital twin: record simulated surveys with ground truth.", no_args_is_help=True)
@@ -113,6 +114,8 @@ def record_command(
     obj = load_object(obj_name, scale)
     place = place_object(placement, obj, rig, settings.seed)
     folder = out if out is not None else Path(obj.name)
+    sources = [p for p in (waypoints, settings_file, rig_file, Path(obj_name)) if p is not None and p.exists()]
+    refuse_output_over_inputs(folder, sources, "--out", folder_output=True)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
                   TextColumn("{task.completed:.1f}/{task.total:.1f} s simulated"), TimeElapsedColumn(),
                   disable=quiet, transient=False) as bar:

@@ -26,6 +26,7 @@ from typing import NoReturn, Self
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.limits import JOINT_ABS_MAX_RAD, TIME_MAX_S, TIME_MIN_S
 from darp.formats.text import read_utf8_text
 
 JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")
@@ -157,6 +158,7 @@ def read_arm_poses(
         row, col = map(int, np.argwhere(~finite)[0])
         name = ("time_s", *JOINT_COLUMNS)[col]
         raise FormatError(f"line {line_array[row]}: {name} is {numbers[row, col]} (must be finite)", path)
+    _check_ranges(numbers, line_array, path)
 
     arm_ids = np.array([cell.strip() for cell in cells[index["arm"] :: n_columns]], dtype=object)
     known = None if known_arms is None else tuple(known_arms)
@@ -184,6 +186,23 @@ def read_arm_poses(
         joints[arm] = _frozen(numbers[mask, 1:])
         arm_lines[arm] = _frozen(line_array[mask])
     return ArmPoseLog(path, times, joints, arm_lines, truncated, tuple(ignored))
+
+
+def _check_ranges(numbers: np.ndarray, line_array: np.ndarray, path: Path) -> None:
+    """Refuse times and joint angles outside the plausible ranges (docs/reliability.md)."""
+    t = numbers[:, 0]
+    bad_t = np.nonzero((t < TIME_MIN_S) | (t > TIME_MAX_S))[0]
+    if bad_t.size:
+        row = int(bad_t[0])
+        why = ("negative" if t[row] < TIME_MIN_S
+               else f"beyond {TIME_MAX_S:.0e} s: milliseconds? the column is host-clock seconds")
+        raise FormatError(f"line {line_array[row]}: time_s is {float(t[row])!r} ({why})", path)
+    q = numbers[:, 1:]
+    bad_q = np.argwhere(np.abs(q) > JOINT_ABS_MAX_RAD)
+    if bad_q.size:
+        row, col = map(int, bad_q[0])
+        raise FormatError(f"line {line_array[row]}: {JOINT_COLUMNS[col]} is {float(q[row, col])!r} rad "
+                          f"(outside +-{JOINT_ABS_MAX_RAD:.4f}: not a joint angle in radians)", path)
 
 
 def _column_index(

@@ -30,18 +30,28 @@ def atomic_path(target: str | Path) -> Iterator[Path]:
     On an exception the temporary file is removed and ``target`` is left untouched.
     """
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=PARTIAL_SUFFIX, dir=target.parent)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=PARTIAL_SUFFIX, dir=target.parent)
+    except OSError as err:
+        raise _naming(err, target) from None
     os.close(fd)
     tmp = Path(tmp_name)
-    os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp creates 0600; give outputs normal permissions
     try:
+        os.chmod(tmp, 0o666 & ~_current_umask())  # mkstemp creates 0600; give outputs normal permissions
         yield tmp
         os.replace(tmp, target)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as err:
+        with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(err, OSError) and (err.filename is None or Path(os.fsdecode(err.filename)) == tmp):
+            raise _naming(err, target) from None  # the user knows the output, not the temporary name
         raise
+
+
+def _naming(err: OSError, target: Path) -> OSError:
+    """The same OS error, naming ``target`` (full disk, read-only file system, permission denied)."""
+    return type(err)(err.errno, err.strerror or str(err), str(target))
 
 
 @contextlib.contextmanager

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.limits import HAND_EYE_MAX_M, JOINT_OFFSET_ABS_MAX_RAD, POSITION_ABS_MAX_M
 from darp.formats.schema import (
     as_array,
     as_dict,
@@ -42,6 +43,17 @@ from darp.formats.schema import (
 
 SCHEMA_VERSION = 1
 N_JOINTS = 6
+TOP_KEYS = ("schema_version", "epoch", "date", "board", "world_frame", "arms", "report")
+ARM_KEYS = ("serial", "T_world_base", "T_wrist_cam", "joint_offsets_rad", "joint_offsets_std_rad", "identifiable",
+            "residuals", "n_captures")
+
+
+def _refuse_unknown(record: dict[str, Any], known: tuple[str, ...], where: str, path: Path | None) -> None:
+    unknown = [k for k in record if k not in known]
+    if unknown:
+        prefix = f"{where}: " if where else ""
+        raise FormatError(f"{prefix}unknown key(s) {', '.join(map(repr, unknown))} (known: {', '.join(known)})",
+                          path)
 
 
 @dataclass(frozen=True)
@@ -123,6 +135,7 @@ def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
     missing = [k for k in ("serial", "T_world_base", "T_wrist_cam", "joint_offsets_rad") if k not in arm]
     if missing:
         raise FormatError(f"{where}: missing {', '.join(missing)}", path)
+    _refuse_unknown(arm, ARM_KEYS, where, path)
     std = arm.get("joint_offsets_std_rad")
     flags = arm.get("identifiable")
     if flags is not None and (
@@ -130,7 +143,7 @@ def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
     ):
         raise FormatError(f"{where}.identifiable: expected a list of {N_JOINTS} booleans", path)
     n_captures = arm.get("n_captures")
-    return ArmCalibration(
+    result = ArmCalibration(
         serial=as_str(arm["serial"], f"{where}.serial", path),
         T_world_base=as_rigid_transform(arm["T_world_base"], f"{where}.T_world_base", path),
         T_wrist_cam=as_rigid_transform(arm["T_wrist_cam"], f"{where}.T_wrist_cam", path),
@@ -141,6 +154,26 @@ def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
         residuals=as_dict(arm.get("residuals", {}), f"{where}.residuals", path),
         n_captures=None if n_captures is None else as_int(n_captures, f"{where}.n_captures", path, minimum=0),
     )
+    _check_ranges(result, where, path)
+    return result
+
+
+def _check_ranges(arm: ArmCalibration, where: str, path: Path | None) -> None:
+    """Refuse transforms and offsets outside the plausible ranges (docs/reliability.md)."""
+    base = np.asarray(arm.T_world_base)[:3, 3]
+    if float(np.max(np.abs(base))) > POSITION_ABS_MAX_M:
+        shown = ", ".join(f"{v:.3g}" for v in base)
+        raise FormatError(f"{where}.T_world_base: translation [{shown}] m is more than {POSITION_ABS_MAX_M:g} m "
+                          "from the world origin", path)
+    cam = float(np.linalg.norm(np.asarray(arm.T_wrist_cam)[:3, 3]))
+    if cam > HAND_EYE_MAX_M:
+        raise FormatError(f"{where}.T_wrist_cam: the camera is {cam:.3g} m from the flange (more than "
+                          f"{HAND_EYE_MAX_M:g} m)", path)
+    dq = np.abs(np.asarray(arm.joint_offsets_rad))
+    if float(dq.max()) > JOINT_OFFSET_ABS_MAX_RAD:
+        j = int(dq.argmax())
+        raise FormatError(f"{where}.joint_offsets_rad: joint{j + 1} offset {float(arm.joint_offsets_rad[j])!r} rad is "
+                          f"beyond +-{JOINT_OFFSET_ABS_MAX_RAD:g} rad", path)
 
 
 def calibration_from_dict(payload: dict[str, Any], path: str | Path | None = None) -> Calibration:
@@ -156,6 +189,7 @@ def calibration_from_dict(payload: dict[str, Any], path: str | Path | None = Non
     missing = [k for k in ("epoch", "date", "arms") if k not in payload]
     if missing:
         raise FormatError(f"missing {', '.join(missing)}", path)
+    _refuse_unknown(payload, TOP_KEYS, "", path)
     date = as_str(payload["date"], "date", path)
     try:
         dt.datetime.fromisoformat(date)
@@ -165,10 +199,16 @@ def calibration_from_dict(payload: dict[str, Any], path: str | Path | None = Non
     if not arms:
         raise FormatError("arms: no arm calibrated", path)
     board = payload.get("board")
+    parsed = {name: _arm_from(name, value, path) for name, value in arms.items()}
+    serials: dict[str, str] = {}
+    for name, arm in parsed.items():
+        if arm.serial and arm.serial in serials:  # any-arm calibrations may have no camera serial
+            raise FormatError(f"arms.{name}.serial: camera {arm.serial} is also on arms.{serials[arm.serial]}", path)
+        serials[arm.serial] = name
     return Calibration(
         epoch=as_str(payload["epoch"], "epoch", path),
         date=date,
-        arms={name: _arm_from(name, value, path) for name, value in arms.items()},
+        arms=parsed,
         board=None if board is None else board_from_dict(board, path),
         world_frame=as_str(payload.get("world_frame", ""), "world_frame", path),
         report=as_dict(payload.get("report", {}), "report", path),

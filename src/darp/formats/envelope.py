@@ -24,6 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from darp.errors import FormatError
+from darp.formats.arm_poses import DEFAULT_ARMS
+from darp.formats.limits import ENVELOPE_SIZE_MAX_M, JOINT_ABS_MAX_RAD, POSITION_ABS_MAX_M
 from darp.formats.schema import (
     as_array,
     as_dict,
@@ -73,8 +75,30 @@ class Envelope:
         return None not in (self.center_m, self.radius_m, self.height_m)
 
 
-def envelope_from_dict(payload: dict[str, Any], path: str | Path | None = None) -> Envelope:
-    """Validate a parsed JSON object and build the :class:`Envelope`."""
+def _check_ranges(env: Envelope, path: str | Path | None, known_arms: tuple[str, ...] | None) -> None:
+    """Refuse values outside the plausible ranges (docs/reliability.md) and arms the rig does not have."""
+    if env.center_m is not None and max(abs(v) for v in env.center_m) > POSITION_ABS_MAX_M:
+        raise FormatError(f"center_m: {list(env.center_m)} is more than {POSITION_ABS_MAX_M:g} m from the "
+                          "world origin", path)
+    for key in ("radius_m", "height_m", "standoff_m"):
+        value = getattr(env, key)
+        if value is not None and value > ENVELOPE_SIZE_MAX_M:
+            raise FormatError(f"{key}: {value!r} m is larger than {ENVELOPE_SIZE_MAX_M:g} m", path)
+    for key, per_arm in (("park_q_rad", {a: [q] for a, q in env.park_q_rad.items()}), ("view_q_rad", env.view_q_rad)):
+        for arm, qs in per_arm.items():
+            if known_arms is not None and arm not in known_arms:
+                raise FormatError(f"{key}.{arm}: unknown arm (expected one of: {', '.join(known_arms)})", path)
+            for k, q in enumerate(qs):
+                worst = max(abs(v) for v in q)
+                if worst > JOINT_ABS_MAX_RAD:
+                    where = f"{key}.{arm}" + (f"[{k}]" if key == "view_q_rad" else "")
+                    raise FormatError(f"{where}: a joint angle of {worst!r} rad is outside +-"
+                                      f"{JOINT_ABS_MAX_RAD:.4f}", path)
+
+
+def envelope_from_dict(payload: dict[str, Any], path: str | Path | None = None,
+                       known_arms: tuple[str, ...] | None = DEFAULT_ARMS) -> Envelope:
+    """Validate a parsed JSON object and build the :class:`Envelope` (``known_arms=None``: any arm id)."""
     payload = dict(payload)
     version: int | None = None
     if "schema_version" in payload:
@@ -111,6 +135,7 @@ def envelope_from_dict(payload: dict[str, Any], path: str | Path | None = None) 
     record = payload.pop("localisation", None)
     env.localisation = None if record is None else as_dict(record, "localisation", path)
     env.extra = payload  # whatever is left: kept, never interpreted
+    _check_ranges(env, path, known_arms)
     return env
 
 
@@ -137,9 +162,9 @@ def envelope_to_dict(env: Envelope) -> dict[str, Any]:
     return payload
 
 
-def read_envelope(path: str | Path) -> Envelope:
-    """Read and validate ``manip_envelope.json``."""
-    return envelope_from_dict(load_json_object(path), Path(path))
+def read_envelope(path: str | Path, known_arms: tuple[str, ...] | None = DEFAULT_ARMS) -> Envelope:
+    """Read and validate ``manip_envelope.json`` (``known_arms=None``: any arm id)."""
+    return envelope_from_dict(load_json_object(path), Path(path), known_arms)
 
 
 def write_envelope(path: str | Path, env: Envelope) -> None:
@@ -148,5 +173,5 @@ def write_envelope(path: str | Path, env: Envelope) -> None:
         payload = to_jsonable(envelope_to_dict(env))
     except FormatError as err:
         raise FormatError(err.message, path) from None
-    envelope_from_dict(payload, path)  # refuse to write what the reader would refuse
+    envelope_from_dict(payload, path, None)  # refuse to write what the reader would refuse
     write_json_checked(path, payload)

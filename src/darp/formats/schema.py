@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,10 @@ def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -
         payload = json.loads(text)
     except json.JSONDecodeError as err:
         raise error(f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}", path) from err
+    except RecursionError:
+        raise error(f"nested too deeply (more than about {sys.getrecursionlimit()} levels)", path) from None
+    except ValueError as err:  # an integer longer than Python's int-parsing limit (4300 digits)
+        raise error(f"invalid JSON: {str(err).splitlines()[0]}", path) from None
     if not isinstance(payload, dict):
         raise error(f"top level must be a JSON object, not {_type_name(payload)}", path)
     return payload

@@ -25,8 +25,10 @@ from darp.formats.realsense.recording import Recording, open_recording
 
 DEFAULT_SERIAL_TO_ARM: dict[str, str] = {"348522076490": "arm110", "405622074504": "arm111"}
 ARM_POSES_FILE = "arm_poses.csv"
-PARTIAL_FILE = "PARTIAL.txt"  # written by an interrupted or failed acquisition (darp.acquisition.episode)
+PARTIAL_FILE = "PARTIAL.txt"  # an unfinished survey folder: written first and removed last by twin record and
+#   collect (so a SIGKILLed run is marked too), rewritten with the reason by an interrupted or failed acquisition
 PARTIAL_RECORDING_SUFFIX = ".partial"  # cam<serial>.bag.partial: a recording that was never finalised
+WRITTEN_BY_FILE = ".darp-written"  # in a folder darp created whole: --overwrite may delete such a folder only
 TRUTH_DIR = "truth"
 RECORDING_SUFFIXES = (".bag", ".db3")
 _RECORDING_NAME = re.compile(r"^cam(?P<serial>[0-9A-Za-z]+)\.(?:bag|db3)$")
@@ -114,15 +116,34 @@ class Survey:
         return recording
 
 
+def _check_mapping(path: Path, mapping: dict[str, str], source: Path) -> None:
+    """Blame ``source`` (a calibration) for a recorded camera it has no arm for, or for a DARP camera on the
+    wrong arm (swapped serials)."""
+    arms = ", ".join(f"{a} -> camera {s}" for s, a in mapping.items()) or "none"
+    for serial, arm in mapping.items():
+        expected = DEFAULT_SERIAL_TO_ARM.get(serial)
+        if expected is not None and expected != arm:
+            raise SurveyError(f"arms.{arm}.serial: camera {serial} is on {expected} in the DARP rig "
+                              "(serials swapped?)", source)
+    for entry in sorted(path.iterdir()) if path.is_dir() else []:
+        match = _RECORDING_NAME.match(entry.name)
+        if match is not None and entry.suffix in RECORDING_SUFFIXES and match["serial"] not in mapping:
+            raise SurveyError(f"no arm carries camera {match['serial']} (recorded in {entry}; arms: {arms})",
+                              source)
+
+
 def open_survey(
     path: str | Path,
     serial_to_arm: Mapping[str, str] | None = None,
     *,
     strict: bool = True,
+    mapping_source: str | Path | None = None,
 ) -> Survey:
     """Locate a survey's files and map camera serials to arms.
 
-    ``serial_to_arm`` replaces the default DARP mapping (348522076490 -> arm110, 405622074504 -> arm111).
+    ``serial_to_arm`` replaces the default DARP mapping (348522076490 -> arm110, 405622074504 -> arm111);
+    ``mapping_source`` is the file it came from (a calibration): a recorded camera it lacks, or a DARP camera
+    it puts on the other arm, is that file's error, not the survey's.
     With ``strict`` (the default) an incomplete survey raises :class:`SurveyError` listing every problem;
     otherwise the problems are kept in :attr:`Survey.problems`.
     """
@@ -132,6 +153,8 @@ def open_survey(
     if not path.is_dir():
         raise SurveyError("not a folder (a survey is a folder holding cam<serial>.bag files)", path)
     mapping = dict(DEFAULT_SERIAL_TO_ARM if serial_to_arm is None else serial_to_arm)
+    if mapping_source is not None:
+        _check_mapping(path, mapping, Path(mapping_source))
     arms_expected = list(dict.fromkeys(mapping.values()))
     problems: list[str] = []
     notes: list[str] = []

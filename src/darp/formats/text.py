@@ -4,6 +4,11 @@ bytes that are not UTF-8."""
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -30,13 +35,55 @@ def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatE
         raise error(f"not UTF-8 text (byte {err.start})", path) from err
 
 
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """Send what C libraries print on stderr (libpng's "libpng error: ...", OpenCV's decoder warnings) to
+    /dev/null for the block: darp reports the damaged file itself, in one line."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable fd 2: nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+class YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2 floats: ``1.0e6`` and ``1e6`` are numbers, as in JSON, not the
+    strings YAML 1.1 makes of them (``1.0e+6`` was a number, ``1.0e6`` a string)."""
+
+
+YamlLoader.yaml_implicit_resolvers = {k: [r for r in v if r[0] != "tag:yaml.org,2002:float"]
+                                      for k, v in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+YamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+                  |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+                  |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+                  |[-+]?\.(?:inf|Inf|INF)
+                  |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(text: str) -> Any:
+    """Parse YAML text with :class:`YamlLoader` (safe, YAML 1.2 floats)."""
+    return yaml.load(text, Loader=YamlLoader)
+
+
 def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, Any]:
     """Parse a YAML (or JSON) file whose top level is a mapping; every failure is a ConfigError naming
     ``path``. ``empty_ok``: an empty file is an empty mapping (a settings file that changes nothing)."""
     path = Path(path)
     text = read_utf8_text(path, "a file", ConfigError)
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f" at line {mark.line + 1} column {mark.column + 1}" if mark is not None else ""
@@ -52,4 +99,4 @@ def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, 
     return data
 
 
-__all__ = ["read_utf8_text", "read_yaml_mapping"]
+__all__ = ["YamlLoader", "load_yaml", "native_stderr_silenced", "read_utf8_text", "read_yaml_mapping"]

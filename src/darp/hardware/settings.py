@@ -55,7 +55,7 @@ def _default_connection(order: int) -> Z1Connection:
 
 
 def _typed(data: Mapping[str, Any], types: Mapping[str, type], where: str) -> dict[str, Any]:
-    unknown = sorted(set(data) - set(types))
+    unknown = sorted(map(str, set(data) - set(types)))
     if unknown:
         raise ConfigError(f"{where}: unknown field(s) {', '.join(unknown)} (expected {', '.join(types)})")
     out = {}
@@ -94,7 +94,7 @@ def hardware_settings_from_dict(section: Mapping[str, Any] | None, arm_ids: Sequ
         raise ConfigError(f"{SECTION}: expected a mapping, got {section!r}")
     top = _typed(section, {"arms": dict, "motion": dict, "cameras": dict, "joint_log_hz": float}, SECTION)
     arms_data = top.get("arms", {})
-    unknown = sorted(set(arms_data) - set(arm_ids))
+    unknown = sorted(map(str, set(arms_data) - set(arm_ids)))
     if unknown:
         raise ConfigError(f"{SECTION}.arms: no arm {', '.join(map(repr, unknown))} in the rig "
                           f"(arms: {', '.join(arm_ids)})")

@@ -352,6 +352,8 @@ def default_rig_path() -> Path:
 def rig_from_dict(data: Mapping[str, Any], source: Path | None = None) -> Rig:
     """Build a :class:`Rig` from parsed YAML; errors name the field (the caller adds the file)."""
     reader = rig_yaml.FieldReader(data)
+    reader.only("schema", "name", "wrist_frame", "arms", "camera_body", "table", "workspace", "margins",
+                "hardware")  # hardware: the real rig's section, read by darp.hardware.settings
     schema = reader.get("schema", str, required=False)
     if schema is not None and schema != SCHEMA:
         raise ConfigError(f"schema: expected {SCHEMA!r}, got {schema!r}")
@@ -359,15 +361,20 @@ def rig_from_dict(data: Mapping[str, Any], source: Path | None = None) -> Rig:
     arms = {}
     for arm_id in arms_data:
         arm = reader.sub(f"arms.{arm_id}")
+        arm.only("side", "camera_serial", "T_world_base", "T_flange_cam", "park_q_rad")
         arms[str(arm_id)] = ArmConfig(
             arm_id=str(arm_id),
             side=arm.get("side", str),
             camera_serial=str(arm.get("camera_serial", (str, int))),
             T_world_base=arm.transform("T_world_base"),
             T_flange_cam=arm.transform("T_flange_cam"),
-            park_q_rad=arm.numbers("park_q_rad", 6),
+            park_q_rad=rig_yaml.check_joints(arm.numbers("park_q_rad", 6), f"arms.{arm_id}.park_q_rad"),
         )
     body, table, ws, margins = (reader.sub(k) for k in ("camera_body", "table", "workspace", "margins"))
+    body.only("size_m", "center_cam_m")
+    table.only("height_m", "x_range_m", "y_range_m")
+    ws.only("x_range_m", "y_range_m", "z_range_m")
+    margins.only("table_clearance_m", "arm_arm_margin_m", "joint_limit_margin_rad")
     return Rig(
         arms=arms,
         table=Table(

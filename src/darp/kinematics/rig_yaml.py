@@ -15,6 +15,7 @@ import numpy as np
 import yaml
 
 from darp.errors import ConfigError
+from darp.formats.limits import ANGLE_ABS_MAX_DEG, JOINT_ABS_MAX_RAD, POSITION_ABS_MAX_M
 from darp.kinematics.transforms import make_transform, rotation_to_rpy, rpy_to_rotation
 
 if TYPE_CHECKING:
@@ -53,6 +54,21 @@ class FieldReader:
     def sub(self, key: str) -> FieldReader:
         return FieldReader(self.get(key, dict), self._name(key))
 
+    def only(self, *keys: str) -> None:
+        """Refuse keys other than ``keys`` (a misspelt key would otherwise be ignored silently)."""
+        unknown = [str(k) for k in self.data if k not in keys]
+        if unknown:
+            where = f"{self.prefix}: " if self.prefix else ""
+            raise ConfigError(f"{where}unknown field(s) {', '.join(unknown)} (expected: {', '.join(keys)})")
+
+    def bounded(self, key: str, count: int, limit: float, unit: str) -> np.ndarray:
+        """``count`` finite numbers with absolute values at most ``limit`` (docs/reliability.md)."""
+        values = self.numbers(key, count)
+        if np.any(np.abs(values) > limit):
+            worst = float(values[np.argmax(np.abs(values))])
+            raise ConfigError(f"{self._name(key)}: {worst!r} {unit} is beyond +-{limit:g} {unit}")
+        return values
+
     def number(self, key: str) -> float:
         value = float(self.get(key, (int, float)))
         if not np.isfinite(value):
@@ -85,7 +101,8 @@ class FieldReader:
         if unknown:
             raise ConfigError(f"{name}: unknown field(s) {', '.join(sorted(unknown))} "
                               "(expected xyz_m, rpy_deg or matrix)")
-        return pose_from_xyz_rpy(node.numbers("xyz_m", 3), np.radians(node.numbers("rpy_deg", 3)))
+        return pose_from_xyz_rpy(node.bounded("xyz_m", 3, POSITION_ABS_MAX_M, "m"),
+                                 np.radians(node.bounded("rpy_deg", 3, ANGLE_ABS_MAX_DEG, "deg")))
 
 
 def _numbers(value: Any, count: int, name: str) -> np.ndarray:
@@ -111,6 +128,13 @@ def _type_word(kind: type) -> str:
         bool: "a boolean",
         type(None): "nothing (null)",
     }.get(kind, kind.__name__)
+
+
+def check_joints(values: np.ndarray, name: str) -> np.ndarray:
+    """Joint angles in radians within +-JOINT_ABS_MAX_RAD."""
+    if np.any(np.abs(values) > JOINT_ABS_MAX_RAD):
+        raise ConfigError(f"{name}: {float(values[np.argmax(np.abs(values))])!r} rad is not a joint angle")
+    return values
 
 
 def check_rigid(matrix: Any, name: str) -> np.ndarray:

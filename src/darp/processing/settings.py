@@ -71,7 +71,7 @@ def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None
     if not isinstance(values, Mapping):
         raise ConfigError(f"{where}: expected a mapping, got {type(values).__name__}")
     known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - known)
+    unknown = sorted(map(str, set(values) - known))
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
     kwargs = dict(values)
@@ -91,7 +91,7 @@ def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None
 def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
     """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
     groups = {"keyframes", "fusion", "mesh", "evaluation"}
-    unknown = sorted(set(values) - groups)
+    unknown = sorted(map(str, set(values) - groups))
     if unknown:
         raise ConfigError(f"unknown settings group(s) {', '.join(unknown)} (groups: {', '.join(sorted(groups))})")
     return ProcessSettings(

@@ -5,7 +5,9 @@ cameras record continuously; each arm in turn visits its waypoints (pausing ``dw
 returns to park while the other arm stays parked; then the cameras stop and, a little later, the log.
 So the usable camera interval lies inside the joint log's interval and no pose needs extrapolation.
 
-Output (built in ``<out>.partial/``, renamed to ``<out>`` only when complete)::
+Output (built in ``<out>.partial/``, renamed to ``<out>`` only when complete; ``PARTIAL.txt`` is its first file
+and is removed last, so a folder holding it is unfinished however the run ended, SIGKILL included; the finished
+folder holds ``.darp-written``, without which ``--overwrite`` refuses to delete a folder)::
 
     cam<serial>.bag x2, arm_poses.csv, manip_envelope.json   the DARP survey folder
     truth/                                                  ground truth (darp.twin.truth)
@@ -28,6 +30,7 @@ from darp.errors import TwinError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.atomic import write_json_atomic
 from darp.formats.envelope import ENVELOPE_FILE, Envelope, write_envelope
+from darp.formats.survey import PARTIAL_FILE, WRITTEN_BY_FILE
 from darp.kinematics.rig import Rig
 from darp.twin.arm_sim import QuinticMove
 from darp.twin.rig_backend import ContactEvent, TwinRig
@@ -70,6 +73,38 @@ def expected_duration_s(plan: WaypointPlan, park: dict[str, np.ndarray], setting
             total += move.duration_s + (m.settle_s if move.duration_s > 0 else 0.0) + dwell
             q = target
     return total
+
+
+BYTES_PER_PIXEL = 7.3  # uncompressed bag bytes per pixel per frame: depth 2 + colour 3 + IR 2 (+ records)
+SPACE_MARGIN_BYTES = 32 * 1024**2  # joint log, truth/, indexes
+
+
+def estimated_bytes(plan: WaypointPlan, park: dict[str, np.ndarray], settings: TwinSettings) -> int:
+    """About how many bytes a recording writes (both bags uncompressed: 0.74 MB per 424x240 frame set)."""
+    c = settings.camera
+    per_camera = expected_duration_s(plan, park, settings) * c.fps * c.width * c.height * BYTES_PER_PIXEL
+    factor = 0.5 if c.compression == "lz4" else 1.0  # lz4 shrinks the twin's images about two- to threefold
+    return int(factor * len(park) * per_camera) + SPACE_MARGIN_BYTES
+
+
+def check_free_space(folder: Path, needed: int) -> None:
+    """Refuse to start a recording that clearly cannot fit on the file system holding ``folder``."""
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    free = shutil.disk_usage(probe).free
+    if free < needed:
+        raise TwinError(f"needs about {needed / 1e6:,.0f} MB, but {probe} has {free / 1e6:,.0f} MB free "
+                        "(lower --fps, --resolution or the dwell times, or free some space)", folder)
+
+
+def _check_overwritable(out: Path) -> None:
+    """``--overwrite`` replaces only a folder darp wrote (it holds WRITTEN_BY_FILE)."""
+    if not out.is_dir():
+        raise TwinError("exists and is not a folder (refusing to replace it)", out)
+    if any(out.iterdir()) and not (out / WRITTEN_BY_FILE).is_file():
+        raise TwinError(f"is not a survey darp recorded (no {WRITTEN_BY_FILE} marker): refusing to delete it with "
+                        "--overwrite; remove it yourself or choose another --out", out)
 
 
 def _object_info(obj: Any, placement: Any, scale: float) -> dict[str, Any]:
@@ -165,16 +200,26 @@ def record_survey(
     settings = settings if settings is not None else TwinSettings.from_profile("realistic")
     if out.exists() and not overwrite:
         raise TwinError("already exists (choose another --out or remove it)", out)
+    if out.exists():
+        _check_overwritable(out)
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
+        if not (partial / PARTIAL_FILE).is_file():
+            raise TwinError(f"exists but holds no {PARTIAL_FILE}: not an interrupted recording of darp's, refusing "
+                            "to delete it", partial)
         shutil.rmtree(partial)
     partial.mkdir(parents=True)
     try:
+        # The marker is the first file and the last removed: a folder holding it is unfinished, however the run
+        # ended.
+        (partial / PARTIAL_FILE).write_text("partial: darp twin record did not finish this survey (interrupted, "
+                                            "killed or failed); delete the folder\n", encoding="utf-8")
         with TwinRig(settings, rig=rig, obj=obj, placement=placement, camera_workers=camera_workers) as twin:
             unknown = [a for a in plan.arms if a not in twin.arms]
             if unknown:
                 raise TwinError(f"waypoints name unknown arm(s) {', '.join(unknown)} (rig: {', '.join(twin.arms)})")
             park = {a: twin.park_q(a) for a in twin.arms}
+            check_free_space(partial, estimated_bytes(plan, park, settings))
             total = expected_duration_s(plan, park, settings)
             _run(twin, plan, partial, progress, total)
             envelope = Envelope(
@@ -191,13 +236,16 @@ def record_survey(
             timings = {a: dict(c.timings_s) for a, c in twin.cameras.items()}
         log = read_arm_poses(partial / "arm_poses.csv", known_arms=tuple(park))
         first, last = log.span()
+        (partial / WRITTEN_BY_FILE).write_text("darp twin record\n", encoding="utf-8")
         if out.exists():
             shutil.rmtree(out)
         partial.rename(out)
+        (out / PARTIAL_FILE).unlink()  # last: killed before this line, the survey still says it is partial
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
         raise
     return RecordResult(out, last - first, frames, {a: log.rows(a) for a in log.arms}, events, timings)
 
 
-__all__ = ["RecordResult", "expected_duration_s", "record_survey", "write_twin_truth"]
+__all__ = ["RecordResult", "check_free_space", "estimated_bytes", "expected_duration_s", "record_survey",
+           "write_twin_truth"]

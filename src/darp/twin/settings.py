@@ -228,7 +228,7 @@ class TwinSettings:
                 raise ConfigError(f"{key}: expected a mapping of settings")
             current = getattr(base, key)
             names = {f.name for f in dataclasses.fields(current)}
-            unknown = sorted(set(value) - names)
+            unknown = sorted(map(str, set(value) - names))
             if unknown:
                 raise ConfigError(f"{key}: unknown setting(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
             try:

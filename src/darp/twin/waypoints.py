@@ -35,10 +35,13 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.limits import DWELL_MAX_S
+from darp.formats.text import load_yaml, read_utf8_text
 from darp.kinematics import z1
 
 SCHEMA = "darp-twin-waypoints/1"
 DEFAULT_DWELL_S = 0.5
+MAX_SPEED_RAD_S = 3.1416  # the Z1's joint velocity limit (pi rad/s)
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,9 +88,13 @@ def _check_q(q: Any, where: str, degrees: bool = False) -> np.ndarray:
 
 
 def _positive(value: Any, where: str, allow_zero: bool) -> float:
+    """A dwell (``allow_zero``; at most DWELL_MAX_S) or a joint speed (> 0; at most the Z1's limit)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) \
             or value < 0 or (value == 0 and not allow_zero):
         raise ConfigError(f"{where}: expected a number {'>=' if allow_zero else '>'} 0, got {value!r}")
+    high = DWELL_MAX_S if allow_zero else MAX_SPEED_RAD_S
+    if value > high:
+        raise ConfigError(f"{where}: {value!r} is more than {high:g} {'s' if allow_zero else 'rad/s'}")
     return float(value)
 
 
@@ -99,7 +106,7 @@ def _waypoint(entry: Any, where: str, dwell: float, speed: float | None) -> Wayp
     keys = [k for k in ("q_rad", "q_deg", "named") if k in entry]
     if len(keys) != 1:
         raise ConfigError(f"{where}: give exactly one of q_rad, q_deg, named")
-    unknown = sorted(set(entry) - {"q_rad", "q_deg", "named", "dwell_s", "speed_rad_s"})
+    unknown = sorted(str(k) for k in set(entry) - {"q_rad", "q_deg", "named", "dwell_s", "speed_rad_s"})
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}")
     if keys[0] == "named":
@@ -120,7 +127,7 @@ def plan_from_dict(data: dict[str, Any]) -> WaypointPlan:
     schema = data.get("schema", SCHEMA)
     if schema != SCHEMA:
         raise ConfigError(f"schema: expected {SCHEMA!r}, got {schema!r}")
-    unknown = sorted(set(data) - {"schema", "speed_rad_s", "dwell_s", "order", "arms"})
+    unknown = sorted(str(k) for k in set(data) - {"schema", "speed_rad_s", "dwell_s", "order", "arms"})
     if unknown:
         raise ConfigError(f"unknown key(s) {', '.join(unknown)} (keys: schema, speed_rad_s, dwell_s, order, arms)")
     dwell = _positive(data["dwell_s"], "dwell_s", True) if "dwell_s" in data else DEFAULT_DWELL_S
@@ -172,20 +179,17 @@ def _plan_from_csv(text: str) -> WaypointPlan:
 def load_waypoints(path: str | Path, arm_ids: Sequence[str] | None = None) -> WaypointPlan:
     """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) waypoints file; errors name the file."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError("no such file", path) from None
-    except (IsADirectoryError, UnicodeDecodeError) as err:
-        raise ConfigError(f"cannot read waypoints: {err}", path) from None
+    text = read_utf8_text(path, "a waypoints file", ConfigError)
     try:
         if path.suffix.lower() == ".csv":
             plan = _plan_from_csv(text)
         else:
             try:
-                data = yaml.safe_load(text)
+                data = load_yaml(text)
             except yaml.YAMLError as err:
                 raise ConfigError(f"invalid YAML: {str(err).splitlines()[0]}") from None
+            except RecursionError:
+                raise ConfigError("nested too deeply") from None
             if not isinstance(data, dict):
                 raise ConfigError("top level must be a mapping (schema, dwell_s, speed_rad_s, order, arms)")
             plan = plan_from_dict(data)

@@ -16,9 +16,11 @@ reports its CPU time per frame, per capture stage and per recording, and its mem
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import resource
+import signal
 import time
 import traceback
 from typing import Any
@@ -28,6 +30,8 @@ import numpy as np
 from darp.errors import RecordingError, TwinError
 
 READY_TIMEOUT_S = 120.0
+REPLY_TIMEOUT_S = 120.0  # a worker silent for this long (alive, but stuck) is given up on
+_POLL_S = 0.5  # how often a waiting parent checks that its worker is still alive
 
 
 def available_cores() -> int:
@@ -68,12 +72,18 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
         camera = TwinCamera(model, spec, cam_settings, seed=seed, dropout_geoms=dropouts)
         conn.send(("ready",))
     except BaseException as err:  # reported to the parent, which raises
-        conn.send(("error", f"{type(err).__name__}: {err}", traceback.format_exc()))
+        with contextlib.suppress(OSError):  # the parent may be gone already
+            conn.send(("error", f"{type(err).__name__}: {err}", traceback.format_exc()))
         return
     writer = None
     faults_at_open, cpu_at_open = 0, 0.0
     while True:
-        message = conn.recv()
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):  # the parent is gone (killed or interrupted): drop the bag, end quietly
+            if writer is not None:
+                writer.abort()
+            return
         kind = message[0]
         try:
             if kind == "open":
@@ -111,7 +121,10 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
             if writer is not None:
                 writer.abort()
                 writer = None
-            conn.send(("error", f"{type(err).__name__}: {err}", traceback.format_exc()))
+            try:
+                conn.send(("error", f"{type(err).__name__}: {err}", traceback.format_exc()))
+            except OSError:  # the parent is gone
+                return
 
 
 class CameraWorker:
@@ -127,7 +140,13 @@ class CameraWorker:
         self._proc = ctx.Process(target=_worker_main,
                                  args=(child, model, spec, cam_settings, seed, dropouts, threads),
                                  daemon=True, name=f"darp-camera-{spec.serial}")
-        self._proc.start()
+        # The worker ignores SIGINT from its first instruction (inherited through exec): Ctrl-C reaches the
+        # whole process group, and the parent alone handles it (and stops the worker).
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            self._proc.start()
+        finally:
+            signal.signal(signal.SIGINT, previous)
         child.close()
         self.max_pending = max(1, int(max_pending))
         self.pending = 0
@@ -137,15 +156,40 @@ class CameraWorker:
         self.stage_cpu_s: dict[str, float] = {}  # the camera's CPU seconds per capture stage (cumulative)
         self.minor_faults = 0  # the worker's page faults during its last recording
         self.recording_cpu_s = 0.0  # the worker's CPU seconds from opening to closing its last recording
-        self._expect("ready", READY_TIMEOUT_S)
+        self._broken = False  # interrupted mid-conversation: the pipe may hold half a message; only kill is safe
+        try:
+            self._guarded(self._expect, "ready", READY_TIMEOUT_S)
+        except BaseException:
+            self._broken = True
+            self.shutdown()
+            raise
+
+    def _guarded(self, call: Any, *args: Any) -> Any:
+        """Run one exchange with the worker; an interrupt (Ctrl-C, SIGTERM) in the middle of it leaves the
+        pipe in an unknown state, so the worker is marked broken and will be killed, not talked to."""
+        if self._broken:
+            raise TwinError(f"camera worker {self._proc.name} was interrupted")
+        try:
+            return call(*args)
+        except KeyboardInterrupt:
+            self._broken = True
+            raise
 
     def _expect(self, kind: str, timeout_s: float | None = None) -> tuple[Any, ...]:
-        if timeout_s is not None and not self._conn.poll(timeout_s):
-            raise TwinError(f"camera worker did not answer within {timeout_s:.0f} s")
+        """The next reply, which must be ``kind``; a dead worker, or one silent for ``timeout_s``
+        (default REPLY_TIMEOUT_S), is an error instead of a wait for ever."""
+        limit = REPLY_TIMEOUT_S if timeout_s is None else timeout_s
+        waited = 0.0
+        while not self._conn.poll(_POLL_S):
+            waited += _POLL_S
+            if not self._proc.is_alive() and not self._conn.poll(0):
+                raise TwinError(f"camera worker {self._proc.name} exited (code {self._proc.exitcode})")
+            if waited >= limit:
+                raise TwinError(f"camera worker {self._proc.name} did not answer within {limit:.0f} s")
         try:
             reply: tuple[Any, ...] = self._conn.recv()
-        except EOFError:
-            raise TwinError(f"camera worker exited (code {self._proc.exitcode})") from None
+        except (EOFError, OSError):
+            raise TwinError(f"camera worker {self._proc.name} exited (code {self._proc.exitcode})") from None
         if reply[0] == "error":
             raise RecordingError(f"camera worker failed: {reply[1]}")
         if reply[0] != kind:
@@ -153,8 +197,8 @@ class CameraWorker:
         return reply
 
     def _collect(self) -> None:
+        self.pending -= 1  # answered (or failed): either way no longer in flight
         reply = self._expect("ok")
-        self.pending -= 1
         self.timings_s["capture"] += reply[2]
         self.timings_s["write"] += reply[3]
         self.timings_s["cpu"] += reply[4]
@@ -162,11 +206,15 @@ class CameraWorker:
 
     def open(self, *args: Any, **kwargs: Any) -> None:
         """Open the bag in the worker (arguments of :class:`BagWriter`)."""
-        self._conn.send(("open", args, kwargs))
+        self._guarded(self._conn.send, ("open", args, kwargs))
 
     def frame(self, n: int, stamp_ms: float, qpos: np.ndarray, T_world_cam: np.ndarray,
               motion: list[tuple[str, np.ndarray, float, int]], keys: tuple[str, ...]) -> None:
         """Queue one frame tick: IMU samples first, then the rendered images."""
+        self._guarded(self._frame, n, stamp_ms, qpos, T_world_cam, motion, keys)
+
+    def _frame(self, n: int, stamp_ms: float, qpos: np.ndarray, T_world_cam: np.ndarray,
+               motion: list[tuple[str, np.ndarray, float, int]], keys: tuple[str, ...]) -> None:
         while self.pending >= self.max_pending:
             self._collect()
         self._conn.send(("frame", n, stamp_ms, np.asarray(qpos, dtype=float), np.asarray(T_world_cam, dtype=float),
@@ -174,30 +222,43 @@ class CameraWorker:
         self.pending += 1
 
     def close_recording(self, abort: bool = False) -> None:
-        """Wait for every queued frame, then finish (or abort) the bag."""
+        """Wait for every queued frame, then finish (or abort) the bag. A worker interrupted mid-exchange
+        is left alone here (the caller removes the unfinished files; :meth:`shutdown` kills it)."""
+        if self._broken:
+            if abort:
+                return
+            raise TwinError(f"camera worker {self._proc.name} was interrupted")
+        self._guarded(self._close_recording, abort)
+
+    def _close_recording(self, abort: bool) -> None:
         first_error: BaseException | None = None
         while self.pending:
             try:
                 self._collect()
-            except (TwinError, RecordingError) as err:
-                self.pending -= 1
+            except RecordingError as err:  # the worker's own error reply: it is still serving
                 first_error = first_error or err
+            except TwinError:  # dead or stuck: nothing more will come
+                self.pending = 0
+                raise
         self._conn.send(("abort" if abort or first_error else "close",))
         reply = self._expect("closed", READY_TIMEOUT_S)
         _, self.peak_rss_mb, self.stage_cpu_s, self.minor_faults, self.recording_cpu_s = reply
         if first_error is not None and not abort:
             raise first_error
 
-    def shutdown(self) -> None:
-        """Stop the subprocess (idempotent)."""
+    def shutdown(self, timeout_s: float = 10.0) -> None:
+        """Stop the subprocess (idempotent); one that does not quit within ``timeout_s`` is terminated."""
+        if self._broken and self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout=timeout_s)
         if self._proc.is_alive():
             try:
                 self._conn.send(("quit",))
-                if self._conn.poll(10.0):
+                if self._conn.poll(timeout_s):
                     self._conn.recv()
             except (OSError, EOFError):
                 pass
-            self._proc.join(timeout=10.0)
+            self._proc.join(timeout=timeout_s)
             if self._proc.is_alive():
                 self._proc.terminate()
                 self._proc.join(timeout=5.0)

@@ -76,7 +76,8 @@ class ImageDecoder:
 def imu_sample(buf: memoryview, start: int, accel: bool) -> tuple[int, float, np.ndarray]:
     """(frame number, timestamp ms, float32 xyz) of an Imu message: linear acceleration or angular velocity."""
     seq, stamp_ms, gyro, acceleration = rm.decode_imu(buf, start)
-    return seq, stamp_ms, np.array(acceleration if accel else gyro, dtype=np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # a damaged sample becomes inf: the caller decides
+        return seq, stamp_ms, np.array(acceleration if accel else gyro, dtype=np.float32)
 
 
 def key_value(buf: memoryview, offset: int) -> tuple[bytes, int, int]:

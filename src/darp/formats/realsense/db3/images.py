@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from darp.formats.realsense.types import PIXEL_FORMATS, StreamProfile
+from darp.formats.text import native_stderr_silenced
 
 # ROS image encodings librealsense writes -> (numpy dtype, channels).
 ENCODINGS = {"mono16": ("<u2", 1), "16UC1": ("<u2", 1), "mono8": ("u1", 1), "8UC1": ("u1", 1),
@@ -47,7 +48,8 @@ def decode_compressed_image(message: Any, profile: StreamProfile) -> np.ndarray:
         payload = payload[COMPRESSED_DEPTH_HEADER_BYTES:]
     if payload[:8].tobytes() != _PNG_MAGIC:
         raise ValueError(f"compressed frame ({message.format!r}) is not a PNG")
-    image = cv2.imdecode(payload, cv2.IMREAD_UNCHANGED)
+    with native_stderr_silenced():  # libpng's lines about a damaged image: the caller reports it
+        image = cv2.imdecode(payload, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ValueError(f"corrupt PNG in compressed frame ({message.format!r})")
     if profile.format in ("rgb8", "rgba8") and image.ndim == 3:  # OpenCV hands back BGR(A)
