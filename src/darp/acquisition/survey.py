@@ -14,6 +14,12 @@ One procedure drives the twin and real hardware through :class:`~darp.backend.Ri
    (:mod:`~darp.acquisition.episode`), writing ``manip_envelope.json`` with the envelope, the
    standoff, the park and view configurations and the localisation/confirmation record.
 
+A fault the rig reports during motion (a contact on the twin, a controller that left joint control on
+hardware: :meth:`~darp.backend.RigBackend.fault`) stops both arms at once, closes the recordings and
+the log, parks each arm not involved in the fault whose path to park is clear, and rejects the
+episode with reason ``fault`` (``REJECTED.txt`` names the fault and where each arm was left); no
+planned move is commanded after it.
+
 A KeyboardInterrupt or a backend error at any point stops both arms, closes the recordings and the
 log, and leaves ``<NAME>.partial/`` marked with ``PARTIAL.txt``; the KeyboardInterrupt is re-raised,
 a backend error becomes an :class:`AcquisitionError` naming the folder.
@@ -37,9 +43,11 @@ from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSet
 from darp.acquisition.motion_check import (
     ArmCollisionModel,
     ClearanceMargins,
+    MotionFault,
     MotionSettings,
     checked_move,
     envelope_obstacle,
+    stop_all_arms,
     workspace_obstacle,
 )
 from darp.acquisition.verify import VerificationReport, VerifySettings, verify_survey
@@ -146,9 +154,11 @@ class SurveyRunner:
 
     def _stop_everything(self) -> None:
         """Stop the arms, close the recordings and the log; never raises."""
-        for arm in self.backend.arms.values():
-            with contextlib.suppress(Exception):
-                arm.stop()
+        stop_all_arms(self.backend)
+        self._stop_recording()
+
+    def _stop_recording(self) -> None:
+        """Close the recordings and the log if they run; never raises."""
         if self.recording:
             for camera in self.backend.cameras.values():
                 with contextlib.suppress(Exception):
@@ -303,6 +313,64 @@ class SurveyRunner:
         self.progress("done", 1.0, f"rejected: {end.message}")
         return o
 
+    def _wait_at_rest(self, arm_id: str, timeout_s: float) -> bool:
+        """Sleep until ``arm_id`` reports no motion (ignoring the latched fault); False on timeout or error."""
+        arm, clock = self.backend.arms[arm_id], self.backend.clock
+        deadline = clock.now() + timeout_s
+        try:
+            while arm.is_moving():
+                if clock.now() >= deadline:
+                    return False
+                clock.sleep(self.s.motion.poll_s)
+        except Exception:  # a faulted controller: its arm is left where it is
+            return False
+        return True
+
+    def _park_after_fault(self, arm_id: str) -> str:
+        """Park one arm not involved in the fault if its path is clear; says what happened."""
+        if not self._wait_at_rest(arm_id, self.s.motion.timeout_s):
+            return f"{arm_id} left where it stopped (not at rest)"
+        est = self.estimate
+        obstacle = (workspace_obstacle(self.rig) if est is None
+                    else envelope_obstacle(est.centre_m, est.radius_m, est.height_m, self.rig.table.height_m))
+        arm = self.backend.arms[arm_id]
+        try:
+            q_now = np.asarray(arm.read_state().q_rad, dtype=float)
+            if np.max(np.abs(q_now - self.park[arm_id])) < self.s.motion.start_tolerance_rad:
+                return f"{arm_id} parked"
+            verdict = self._model(arm_id, obstacle).check_path(q_now, self.park[arm_id], self.s.motion.path_step_rad)
+            if not verdict.ok:
+                return f"{arm_id} left where it stopped (its path to park is not clear: {verdict.reason})"
+            arm.move_to(self.park[arm_id], self.s.motion.speed_rad_s)
+            self._wait_at_rest(arm_id, self.s.motion.timeout_s)
+            q_end = np.asarray(arm.read_state().q_rad, dtype=float)
+        except Exception as err:  # the backend refused: leave the arm for the operator
+            return f"{arm_id} left where it stopped ({type(err).__name__}: {err})"
+        if np.max(np.abs(q_end - self.park[arm_id])) < self.s.motion.start_tolerance_rad:
+            self.events("parked", arm=arm_id, after_fault=True)
+            return f"{arm_id} parked"
+        return f"{arm_id} stopped short of park (stopped again on the way)"
+
+    def _faulted(self, err: MotionFault, before_finalise: Callable[[Path], None] | None) -> SurveyOutcome:
+        """Both arms stopped, recordings closed, safe arms parked, the episode rejected with the fault."""
+        o, fault = self.outcome, err.fault
+        stop_all_arms(self.backend)
+        self.events("fault", message=fault.message, arms=list(fault.arms))
+        self._stop_recording()
+        where = [f"{a} left where it stopped (involved in the fault)" if a in fault.arms else self._park_after_fault(a)
+                 for a in self.rig.arm_ids]
+        message = f"motion stopped by a fault: {fault.message}; " + "; ".join(where)
+        self.events("terminated", reason="fault", message=message)
+        o.envelope = self.envelope(self.estimate, o.plans)
+        write_envelope(self.episode.path / ENVELOPE_FILE, o.envelope)
+        if before_finalise is not None:
+            before_finalise(self.episode.path)
+        o.status, o.reason, o.message, o.timings = "rejected", "fault", message, self.timings
+        o.folder = self.episode.reject("fault", message,
+                                       extra={"timings": self.timings, "fault_arms": list(fault.arms)})
+        self.progress("done", 1.0, f"rejected: {message}")
+        return o
+
     def _verified(self, est: ObjectEstimate, plans: dict[str, ViewPlan],
                   before_finalise: Callable[[Path], None] | None) -> SurveyOutcome:
         o = self.outcome
@@ -337,6 +405,8 @@ class SurveyRunner:
                 est, plans = self._acquire()
             except _Terminated as end:
                 return self._terminated(end, before_finalise)
+            except MotionFault as fault:
+                return self._faulted(fault, before_finalise)
             return self._verified(est, plans, before_finalise)
         except KeyboardInterrupt:
             self._stop_everything()
