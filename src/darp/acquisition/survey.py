@@ -5,11 +5,16 @@ One procedure drives the twin and real hardware through :class:`~darp.backend.Ri
 1. park both arms;
 2. **localise** with the searching arm (the other parked) and **confirm** with the other arm looking
    straight at that estimate (:mod:`~darp.acquisition.localise`, :mod:`~darp.acquisition.confirm`);
-3. **plan** each arm's views about the confirmed envelope (:mod:`~darp.acquisition.viewpoints`);
+3. **plan** each arm's views about the confirmed envelope: by default for coverage of the envelope's
+   surface with a co-observed band between the arms (:mod:`~darp.acquisition.coverage`; a side no
+   feasible view reaches is warned about by name), or the paper's fixed orbit
+   (``viewpoint_strategy="orbit"``, :mod:`~darp.acquisition.viewpoints`);
 4. **record**: start the joint log, then both cameras; each arm in turn visits its views (non-blocking
    moves, waiting on the rig clock, a settling interval at every view) and parks while the other
    waits parked; stop the cameras, keep logging a little, stop the log. So the camera interval lies
-   inside the log's;
+   inside the log's. With the coverage strategy every view's live depth updates the achieved coverage,
+   and after an arm's planned views the next best views (those that see the most surface still
+   unobserved, at most ``coverage.nbv_max_views``) are added before it parks;
 5. **verify** the written files (:mod:`~darp.acquisition.verify`) and accept or reject the episode
    (:mod:`~darp.acquisition.episode`), writing ``manip_envelope.json`` with the envelope, the
    standoff, the park and view configurations and the localisation/confirmation record.
@@ -30,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from darp.acquisition.confirm import ConfirmSettings, Decision, decide
+from darp.acquisition.coverage import CoveragePlan, CoverageSettings, CoverageTracker, plan_coverage
 from darp.acquisition.episode import Episode
 from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSettings, ObjectEstimate
 from darp.acquisition.motion_check import (
@@ -45,6 +52,7 @@ from darp.acquisition.motion_check import (
     ClearanceMargins,
     MotionFault,
     MotionSettings,
+    UnsafeMoveError,
     checked_move,
     envelope_obstacle,
     stop_all_arms,
@@ -59,7 +67,7 @@ from darp.acquisition.viewpoints import (
     standoff_for_radius,
 )
 from darp.backend import RigBackend
-from darp.errors import AcquisitionError
+from darp.errors import AcquisitionError, DarpWarning
 from darp.formats.calibration import Calibration
 from darp.formats.envelope import ENVELOPE_FILE, Envelope, write_envelope
 from darp.formats.survey import ARM_POSES_FILE
@@ -76,6 +84,8 @@ class SurveySettings:
     localise: LocaliseSettings = field(default_factory=LocaliseSettings)
     confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
     viewpoints: ViewpointSettings = field(default_factory=ViewpointSettings)
+    coverage: CoverageSettings = field(default_factory=CoverageSettings)
+    viewpoint_strategy: str = "coverage"  # or "orbit": the paper's fixed orbit per arm
     motion: MotionSettings = field(default_factory=MotionSettings)
     verify: VerifySettings = field(default_factory=VerifySettings)
     envelope_margin_m: float = 0.04  # arm and camera keep this far from the object envelope
@@ -139,6 +149,10 @@ class SurveyRunner:
         self.logging = False
         self.timings: dict[str, float] = {}
         self.estimate: ObjectEstimate | None = None
+        self.coverage_plan: CoveragePlan | None = None
+        self.tracker: CoverageTracker | None = None
+        if self.s.viewpoint_strategy not in ("coverage", "orbit"):
+            raise AcquisitionError(f"viewpoint strategy must be coverage or orbit, got {self.s.viewpoint_strategy!r}")
 
     # -- helpers ----------------------------------------------------------------------------------
     def _model(self, arm_id: str, obstacle: Any) -> ArmCollisionModel:
@@ -205,16 +219,30 @@ class SurveyRunner:
         t0 = time.perf_counter()
         vs = self.s.viewpoints
         obstacle = envelope_obstacle(est.centre_m, est.radius_m, est.height_m, self.rig.table.height_m)
-        plans = {}
+        planners = {}
         for arm_id in self.rig.arm_ids:
             settings = vs
             if self.s.derive_min_depth:
                 intr = self.backend.cameras[arm_id].depth_intrinsics
                 settings = dataclasses.replace(vs, min_depth_m=min_depth_from_intrinsics(intr))
-            planner = ViewpointPlanner(self._model(arm_id, obstacle), est.centre_m, est.radius_m, est.height_m,
-                                       settings, self.park[arm_id])
-            plan = planner.plan()
-            plans[arm_id] = plan
+            planners[arm_id] = ViewpointPlanner(self._model(arm_id, obstacle), est.centre_m, est.radius_m,
+                                                est.height_m, settings, self.park[arm_id])
+        plans: dict[str, ViewPlan] = {}
+        if self.s.viewpoint_strategy == "coverage":
+            cov = plan_coverage(planners, self.s.coverage)
+            self.coverage_plan = cov
+            self.tracker = CoverageTracker(cov)
+            plans = dict(cov.plans)
+            for arm_id, plan in plans.items():
+                if len(plan.views) < self.s.min_required_views:  # too few: the orbit with its relaxations
+                    plans[arm_id] = planners[arm_id].plan()
+                    self.events("coverage_fallback", arm=arm_id, coverage_views=len(plan.views))
+            self.events("coverage_plan", **cov.prediction.to_record())
+            for message in cov.prediction.warnings:
+                warnings.warn(DarpWarning(f"coverage: {message}"), stacklevel=2)
+        else:
+            plans = {arm_id: planner.plan() for arm_id, planner in planners.items()}
+        for plan in plans.values():
             self.events("view_plan", **plan.to_record(),
                         views=[c.to_record() for c in plan.views],
                         rejected=[c.to_record() for c in plan.candidates if not c.ok])
@@ -226,6 +254,33 @@ class SurveyRunner:
             raise _Terminated("too_few_views", f"too few feasible views ({what}; at least "
                               f"{self.s.min_required_views} needed) even after relaxing the orbit")
         return plans
+
+    def _observe(self, arm_id: str, model: Any) -> None:
+        """Add the arm's live depth at its present pose to the achieved coverage."""
+        if self.tracker is None:
+            return
+        frames = self.backend.cameras[arm_id].latest_frameset()
+        q = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
+        self.tracker.observe(arm_id, frames.depth_m, frames.depth_intrinsics, model.T_world_cam(q))
+
+    def _next_best_views(self, arm_id: str, plan: ViewPlan, model: Any, later: list[str]) -> None:
+        """Visit the next best views of ``arm_id`` (see :class:`CoverageTracker`), appending them to its plan."""
+        if self.tracker is None or arm_id not in self.tracker.plan.pools:
+            return
+        for cand in self.tracker.next_views(arm_id, plan.views, later):
+            q_now = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
+            if float(np.max(np.abs(cand.joints_rad - q_now))) > self.s.coverage.max_joint_step_rad:
+                continue
+            try:
+                took = checked_move(self.backend, model, cand.joints_rad, self.s.motion)
+            except UnsafeMoveError as err:
+                self.events("next_best_view_refused", arm=arm_id, candidate=cand.index, reason=str(err))
+                continue
+            plan.views.append(cand)
+            self.tracker.extra[arm_id].append(cand)
+            self._observe(arm_id, model)
+            self.events("next_best_view", arm=arm_id, candidate=cand.to_record(), move_s=round(took, 3),
+                        achieved=round(float(np.mean(self.tracker.union())), 4))
 
     def record(self, plans: dict[str, ViewPlan], obstacle: Any) -> None:
         folder = self.episode.path
@@ -242,15 +297,17 @@ class SurveyRunner:
             self.events("camera_started", arm=arm_id, serial=camera.serial)
         clock.sleep(self.s.camera_lead_s)
         t_start = clock.now()
-        for arm_id in self.rig.arm_ids:
+        for n_arm, arm_id in enumerate(self.rig.arm_ids):
             model = self._model(arm_id, obstacle)
-            for k, view in enumerate(plans[arm_id].views):
+            for k, view in enumerate(list(plans[arm_id].views)):
                 self.progress("record", done / max(total, 1), f"{arm_id} view {k + 1}/{len(plans[arm_id].views)}")
                 took = checked_move(self.backend, model, view.joints_rad, self.s.motion)
                 state = self.backend.arms[arm_id].read_state()
                 self.events("view_reached", arm=arm_id, view=k, move_s=round(took, 3),
                             q_rad=[round(float(v), 5) for v in state.q_rad])
+                self._observe(arm_id, model)
                 done += 1
+            self._next_best_views(arm_id, plans[arm_id], model, list(self.rig.arm_ids[n_arm + 1:]))
             checked_move(self.backend, model, self.park[arm_id], self.s.motion, settle=False)
             self.events("parked", arm=arm_id)
         self.progress("record", 1.0, "stopping the cameras")
@@ -260,6 +317,10 @@ class SurveyRunner:
             self.events("camera_stopped", arm=arm_id)
         self.recording = False
         self.timings["recording_s"] = clock.now() - t_start
+        if self.tracker is not None:
+            achieved = self.tracker.achieved()
+            self.events("coverage_achieved", **achieved.to_record(),
+                        next_best_views={a: len(v) for a, v in self.tracker.extra.items()})
         clock.sleep(self.s.log_tail_s)
         self.backend.stop_joint_log()
         self.logging = False
@@ -271,7 +332,10 @@ class SurveyRunner:
                   "calibration": None if self.calibration is None else self.calibration.epoch,
                   "arms": loc, "confirmation": None if self.outcome.decision is None
                   else self.outcome.decision.to_record()}
-        extra = {"planning": {a: p.to_record() for a, p in plans.items()}} if plans else {}
+        extra: dict[str, Any] = {"planning": {a: p.to_record() for a, p in plans.items()}} if plans else {}
+        coverage = self.coverage_record()
+        if coverage is not None:
+            extra["coverage"] = coverage
         center: tuple[float, float, float] | None = None
         if est is not None:
             x, y, z = (float(v) for v in est.centre_m)
@@ -285,6 +349,18 @@ class SurveyRunner:
             park_q_rad={a: tuple(float(v) for v in q) for a, q in self.park.items()},
             view_q_rad={a: [tuple(float(v) for v in c.joints_rad) for c in p.views] for a, p in plans.items()},
             localisation=record, extra=extra)
+
+    def coverage_record(self) -> dict[str, Any] | None:
+        """Predicted and achieved coverage of the envelope's surface (None for the orbit strategy)."""
+        if self.coverage_plan is None:
+            return None
+        record: dict[str, Any] = {"strategy": self.s.viewpoint_strategy,
+                                  "samples": len(self.coverage_plan.samples),
+                                  "predicted": self.coverage_plan.prediction.to_record()}
+        if self.tracker is not None and any(m.any() for m in self.tracker.observed.values()):
+            record["achieved"] = self.tracker.achieved().to_record()
+            record["next_best_views"] = {a: len(v) for a, v in self.tracker.extra.items()}
+        return record
 
     # -- the procedure ----------------------------------------------------------------------------
     def _acquire(self) -> tuple[ObjectEstimate, dict[str, ViewPlan]]:
@@ -386,8 +462,10 @@ class SurveyRunner:
         self.events("verification", passed=report.passed, summary=report.summary())
         if before_finalise is not None:
             before_finalise(self.episode.path)
+        coverage = self.coverage_record()
         if report.passed:
-            self.episode.write_json("verification.json", report.to_record())
+            self.episode.write_json("verification.json", {**report.to_record(),
+                                                          **({"coverage": coverage} if coverage else {})})
             o.folder = self.episode.accept(report.summary(), extra={"timings": self.timings})
             o.status, o.message = "accepted", report.summary()
         else:
