@@ -142,3 +142,21 @@ def test_next_best_views_target_an_occluded_side(centred) -> None:  # type: igno
     full = CoverageTracker(centred)
     full.observed[arm][:] = True
     assert full.next_views(arm, centred.plans[arm].views, remaining_arms=[]) == []
+
+
+def test_an_envelope_off_the_object_is_caught_by_the_recorded_depth(centred) -> None:  # type: ignore[no-untyped-def]
+    """The issue's case: the envelope 42 mm off the object; the crop would cut what the cameras saw."""
+    def check(obj: Cylinder) -> tuple[dict, str | None]:  # type: ignore[type-arg]
+        tracker = CoverageTracker(centred)
+        for arm, plan in centred.plans.items():
+            model = ArmCollisionModel(RIG, arm)
+            for view in plan.views:
+                T = model.T_world_cam(view.joints_rad)
+                tracker.observe(arm, render_depth(T, INTRINSICS, [obj], RIG), INTRINSICS, T)
+        return tracker.envelope_check()
+
+    record, warning = check(Cylinder(0.0, 0.0, RADIUS, HEIGHT))
+    assert warning is None and record["outside_share"] < 0.01 and record["inside"] > 1000
+    record, warning = check(Cylinder(0.0, 0.042, RADIUS, HEIGHT))  # the object 42 mm towards +y
+    assert record["outside_share"] > 0.2
+    assert warning is not None and "most beyond the +y side" in warning

@@ -388,6 +388,22 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
     return CoveragePlan(plans, samples, pools, vis, prediction, s)
 
 
+def coverage_of_plans(planners: dict[str, ViewpointPlanner], plans: dict[str, ViewPlan],
+                      settings: CoverageSettings | None = None) -> CoveragePlan:
+    """The coverage bookkeeping of plans made otherwise (the paper's orbit): each arm's pool is its own
+    views, so "reachable" means what those views can see and no next best view is ever proposed."""
+    s = replace(settings if settings is not None else CoverageSettings(), nbv_max_views=0)
+    first = next(iter(planners.values()))
+    samples = envelope_surface(first.centre, first.radius, first.height, first.table.height_m, s.spacing_m)
+    n = len(samples)
+    pools = {a: list(p.views) for a, p in plans.items()}
+    vis = {a: (visibility(samples, np.array([c.camera_m for c in pools[a]]), s, planners[a].settings.min_depth_m)
+               if pools[a] else np.zeros((0, n), dtype=bool)) for a in plans}
+    seen: dict[str, BoolArray] = {a: np.asarray(v.any(axis=0), dtype=bool) for a, v in vis.items()}
+    reachable = np.logical_or.reduce(list(seen.values()))
+    return CoveragePlan(dict(plans), samples, pools, vis, predict(samples, seen, reachable, s.warn_below), s)
+
+
 def _counts(cands: list[Candidate]) -> dict[str, int]:
     out: dict[str, int] = {}
     for c in cands:
@@ -445,6 +461,35 @@ def _ray_exit(origin: Array, unit: Array, s: SurfaceSamples) -> Array:
     return np.asarray(np.minimum(t_side, t_bottom))
 
 
+def envelope_cut(samples: SurfaceSamples, depth_m: NDArray[np.floating[Any]], intrinsics: Intrinsics,
+                 T_world_cam: Array, band_m: float = 0.05, table_gap_m: float = 0.008,
+                 tolerance_m: float = 0.01, stride: int = 2) -> dict[str, Any]:
+    """Depth points of one frame inside the envelope and in a band ``band_m`` wide just outside it
+    (beside or above; points within ``table_gap_m`` of the table are the table). Surface in that band
+    is what the crop to the envelope would cut; counted per face by the direction it lies in."""
+    d = np.asarray(depth_m, dtype=float)[::stride, ::stride]
+    v, u = np.nonzero(d > 0)
+    z = d[v, u]
+    x = (u * stride - intrinsics.ppx) / intrinsics.fx * z
+    y = (v * stride - intrinsics.ppy) / intrinsics.fy * z
+    T = np.asarray(T_world_cam, dtype=float)
+    p = np.column_stack([x, y, z]) @ T[:3, :3].T + T[:3, 3]
+    rel = p[:, :2] - samples.centre_m[:2]
+    radial = np.hypot(rel[:, 0], rel[:, 1])
+    h = p[:, 2] - samples.table_z_m
+    above_table = h > table_gap_m
+    r, top = samples.radius_m, samples.height_m
+    inside = above_table & (radial <= r + tolerance_m) & (h <= top + tolerance_m)
+    near = above_table & (radial <= r + band_m) & (h <= top + band_m)
+    outside = near & ~inside
+    az = np.degrees(np.arctan2(rel[outside, 1], rel[outside, 0])) % 360.0
+    beside = radial[outside] > r + tolerance_m
+    faces = np.where(~beside, "top", np.where((az < 45) | (az >= 315), "+x",
+                                              np.where(az < 135, "+y", np.where(az < 225, "-x", "-y"))))
+    return {"inside": int(np.sum(inside)), "outside": int(np.sum(outside)),
+            "by_face": {f: int(np.sum(faces == f)) for f in FACES}}
+
+
 class CoverageTracker:
     """Achieved coverage during a survey: observations per arm from live depth, and next best views."""
 
@@ -453,6 +498,7 @@ class CoverageTracker:
         n = len(plan.samples)
         self.observed = {a: np.zeros(n, dtype=bool) for a in plan.plans}
         self.extra: dict[str, list[Candidate]] = {a: [] for a in plan.plans}
+        self.cut: dict[str, Any] = {"inside": 0, "outside": 0, "by_face": dict.fromkeys(FACES, 0)}
 
     def observe(self, arm_id: str, depth_m: NDArray[np.floating[Any]], intrinsics: Intrinsics,
                 T_world_cam: Array) -> int:
@@ -462,7 +508,25 @@ class CoverageTracker:
         seen = observed_samples(self.plan.samples, depth_m, intrinsics, T_world_cam, expect,
                                 self.plan.settings.depth_tolerance_m)
         self.observed[arm_id] |= seen
+        cut = envelope_cut(self.plan.samples, depth_m, intrinsics, T_world_cam)
+        self.cut["inside"] += cut["inside"]
+        self.cut["outside"] += cut["outside"]
+        for face, k in cut["by_face"].items():
+            self.cut["by_face"][face] += k
         return int(np.sum(seen))
+
+    def envelope_check(self, warn_share: float = 0.05) -> tuple[dict[str, Any], str | None]:
+        """The envelope against the recorded depth: the share of depth points near the object that lie just
+        outside the envelope (what the crop would cut), and a warning naming the side when above ``warn_share``."""
+        total = self.cut["inside"] + self.cut["outside"]
+        share = self.cut["outside"] / total if total else 0.0
+        record = {**self.cut, "outside_share": round(share, 4)}
+        if share <= warn_share:
+            return record, None
+        worst = max(FACES, key=lambda f: self.cut["by_face"][f])
+        return record, (f"the envelope may cut observed surface: {100 * share:.0f} % of the depth points near the "
+                        f"object lie just outside it, most beyond {FACE_NAMES[worst]}; the crop would remove them "
+                        "(check the calibration, or re-run the survey)")
 
     def union(self) -> BoolArray:
         u = np.zeros(len(self.plan.samples), dtype=bool)
@@ -505,4 +569,5 @@ class CoverageTracker:
 
 
 __all__ = ["FACES", "CoveragePlan", "CoveragePrediction", "CoverageSettings", "CoverageTracker", "SurfaceSamples",
+           "coverage_of_plans", "envelope_cut",
            "candidate_grid", "envelope_surface", "observed_samples", "plan_coverage", "predict", "visibility"]

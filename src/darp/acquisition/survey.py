@@ -44,7 +44,13 @@ from typing import Any
 import numpy as np
 
 from darp.acquisition.confirm import ConfirmSettings, Decision, decide
-from darp.acquisition.coverage import CoveragePlan, CoverageSettings, CoverageTracker, plan_coverage
+from darp.acquisition.coverage import (
+    CoveragePlan,
+    CoverageSettings,
+    CoverageTracker,
+    coverage_of_plans,
+    plan_coverage,
+)
 from darp.acquisition.episode import Episode
 from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSettings, ObjectEstimate
 from darp.acquisition.motion_check import (
@@ -242,6 +248,8 @@ class SurveyRunner:
                 warnings.warn(DarpWarning(f"coverage: {message}"), stacklevel=2)
         else:
             plans = {arm_id: planner.plan() for arm_id, planner in planners.items()}
+            self.coverage_plan = coverage_of_plans(planners, plans, self.s.coverage)  # achieved coverage only
+            self.tracker = CoverageTracker(self.coverage_plan)
         for plan in plans.values():
             self.events("view_plan", **plan.to_record(),
                         views=[c.to_record() for c in plan.views],
@@ -321,6 +329,10 @@ class SurveyRunner:
             achieved = self.tracker.achieved()
             self.events("coverage_achieved", **achieved.to_record(),
                         next_best_views={a: len(v) for a, v in self.tracker.extra.items()})
+            check, warning = self.tracker.envelope_check()
+            self.events("envelope_check", **check, warning=warning)
+            if warning is not None:
+                warnings.warn(DarpWarning(warning), stacklevel=2)
         clock.sleep(self.s.log_tail_s)
         self.backend.stop_joint_log()
         self.logging = False
@@ -360,6 +372,7 @@ class SurveyRunner:
         if self.tracker is not None and any(m.any() for m in self.tracker.observed.values()):
             record["achieved"] = self.tracker.achieved().to_record()
             record["next_best_views"] = {a: len(v) for a, v in self.tracker.extra.items()}
+            record["envelope_check"], record["envelope_warning"] = self.tracker.envelope_check()
         return record
 
     # -- the procedure ----------------------------------------------------------------------------
