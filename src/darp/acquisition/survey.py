@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from darp.acquisition.confirm import ConfirmSettings, Decision, decide
+from darp.acquisition.confirm import ConfirmSettings, Decision, decide, settings_from_calibration
 from darp.acquisition.coverage import (
     CoveragePlan,
     CoverageSettings,
@@ -92,6 +92,7 @@ class SurveySettings:
     viewpoints: ViewpointSettings = field(default_factory=ViewpointSettings)
     coverage: CoverageSettings = field(default_factory=CoverageSettings)
     viewpoint_strategy: str = "coverage"  # or "orbit": the paper's fixed orbit per arm
+    confirm_from_calibration: bool = True  # confirmation thresholds from the calibration's stated uncertainty
     motion: MotionSettings = field(default_factory=MotionSettings)
     verify: VerifySettings = field(default_factory=VerifySettings)
     envelope_margin_m: float = 0.04  # arm and camera keep this far from the object envelope
@@ -213,7 +214,12 @@ class SurveyRunner:
             self.events("reobserved", arm=arm_id, **{k: v for k, v in result.to_record().items() if k != "arm"})
             return result.estimate
 
-        decision = decide(a, b, self.s.confirm, reobserve)
+        confirm = self.s.confirm
+        if self.calibration is not None and self.s.confirm_from_calibration:
+            confirm, how = settings_from_calibration(confirm, {arm: c.residuals for arm, c in
+                                                               self.calibration.arms.items()})
+            self.events("confirm_thresholds", **how)
+        decision = decide(a, b, confirm, reobserve)
         self.events("confirmation", **decision.to_record())
         self.outcome.decision = decision
         if not decision.ok:
