@@ -181,7 +181,7 @@ def _face_shares(samples: SurfaceSamples, seen: BoolArray) -> dict[str, float]:
 
 
 def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachable: BoolArray,
-            warn_below: float = 0.8) -> CoveragePrediction:
+            warn_below: float = 0.8, by: str = "the planned views") -> CoveragePrediction:
     """Summarise per-arm visibility (each a (N,) mask) against the reachable mask."""
     arms = list(seen_by_arm)
     union = np.zeros(len(samples), dtype=bool)
@@ -197,7 +197,7 @@ def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachabl
             warnings.append(f"{FACE_NAMES[face]} cannot be reached: no feasible view sees "
                             f"{100 * (1 - reach_face[face]):.0f} % of it")
         elif face in per_face and per_face[face] < warn_below:
-            warnings.append(f"{FACE_NAMES[face]} is only {100 * per_face[face]:.0f} % covered by the planned views")
+            warnings.append(f"{FACE_NAMES[face]} is only {100 * per_face[face]:.0f} % covered by {by}")
     return CoveragePrediction(
         coverage=float(np.mean(union)), reachable=float(np.mean(reachable)),
         co_observed=float(np.sum(both) / max(1, np.sum(union))) if len(arms) > 1 else 0.0,
@@ -565,7 +565,8 @@ class CoverageTracker:
         reachable = np.zeros(len(self.plan.samples), dtype=bool)
         for v in self.plan.pool_vis.values():
             reachable |= v.any(axis=0)
-        return predict(self.plan.samples, self.observed, reachable, self.plan.settings.warn_below)
+        return predict(self.plan.samples, self.observed, reachable, self.plan.settings.warn_below,
+                       by="the recorded depth")
 
 
 __all__ = ["FACES", "CoveragePlan", "CoveragePrediction", "CoverageSettings", "CoverageTracker", "SurfaceSamples",
