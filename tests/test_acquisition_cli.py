@@ -30,16 +30,21 @@ def test_bad_arguments_are_one_line_errors(tmp_path: Path, capsys: pytest.Captur
     assert not any(tmp_path.iterdir())  # nothing was created
 
 
-def test_object_outside_the_workspace_is_rejected_with_exit_1(tmp_path: Path,
-                                                              capsys: pytest.CaptureFixture[str]) -> None:
+def test_object_outside_the_workspace_is_refused_with_exit_2(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
     argv = ["collect", "far", "--twin", "--object", "cup", "--placement", "0.0,0.37,0", "--out", str(tmp_path), *FAST]
+    assert run(argv) == 2
+    err = capsys.readouterr().err
+    assert "outside the reachable workspace" in err and not any(tmp_path.iterdir())
+
+
+def test_empty_table_is_rejected_with_exit_1_and_not_overwritten(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["collect", "empty", "--twin", "--object", "none", "--out", str(tmp_path), *FAST]
     assert run(argv) == 1
     err = capsys.readouterr().err
-    assert "survey rejected (outside_workspace)" in err and "far.rejected" in err
-    folder = tmp_path / "far.rejected"
-    assert (folder / "REJECTED.txt").read_text().startswith("rejected: outside_workspace")
-    truth = json.loads((folder / "truth" / "object.json").read_text())
-    assert truth["placement"]["y_m"] == pytest.approx(0.37)
+    assert "survey rejected (no_object)" in err and "empty.rejected" in err
+    assert (tmp_path / "empty.rejected" / "REJECTED.txt").read_text().startswith("rejected: no_object")
     # a second run refuses to overwrite it, then --overwrite replaces it
     assert run(argv) == 2
     assert "already exists" in capsys.readouterr().err

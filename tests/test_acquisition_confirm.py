@@ -129,3 +129,25 @@ def test_record_is_json_ready_and_settings_are_validated() -> None:
     with pytest.raises(AcquisitionError, match="conflict_policy"):
         ConfirmSettings(conflict_policy="average")
     assert combine(a, a).arm_id == "arm110"
+
+
+def test_thresholds_follow_the_calibrations_stated_uncertainty() -> None:
+    """The issue's case: estimates 42 mm apart on a large object were "consistent" under the configured
+    tolerance (max(40 mm, 0.5 r)); a calibration stating sub-millimetre residuals makes them conflict."""
+    from darp.acquisition.confirm import arm_uncertainty_m, consistent, settings_from_calibration
+
+    residuals = {"hand_eye_std": {"rotation_deg": [0.02, 0.02, 0.01], "translation_mm": [0.3, 0.2, 0.4]},
+                 "heldout": {"corner_3d_mm": {"n": 900, "p90": 0.6}, "reprojection_px": {"n": 900, "p90": 0.2}}}
+    u = arm_uncertainty_m(residuals)
+    assert u is not None and 0.0007 < u < 0.001  # 0.54 mm, 0.21 mm (0.03 deg at 0.4 m), 0.6 mm: quadrature
+    base = ConfirmSettings()
+    derived, how = settings_from_calibration(base, {"arm110": residuals, "arm111": residuals})
+    assert how["source"] == "calibration" and derived.centre_tolerance_m < 0.025
+    a = ObjectEstimate("arm110", np.array([0.0, 0.0, 0.05]), 0.09, 0.10, 2000, 0.9)
+    b = ObjectEstimate("arm111", np.array([0.042, 0.0, 0.05]), 0.09, 0.10, 2000, 0.9)
+    assert consistent(a, b, base) and not consistent(a, b, derived)
+    near = ObjectEstimate("arm111", np.array([0.012, 0.0, 0.05]), 0.09, 0.10, 2000, 0.9)
+    assert consistent(a, near, derived)  # the estimators' own spread still passes
+    # no stated uncertainty (a nominal calibration): the configured thresholds
+    same, how = settings_from_calibration(base, {"arm110": {}, "arm111": residuals})
+    assert same is base and how["source"] == "configured"

@@ -51,6 +51,14 @@ class LiveFrameSet:
     extra: dict[str, object] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class RigFault:
+    """Why the rig stopped moving: a contact (twin) or a controller fault (hardware), and the arms involved."""
+
+    message: str
+    arms: tuple[str, ...] = ()
+
+
 class Clock(ABC):
     """Host-clock time source. Both the joint log and camera timestamps use it."""
 
@@ -130,11 +138,23 @@ class RigBackend(ABC):
         """Release hardware or simulation resources (default: nothing)."""
         return None
 
+    def fault(self) -> RigFault | None:
+        """The fault that stopped the rig's motion, if any (default: none is ever reported).
+
+        The twin reports the first contact of a moving arm (and has stopped both arms by then); the hardware
+        reports an arm whose controller left joint control (collision protection, emergency stop). Once a
+        fault is reported no planned move may be commanded: the survey stops, parks what is safe to park
+        and rejects the episode.
+        """
+        return None
+
     def wait_until_still(self, arm_id: str, timeout_s: float, poll_s: float = 0.01) -> bool:
-        """Sleep on the rig's clock until ``arm_id`` stops moving; False on timeout."""
+        """Sleep on the rig's clock until ``arm_id`` stops moving; False on timeout or on a :meth:`fault`."""
         deadline = self.clock.now() + timeout_s
         arm = self.arms[arm_id]
         while arm.is_moving():
+            if self.fault() is not None:
+                return False
             if self.clock.now() >= deadline:
                 return False
             self.clock.sleep(poll_s)

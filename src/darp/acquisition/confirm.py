@@ -20,6 +20,13 @@ the first is parked, gives B. :func:`decide` applies these rules, in order, and 
    (``conflict``); so it does when the re-observations are invalid or agree with neither.
    ``conflict_policy="terminate"`` terminates at once.
 4. **Neither valid**: terminate with the searching arm's reason (``no_object``, ``outside_workspace``...).
+
+**Thresholds from the calibration** (:func:`settings_from_calibration`). A calibration that states its
+uncertainty (``residuals``: the hand-eye and base standard deviations, held-out errors in mm) gives a
+per-arm position uncertainty u at the viewing distance; the two arms' estimates may then differ by
+about ``3 * sqrt(u1^2 + u2^2)`` plus the estimators' own spread (``estimate_spread_m``), so the centre
+tolerance becomes ``max(that, centre_floor_rel * radius)``, never more than the configured one. A
+calibration without stated uncertainty (the nominal one) keeps the configured thresholds.
 """
 
 from __future__ import annotations
@@ -57,6 +64,54 @@ class ConfirmSettings:
                                    f"got {self.conflict_policy!r}")
         if not (self.centre_tolerance_m > 0 and self.height_tolerance_m > 0):
             raise AcquisitionError("confirmation tolerances must be positive")
+
+
+def _norm(values: Any) -> float:
+    try:
+        arr = np.asarray(values, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        return 0.0
+    return float(np.linalg.norm(arr[np.isfinite(arr)])) if arr.size else 0.0
+
+
+def arm_uncertainty_m(residuals: dict[str, Any], distance_m: float = 0.4) -> float | None:
+    """A calibration's stated position uncertainty (m) of one arm at ``distance_m`` from its camera: the
+    hand-eye and base standard deviations (translation, and rotation times the distance) and the held-out
+    errors in mm (their p90), added in quadrature; None when the residuals state none."""
+    terms: list[float] = []
+    for key in ("hand_eye_std", "base_std"):
+        std = residuals.get(key)
+        if isinstance(std, dict):
+            terms.append(_norm(std.get("translation_mm", [])) / 1e3)
+            terms.append(np.radians(_norm(std.get("rotation_deg", []))) * distance_m)
+    heldout = residuals.get("heldout")
+    if isinstance(heldout, dict):
+        for name, stats in heldout.items():
+            if "mm" in str(name) and isinstance(stats, dict) and stats.get("n", 1):
+                value = stats.get("p90", stats.get("rms"))
+                terms.append(float(value) / 1e3 if isinstance(value, (int, float)) else 0.0)
+    terms = [t for t in terms if np.isfinite(t) and t > 0]
+    return float(np.sqrt(np.sum(np.square(terms)))) if terms else None
+
+
+def settings_from_calibration(base: ConfirmSettings, residuals_by_arm: dict[str, dict[str, Any]],
+                              estimate_spread_m: float = 0.02,
+                              centre_floor_rel: float = 0.2) -> tuple[ConfirmSettings, dict[str, Any]]:
+    """Confirmation thresholds from the calibration's stated uncertainty (see the module docstring); returns
+    the settings and a record of how they were derived."""
+    u = {arm: arm_uncertainty_m(res) for arm, res in residuals_by_arm.items()}
+    if not u or any(v is None for v in u.values()):
+        return base, {"source": "configured", "uncertainty_m": u}
+    combined = float(np.sqrt(sum(v * v for v in u.values() if v is not None)))
+    tol = min(base.centre_tolerance_m, 3.0 * combined + estimate_spread_m)
+    derived = ConfirmSettings(centre_tolerance_m=tol, centre_tolerance_rel=min(base.centre_tolerance_rel,
+                                                                               centre_floor_rel),
+                              height_tolerance_m=base.height_tolerance_m,
+                              height_tolerance_rel=base.height_tolerance_rel,
+                              fallback_min_points=base.fallback_min_points, conflict_policy=base.conflict_policy)
+    return derived, {"source": "calibration", "uncertainty_m": {a: round(v or 0.0, 5) for a, v in u.items()},
+                     "combined_m": round(combined, 5), "centre_tolerance_m": round(tol, 5),
+                     "centre_tolerance_rel": derived.centre_tolerance_rel}
 
 
 @dataclass

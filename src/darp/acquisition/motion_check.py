@@ -30,8 +30,8 @@ from typing import cast
 import numpy as np
 from numpy.typing import NDArray
 
-from darp.backend import RigBackend
-from darp.errors import AcquisitionError
+from darp.backend import RigBackend, RigFault
+from darp.errors import AcquisitionError, DarpError
 from darp.formats.calibration import Calibration
 from darp.kinematics import collision, z1
 from darp.kinematics.collision import ADJACENT_LINKS, ALLOWED_PAIRS, Primitive, PrimitiveSet
@@ -268,6 +268,31 @@ class UnsafeMoveError(AcquisitionError):
         self.verdict = verdict
 
 
+class MotionFault(AcquisitionError):
+    """The rig reported a fault (a contact on the twin, a controller fault on hardware): every arm was told
+    to stop and no further planned move may be commanded."""
+
+    def __init__(self, fault: RigFault) -> None:
+        super().__init__(fault.message)
+        self.fault = fault
+
+
+def stop_all_arms(backend: RigBackend) -> None:
+    """Tell every arm to stop at once; an arm that cannot be told (its controller is down) is skipped."""
+    for arm in backend.arms.values():
+        try:
+            arm.stop()
+        except Exception:  # a faulted controller refuses commands; the others must still stop
+            continue
+
+
+def _raise_on_fault(backend: RigBackend) -> None:
+    fault = backend.fault()
+    if fault is not None:
+        stop_all_arms(backend)
+        raise MotionFault(fault)
+
+
 @dataclass(frozen=True)
 class MotionSettings:
     """How moves are executed: speed, settling, timeouts, path sampling."""
@@ -285,10 +310,13 @@ def checked_move(backend: RigBackend, model: ArmCollisionModel, q_target_rad: Ar
     """Check the straight joint path from the arm's present state to ``q_target_rad``, then move there
     (non-blocking command, waiting on the rig clock) and settle. Returns the time the move took (s).
 
-    Raises :class:`UnsafeMoveError` (nothing moved) when the path fails a check and
+    Raises :class:`UnsafeMoveError` (nothing moved) when the path fails a check,
+    :class:`MotionFault` when the rig reports a fault before or during the move (every arm is told to
+    stop at once; an error the moving arm raises while moving counts as its fault) and
     :class:`AcquisitionError` when the arm does not arrive in time.
     """
     s = settings if settings is not None else MotionSettings()
+    _raise_on_fault(backend)
     arm = backend.arms[model.arm_id]
     q_now = np.asarray(arm.read_state().q_rad, dtype=float)
     q_target = np.asarray(q_target_rad, dtype=float)
@@ -296,15 +324,22 @@ def checked_move(backend: RigBackend, model: ArmCollisionModel, q_target_rad: Ar
     if not verdict.ok:
         raise UnsafeMoveError(f"{model.arm_id}: move refused ({verdict.reason}): {verdict.detail}", verdict)
     t0 = backend.clock.now()
-    arm.move_to(q_target, s.speed_rad_s)
-    if not backend.wait_until_still(model.arm_id, s.timeout_s, s.poll_s):
+    try:
+        arm.move_to(q_target, s.speed_rad_s)
+        arrived = backend.wait_until_still(model.arm_id, s.timeout_s, s.poll_s)
+    except DarpError as err:  # the arm itself failed while moving: a fault of that arm
+        stop_all_arms(backend)
+        raise MotionFault(backend.fault() or RigFault(f"{model.arm_id}: {err}", (model.arm_id,))) from err
+    _raise_on_fault(backend)
+    if not arrived:
         arm.stop()
         raise AcquisitionError(f"{model.arm_id} did not reach its target within {s.timeout_s:.0f} s")
     took = backend.clock.now() - t0
     if settle and s.settle_s > 0:
         backend.clock.sleep(s.settle_s)
+        _raise_on_fault(backend)
     return took
 
 
-__all__ = ["REASONS", "ArmCollisionModel", "ClearanceMargins", "MotionSettings", "UnsafeMoveError", "Verdict",
-           "checked_move", "envelope_obstacle", "workspace_obstacle"]
+__all__ = ["REASONS", "ArmCollisionModel", "ClearanceMargins", "MotionFault", "MotionSettings", "UnsafeMoveError",
+           "Verdict", "checked_move", "envelope_obstacle", "stop_all_arms", "workspace_obstacle"]

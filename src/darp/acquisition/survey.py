@@ -5,14 +5,25 @@ One procedure drives the twin and real hardware through :class:`~darp.backend.Ri
 1. park both arms;
 2. **localise** with the searching arm (the other parked) and **confirm** with the other arm looking
    straight at that estimate (:mod:`~darp.acquisition.localise`, :mod:`~darp.acquisition.confirm`);
-3. **plan** each arm's views about the confirmed envelope (:mod:`~darp.acquisition.viewpoints`);
+3. **plan** each arm's views about the confirmed envelope: by default for coverage of the envelope's
+   surface with a co-observed band between the arms (:mod:`~darp.acquisition.coverage`; a side no
+   feasible view reaches is warned about by name), or the paper's fixed orbit
+   (``viewpoint_strategy="orbit"``, :mod:`~darp.acquisition.viewpoints`);
 4. **record**: start the joint log, then both cameras; each arm in turn visits its views (non-blocking
    moves, waiting on the rig clock, a settling interval at every view) and parks while the other
    waits parked; stop the cameras, keep logging a little, stop the log. So the camera interval lies
-   inside the log's;
+   inside the log's. With the coverage strategy every view's live depth updates the achieved coverage,
+   and after an arm's planned views the next best views (those that see the most surface still
+   unobserved, at most ``coverage.nbv_max_views``) are added before it parks;
 5. **verify** the written files (:mod:`~darp.acquisition.verify`) and accept or reject the episode
    (:mod:`~darp.acquisition.episode`), writing ``manip_envelope.json`` with the envelope, the
    standoff, the park and view configurations and the localisation/confirmation record.
+
+A fault the rig reports during motion (a contact on the twin, a controller that left joint control on
+hardware: :meth:`~darp.backend.RigBackend.fault`) stops both arms at once, closes the recordings and
+the log, parks each arm not involved in the fault whose path to park is clear, and rejects the
+episode with reason ``fault`` (``REJECTED.txt`` names the fault and where each arm was left); no
+planned move is commanded after it.
 
 A KeyboardInterrupt or a backend error at any point stops both arms, closes the recordings and the
 log, and leaves ``<NAME>.partial/`` marked with ``PARTIAL.txt``; the KeyboardInterrupt is re-raised,
@@ -24,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,15 +43,25 @@ from typing import Any
 
 import numpy as np
 
-from darp.acquisition.confirm import ConfirmSettings, Decision, decide
+from darp.acquisition.confirm import ConfirmSettings, Decision, decide, settings_from_calibration
+from darp.acquisition.coverage import (
+    CoveragePlan,
+    CoverageSettings,
+    CoverageTracker,
+    coverage_of_plans,
+    plan_coverage,
+)
 from darp.acquisition.episode import Episode
 from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSettings, ObjectEstimate
 from darp.acquisition.motion_check import (
     ArmCollisionModel,
     ClearanceMargins,
+    MotionFault,
     MotionSettings,
+    UnsafeMoveError,
     checked_move,
     envelope_obstacle,
+    stop_all_arms,
     workspace_obstacle,
 )
 from darp.acquisition.verify import VerificationReport, VerifySettings, verify_survey
@@ -51,7 +73,7 @@ from darp.acquisition.viewpoints import (
     standoff_for_radius,
 )
 from darp.backend import RigBackend
-from darp.errors import AcquisitionError
+from darp.errors import AcquisitionError, DarpWarning
 from darp.formats.calibration import Calibration
 from darp.formats.envelope import ENVELOPE_FILE, Envelope, write_envelope
 from darp.formats.survey import ARM_POSES_FILE
@@ -68,6 +90,9 @@ class SurveySettings:
     localise: LocaliseSettings = field(default_factory=LocaliseSettings)
     confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
     viewpoints: ViewpointSettings = field(default_factory=ViewpointSettings)
+    coverage: CoverageSettings = field(default_factory=CoverageSettings)
+    viewpoint_strategy: str = "coverage"  # or "orbit": the paper's fixed orbit per arm
+    confirm_from_calibration: bool = True  # confirmation thresholds from the calibration's stated uncertainty
     motion: MotionSettings = field(default_factory=MotionSettings)
     verify: VerifySettings = field(default_factory=VerifySettings)
     envelope_margin_m: float = 0.04  # arm and camera keep this far from the object envelope
@@ -131,6 +156,10 @@ class SurveyRunner:
         self.logging = False
         self.timings: dict[str, float] = {}
         self.estimate: ObjectEstimate | None = None
+        self.coverage_plan: CoveragePlan | None = None
+        self.tracker: CoverageTracker | None = None
+        if self.s.viewpoint_strategy not in ("coverage", "orbit"):
+            raise AcquisitionError(f"viewpoint strategy must be coverage or orbit, got {self.s.viewpoint_strategy!r}")
 
     # -- helpers ----------------------------------------------------------------------------------
     def _model(self, arm_id: str, obstacle: Any) -> ArmCollisionModel:
@@ -146,9 +175,11 @@ class SurveyRunner:
 
     def _stop_everything(self) -> None:
         """Stop the arms, close the recordings and the log; never raises."""
-        for arm in self.backend.arms.values():
-            with contextlib.suppress(Exception):
-                arm.stop()
+        stop_all_arms(self.backend)
+        self._stop_recording()
+
+    def _stop_recording(self) -> None:
+        """Close the recordings and the log if they run; never raises."""
         if self.recording:
             for camera in self.backend.cameras.values():
                 with contextlib.suppress(Exception):
@@ -183,7 +214,12 @@ class SurveyRunner:
             self.events("reobserved", arm=arm_id, **{k: v for k, v in result.to_record().items() if k != "arm"})
             return result.estimate
 
-        decision = decide(a, b, self.s.confirm, reobserve)
+        confirm = self.s.confirm
+        if self.calibration is not None and self.s.confirm_from_calibration:
+            confirm, how = settings_from_calibration(confirm, {arm: c.residuals for arm, c in
+                                                               self.calibration.arms.items()})
+            self.events("confirm_thresholds", **how)
+        decision = decide(a, b, confirm, reobserve)
         self.events("confirmation", **decision.to_record())
         self.outcome.decision = decision
         if not decision.ok:
@@ -195,16 +231,32 @@ class SurveyRunner:
         t0 = time.perf_counter()
         vs = self.s.viewpoints
         obstacle = envelope_obstacle(est.centre_m, est.radius_m, est.height_m, self.rig.table.height_m)
-        plans = {}
+        planners = {}
         for arm_id in self.rig.arm_ids:
             settings = vs
             if self.s.derive_min_depth:
                 intr = self.backend.cameras[arm_id].depth_intrinsics
                 settings = dataclasses.replace(vs, min_depth_m=min_depth_from_intrinsics(intr))
-            planner = ViewpointPlanner(self._model(arm_id, obstacle), est.centre_m, est.radius_m, est.height_m,
-                                       settings, self.park[arm_id])
-            plan = planner.plan()
-            plans[arm_id] = plan
+            planners[arm_id] = ViewpointPlanner(self._model(arm_id, obstacle), est.centre_m, est.radius_m,
+                                                est.height_m, settings, self.park[arm_id])
+        plans: dict[str, ViewPlan] = {}
+        if self.s.viewpoint_strategy == "coverage":
+            cov = plan_coverage(planners, self.s.coverage)
+            self.coverage_plan = cov
+            self.tracker = CoverageTracker(cov)
+            plans = dict(cov.plans)
+            for arm_id, plan in plans.items():
+                if len(plan.views) < self.s.min_required_views:  # too few: the orbit with its relaxations
+                    plans[arm_id] = planners[arm_id].plan()
+                    self.events("coverage_fallback", arm=arm_id, coverage_views=len(plan.views))
+            self.events("coverage_plan", **cov.prediction.to_record())
+            for message in cov.prediction.warnings:
+                warnings.warn(DarpWarning(f"coverage: {message}"), stacklevel=2)
+        else:
+            plans = {arm_id: planner.plan() for arm_id, planner in planners.items()}
+            self.coverage_plan = coverage_of_plans(planners, plans, self.s.coverage)  # achieved coverage only
+            self.tracker = CoverageTracker(self.coverage_plan)
+        for plan in plans.values():
             self.events("view_plan", **plan.to_record(),
                         views=[c.to_record() for c in plan.views],
                         rejected=[c.to_record() for c in plan.candidates if not c.ok])
@@ -216,6 +268,33 @@ class SurveyRunner:
             raise _Terminated("too_few_views", f"too few feasible views ({what}; at least "
                               f"{self.s.min_required_views} needed) even after relaxing the orbit")
         return plans
+
+    def _observe(self, arm_id: str, model: Any) -> None:
+        """Add the arm's live depth at its present pose to the achieved coverage."""
+        if self.tracker is None:
+            return
+        frames = self.backend.cameras[arm_id].latest_frameset()
+        q = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
+        self.tracker.observe(arm_id, frames.depth_m, frames.depth_intrinsics, model.T_world_cam(q))
+
+    def _next_best_views(self, arm_id: str, plan: ViewPlan, model: Any, later: list[str]) -> None:
+        """Visit the next best views of ``arm_id`` (see :class:`CoverageTracker`), appending them to its plan."""
+        if self.tracker is None or arm_id not in self.tracker.plan.pools:
+            return
+        for cand in self.tracker.next_views(arm_id, plan.views, later):
+            q_now = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
+            if float(np.max(np.abs(cand.joints_rad - q_now))) > self.s.coverage.max_joint_step_rad:
+                continue
+            try:
+                took = checked_move(self.backend, model, cand.joints_rad, self.s.motion)
+            except UnsafeMoveError as err:
+                self.events("next_best_view_refused", arm=arm_id, candidate=cand.index, reason=str(err))
+                continue
+            plan.views.append(cand)
+            self.tracker.extra[arm_id].append(cand)
+            self._observe(arm_id, model)
+            self.events("next_best_view", arm=arm_id, candidate=cand.to_record(), move_s=round(took, 3),
+                        achieved=round(float(np.mean(self.tracker.union())), 4))
 
     def record(self, plans: dict[str, ViewPlan], obstacle: Any) -> None:
         folder = self.episode.path
@@ -232,15 +311,17 @@ class SurveyRunner:
             self.events("camera_started", arm=arm_id, serial=camera.serial)
         clock.sleep(self.s.camera_lead_s)
         t_start = clock.now()
-        for arm_id in self.rig.arm_ids:
+        for n_arm, arm_id in enumerate(self.rig.arm_ids):
             model = self._model(arm_id, obstacle)
-            for k, view in enumerate(plans[arm_id].views):
+            for k, view in enumerate(list(plans[arm_id].views)):
                 self.progress("record", done / max(total, 1), f"{arm_id} view {k + 1}/{len(plans[arm_id].views)}")
                 took = checked_move(self.backend, model, view.joints_rad, self.s.motion)
                 state = self.backend.arms[arm_id].read_state()
                 self.events("view_reached", arm=arm_id, view=k, move_s=round(took, 3),
                             q_rad=[round(float(v), 5) for v in state.q_rad])
+                self._observe(arm_id, model)
                 done += 1
+            self._next_best_views(arm_id, plans[arm_id], model, list(self.rig.arm_ids[n_arm + 1:]))
             checked_move(self.backend, model, self.park[arm_id], self.s.motion, settle=False)
             self.events("parked", arm=arm_id)
         self.progress("record", 1.0, "stopping the cameras")
@@ -250,6 +331,14 @@ class SurveyRunner:
             self.events("camera_stopped", arm=arm_id)
         self.recording = False
         self.timings["recording_s"] = clock.now() - t_start
+        if self.tracker is not None:
+            achieved = self.tracker.achieved()
+            self.events("coverage_achieved", **achieved.to_record(),
+                        next_best_views={a: len(v) for a, v in self.tracker.extra.items()})
+            check, warning = self.tracker.envelope_check()
+            self.events("envelope_check", **check, warning=warning)
+            if warning is not None:
+                warnings.warn(DarpWarning(warning), stacklevel=2)
         clock.sleep(self.s.log_tail_s)
         self.backend.stop_joint_log()
         self.logging = False
@@ -261,7 +350,10 @@ class SurveyRunner:
                   "calibration": None if self.calibration is None else self.calibration.epoch,
                   "arms": loc, "confirmation": None if self.outcome.decision is None
                   else self.outcome.decision.to_record()}
-        extra = {"planning": {a: p.to_record() for a, p in plans.items()}} if plans else {}
+        extra: dict[str, Any] = {"planning": {a: p.to_record() for a, p in plans.items()}} if plans else {}
+        coverage = self.coverage_record()
+        if coverage is not None:
+            extra["coverage"] = coverage
         center: tuple[float, float, float] | None = None
         if est is not None:
             x, y, z = (float(v) for v in est.centre_m)
@@ -275,6 +367,19 @@ class SurveyRunner:
             park_q_rad={a: tuple(float(v) for v in q) for a, q in self.park.items()},
             view_q_rad={a: [tuple(float(v) for v in c.joints_rad) for c in p.views] for a, p in plans.items()},
             localisation=record, extra=extra)
+
+    def coverage_record(self) -> dict[str, Any] | None:
+        """Predicted and achieved coverage of the envelope's surface (None for the orbit strategy)."""
+        if self.coverage_plan is None:
+            return None
+        record: dict[str, Any] = {"strategy": self.s.viewpoint_strategy,
+                                  "samples": len(self.coverage_plan.samples),
+                                  "predicted": self.coverage_plan.prediction.to_record()}
+        if self.tracker is not None and any(m.any() for m in self.tracker.observed.values()):
+            record["achieved"] = self.tracker.achieved().to_record()
+            record["next_best_views"] = {a: len(v) for a, v in self.tracker.extra.items()}
+            record["envelope_check"], record["envelope_warning"] = self.tracker.envelope_check()
+        return record
 
     # -- the procedure ----------------------------------------------------------------------------
     def _acquire(self) -> tuple[ObjectEstimate, dict[str, ViewPlan]]:
@@ -303,6 +408,64 @@ class SurveyRunner:
         self.progress("done", 1.0, f"rejected: {end.message}")
         return o
 
+    def _wait_at_rest(self, arm_id: str, timeout_s: float) -> bool:
+        """Sleep until ``arm_id`` reports no motion (ignoring the latched fault); False on timeout or error."""
+        arm, clock = self.backend.arms[arm_id], self.backend.clock
+        deadline = clock.now() + timeout_s
+        try:
+            while arm.is_moving():
+                if clock.now() >= deadline:
+                    return False
+                clock.sleep(self.s.motion.poll_s)
+        except Exception:  # a faulted controller: its arm is left where it is
+            return False
+        return True
+
+    def _park_after_fault(self, arm_id: str) -> str:
+        """Park one arm not involved in the fault if its path is clear; says what happened."""
+        if not self._wait_at_rest(arm_id, self.s.motion.timeout_s):
+            return f"{arm_id} left where it stopped (not at rest)"
+        est = self.estimate
+        obstacle = (workspace_obstacle(self.rig) if est is None
+                    else envelope_obstacle(est.centre_m, est.radius_m, est.height_m, self.rig.table.height_m))
+        arm = self.backend.arms[arm_id]
+        try:
+            q_now = np.asarray(arm.read_state().q_rad, dtype=float)
+            if np.max(np.abs(q_now - self.park[arm_id])) < self.s.motion.start_tolerance_rad:
+                return f"{arm_id} parked"
+            verdict = self._model(arm_id, obstacle).check_path(q_now, self.park[arm_id], self.s.motion.path_step_rad)
+            if not verdict.ok:
+                return f"{arm_id} left where it stopped (its path to park is not clear: {verdict.reason})"
+            arm.move_to(self.park[arm_id], self.s.motion.speed_rad_s)
+            self._wait_at_rest(arm_id, self.s.motion.timeout_s)
+            q_end = np.asarray(arm.read_state().q_rad, dtype=float)
+        except Exception as err:  # the backend refused: leave the arm for the operator
+            return f"{arm_id} left where it stopped ({type(err).__name__}: {err})"
+        if np.max(np.abs(q_end - self.park[arm_id])) < self.s.motion.start_tolerance_rad:
+            self.events("parked", arm=arm_id, after_fault=True)
+            return f"{arm_id} parked"
+        return f"{arm_id} stopped short of park (stopped again on the way)"
+
+    def _faulted(self, err: MotionFault, before_finalise: Callable[[Path], None] | None) -> SurveyOutcome:
+        """Both arms stopped, recordings closed, safe arms parked, the episode rejected with the fault."""
+        o, fault = self.outcome, err.fault
+        stop_all_arms(self.backend)
+        self.events("fault", message=fault.message, arms=list(fault.arms))
+        self._stop_recording()
+        where = [f"{a} left where it stopped (involved in the fault)" if a in fault.arms else self._park_after_fault(a)
+                 for a in self.rig.arm_ids]
+        message = f"motion stopped by a fault: {fault.message}; " + "; ".join(where)
+        self.events("terminated", reason="fault", message=message)
+        o.envelope = self.envelope(self.estimate, o.plans)
+        write_envelope(self.episode.path / ENVELOPE_FILE, o.envelope)
+        if before_finalise is not None:
+            before_finalise(self.episode.path)
+        o.status, o.reason, o.message, o.timings = "rejected", "fault", message, self.timings
+        o.folder = self.episode.reject("fault", message,
+                                       extra={"timings": self.timings, "fault_arms": list(fault.arms)})
+        self.progress("done", 1.0, f"rejected: {message}")
+        return o
+
     def _verified(self, est: ObjectEstimate, plans: dict[str, ViewPlan],
                   before_finalise: Callable[[Path], None] | None) -> SurveyOutcome:
         o = self.outcome
@@ -318,8 +481,10 @@ class SurveyRunner:
         self.events("verification", passed=report.passed, summary=report.summary())
         if before_finalise is not None:
             before_finalise(self.episode.path)
+        coverage = self.coverage_record()
         if report.passed:
-            self.episode.write_json("verification.json", report.to_record())
+            self.episode.write_json("verification.json", {**report.to_record(),
+                                                          **({"coverage": coverage} if coverage else {})})
             o.folder = self.episode.accept(report.summary(), extra={"timings": self.timings})
             o.status, o.message = "accepted", report.summary()
         else:
@@ -337,6 +502,8 @@ class SurveyRunner:
                 est, plans = self._acquire()
             except _Terminated as end:
                 return self._terminated(end, before_finalise)
+            except MotionFault as fault:
+                return self._faulted(fault, before_finalise)
             return self._verified(est, plans, before_finalise)
         except KeyboardInterrupt:
             self._stop_everything()

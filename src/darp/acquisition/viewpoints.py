@@ -226,6 +226,7 @@ class ViewpointPlanner:
         self.table = rig.table
         self.T_base_world = np.linalg.inv(model.T_world_base)
         self.envelope_pts = envelope_points(self.centre, self.radius, self.height, rig.table.height_m)
+        self.roll_hints_deg: tuple[float, ...] = ROLL_HINTS_DEG
         base_xy = model.T_world_base[:2, 3] - self.centre[:2]
         self.side_azimuth_deg = float(np.degrees(np.arctan2(base_xy[1], base_xy[0])))
 
@@ -293,7 +294,7 @@ class ViewpointPlanner:
         side = np.cross(d, up)
         first: Array | None = None
         message = ""
-        for roll_deg in ROLL_HINTS_DEG:
+        for roll_deg in self.roll_hints_deg:
             a = np.radians(roll_deg)
             hint = np.cos(a) * up + np.sin(a) * side
             result = solve_look_at(target_base, distance_m, T_frame_cam=m.T_flange_cam, view_dir_base=view_dir_base,

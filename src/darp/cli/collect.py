@@ -2,8 +2,10 @@
 
     darp collect NAME --twin [--object mug|PATH|none] [--scale S] [--placement x,y,yaw_deg] [--seed N]
                       [--profile ideal|realistic] [--fps 30] [--resolution 640x480]
-                      [-c FILE | --truth-calibration] [--rig RIG.yaml] [-o DIR] [--overwrite] [--quiet]
-    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [-o DIR] [--overwrite] [--quiet]
+                      [-c FILE | --truth-calibration] [--viewpoints coverage|orbit] [--rig RIG.yaml] [-o DIR]
+                      [--overwrite] [--quiet]
+    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [--viewpoints coverage|orbit] [-o DIR] [--overwrite]
+                      [--quiet]
 
 The survey folder is ``<out>/NAME`` when accepted, ``<out>/NAME.rejected`` when rejected (REJECTED.txt
 says why) and ``<out>/NAME.partial`` after an interruption (PARTIAL.txt). Exit codes: 0 accepted,
@@ -12,6 +14,7 @@ says why) and ``<out>/NAME.partial`` after an interruption (PARTIAL.txt). Exit c
 
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -31,6 +34,14 @@ from darp.cli._options import (
     parse_resolution,
 )
 from darp.cli.twin import PLACEMENT_HELP
+
+
+class Viewpoints(StrEnum):
+    """How each arm's views are planned (darp.acquisition.survey)."""
+
+    coverage = "coverage"
+    orbit = "orbit"
+
 
 PHASES = {"localise": "localising", "confirm": "confirming", "plan": "planning", "record": "recording",
           "verify": "verifying", "done": "done"}
@@ -89,6 +100,9 @@ def collect_command(
         "values).")] = None,
     truth_calibration: Annotated[bool, typer.Option("--truth-calibration", help="Twin: decide with the twin's true "
                                                     "calibration instead of --calibration.")] = False,
+    viewpoints: Annotated[Viewpoints, typer.Option(
+        "--viewpoints", help="Plan views for coverage of the envelope with a co-observed band and next best "
+        "views (coverage), or the paper's fixed orbit per arm (orbit).")] = Viewpoints.coverage,
     out: Annotated[Path, out_option("Folder that receives the survey folder.", show_default=True)] = Path("."),
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing NAME (and "
                                             "NAME.partial/.rejected).")] = False,
@@ -108,14 +122,20 @@ def collect_command(
     check_name(name)
     if hardware:
         assert calibration is not None
-        _collect_hardware(name, rig_file, calibration, out, overwrite, quiet)
+        _collect_hardware(name, rig_file, calibration, out, overwrite, quiet, viewpoints)
     else:
         _collect_twin(name, obj_name, scale, placement, seed, profile, fps, resolution, calibration,
-                      truth_calibration, rig_file, out, overwrite, quiet)
+                      truth_calibration, rig_file, out, overwrite, quiet, viewpoints)
+
+
+def _settings(viewpoints: Viewpoints) -> Any:
+    from darp.acquisition.survey import SurveySettings
+
+    return SurveySettings(viewpoint_strategy=viewpoints.value)
 
 
 def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: Path, overwrite: bool,
-                      quiet: bool) -> None:
+                      quiet: bool, viewpoints: Viewpoints = Viewpoints.coverage) -> None:
     from darp.acquisition.survey import run_survey
     from darp.formats.calibration import read_calibration
     from darp.hardware.rig import HardwareRig
@@ -124,13 +144,15 @@ def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: 
     rig_backend = HardwareRig.open(rig_file)
     with rig_backend:
         outcome = _run_with_progress(quiet, name, lambda progress: run_survey(
-            rig_backend, rig_backend.rig, out, name, calibration=cal, overwrite=overwrite, progress=progress))
+            rig_backend, rig_backend.rig, out, name, calibration=cal, overwrite=overwrite, progress=progress,
+            settings=_settings(viewpoints)))
     _report(outcome)
 
 
 def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, seed: int, profile: Profile,
                   fps: int, resolution: Resolution, calibration: Path | None, truth_calibration: bool,
-                  rig_file: Path | None, out: Path, overwrite: bool, quiet: bool) -> None:
+                  rig_file: Path | None, out: Path, overwrite: bool, quiet: bool,
+                  viewpoints: Viewpoints = Viewpoints.coverage) -> None:
     """Decisions use ``calibration``, the twin's true one (``truth_calibration``) or else the rig's nominal."""
     from darp.acquisition.survey import run_survey
     from darp.cli.twin import load_object, place_object
@@ -157,7 +179,8 @@ def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement |
 
         outcome = _run_with_progress(quiet, name, lambda progress: run_survey(
             twin_rig, rig, out, name, calibration=cal, overwrite=overwrite, progress=progress,
-            object_name=None if obj is None else obj.name, before_finalise=write_truth))
+            object_name=None if obj is None else obj.name, before_finalise=write_truth,
+            settings=_settings(viewpoints)))
         contacts = list(twin_rig.contact_events)
     if contacts:
         first = contacts[0]

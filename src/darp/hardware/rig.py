@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.backend import ArmBackend, CameraBackend, Clock, RigBackend
+from darp.backend import ArmBackend, CameraBackend, Clock, RigBackend, RigFault
 from darp.errors import DarpError, HardwareError
 from darp.hardware.joint_logger import JointLogger
 from darp.hardware.realsense_camera import RealSenseCamera
@@ -119,6 +119,15 @@ class HardwareRig(RigBackend):
     @property
     def joint_logger(self) -> JointLogger | None:
         return self._logger
+
+    def fault(self) -> RigFault | None:
+        """The first arm whose control loop stopped (its controller left joint control: collision
+        protection, an emergency stop), or None. Arms without a ``fault_error`` never report one."""
+        faulted = [(arm_id, err) for arm_id, arm in self.arms.items()
+                   if (err := getattr(arm, "fault_error", None)) is not None]
+        if not faulted:
+            return None
+        return RigFault("; ".join(str(err) for _, err in faulted), tuple(a for a, _ in faulted))
 
     def park_q(self, arm_id: str) -> np.ndarray:
         """The rig file's park configuration of ``arm_id`` (SDK angles)."""

@@ -312,6 +312,11 @@ class Z1Arm(ArmBackend):
         if not self.connected:
             raise HardwareError(f"{self.arm_id}: not connected (call connect() first)")
 
+    @property
+    def fault_error(self) -> HardwareError | None:
+        """Why the control loop stopped (the controller left joint control, an SDK failure), or None."""
+        return self._fault
+
     # -- ArmBackend -------------------------------------------------------------------------------
     def read_state(self) -> JointState:
         """The latest joint state from the controller (at most one control cycle old), host-clock time."""

@@ -3,8 +3,12 @@
 Everything runs on one :class:`~darp.twin.clock.SimClock`. Scheduled processes, in insertion order
 for equal times: the two cameras' frame ticks (30 fps, staggered), the joint logger once started
 (about 33 Hz with Gaussian interval jitter; each row's time is the host-clock time of its sample) and
-the collision monitor (while any arm moves, every arm's contacts with the table, the object and the
-other arm are checked at ``collision_check_hz`` and recorded in :attr:`TwinRig.contact_events`).
+the collision monitor (while any arm moves, the moving arms' contacts with the table, the object and
+the other arm are checked at ``collision_check_hz`` and recorded in :attr:`TwinRig.contact_events`).
+
+A contact during motion stops both arms at once (decelerating at the acceleration limit, as the Z1's
+controller does) and latches a :class:`~darp.backend.RigFault` that :meth:`TwinRig.fault` reports; the
+survey then refuses further planned moves (``stop_on_contact=False`` keeps the old record-only monitor).
 
 The true rig (joint-zero offsets, camera mounts, second base) is drawn from the nominal rig and the
 settings' seed (:func:`darp.twin.truth.draw_true_rig`); arms report SDK angles, the world and the
@@ -19,13 +23,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from darp.backend import RigBackend
+from darp.backend import RigBackend, RigFault
 from darp.errors import TwinError
 from darp.formats.arm_poses import ArmPoseWriter
 from darp.kinematics.rig import Rig, load_rig
 from darp.twin.arm_sim import SimArm
 from darp.twin.camera.backend import TwinCameraBackend
 from darp.twin.clock import NS_PER_S, SimClock, s_to_ns
+from darp.twin.placement import validate_placement
 from darp.twin.settings import TwinSettings
 from darp.twin.truth import TrueRig, draw_true_rig
 from darp.twin.world import Contact, TwinWorld
@@ -56,8 +61,12 @@ class TwinRig(RigBackend):
     def __init__(self, settings: TwinSettings | None = None, *, rig: Rig | None = None,
                  obj: Any | None = None, placement: Any | None = None, board: Any | None = None,
                  T_world_board: np.ndarray | None = None,
-                 q_initial_rad: dict[str, np.ndarray] | None = None, camera_workers: bool = False) -> None:
-        """``obj``: a :class:`darp.twin.objects.model.TwinObject` placed by ``placement`` (an ``ObjectPlacement``);
+                 q_initial_rad: dict[str, np.ndarray] | None = None, camera_workers: bool = False,
+                 check_placement: bool = True) -> None:
+        """``obj``: a :class:`darp.twin.objects.model.TwinObject` placed by ``placement`` (an ``ObjectPlacement``),
+        refused (:class:`TwinError`) before anything is built when it is not finite, not on the table, touches
+        a parked arm or lies outside the workspace (:func:`darp.twin.placement.validate_placement`; skipped
+        with ``check_placement=False``, for tests of what the survey does with such a placement);
         ``board``: a :class:`darp.formats.calibration.CharucoBoardSpec` lying on the table at ``T_world_board``;
         ``q_initial_rad``: starting SDK angles per arm (default: the rig's park configurations);
         ``camera_workers``: render and record each camera in its own subprocess (same files, faster on
@@ -73,6 +82,8 @@ class TwinRig(RigBackend):
         if obj is not None:
             if placement is None:
                 raise TwinError("an object needs a placement")
+            if check_placement:
+                validate_placement(self.rig, obj.radius_m, obj.height_m, placement)
             T_world_object = placement.T_world_object
         self.world = TwinWorld(self.rig, self.true_rig.arms, parts=obj.parts if obj is not None else (),
                                T_world_object=T_world_object, board=board, T_world_board=T_world_board,
@@ -96,6 +107,9 @@ class TwinRig(RigBackend):
         self._log_rng = s.rng("joint_log")
         self.contact_events: list[ContactEvent] = []
         self.contacts_dropped = 0
+        self.stop_on_contact = True
+        self._fault: RigFault | None = None
+        self._braking: dict[str, object] = {}  # arm id -> the stop move it is executing
         self._monitor_period_ns = max(1, round(NS_PER_S / s.motion.collision_check_hz))
         self.clock.add_process("collision-monitor", self._monitor_tick, first_due_ns=0)
 
@@ -208,13 +222,34 @@ class TwinRig(RigBackend):
         return self.world.contacts()
 
     def _monitor_tick(self, now_ns: int) -> int:
-        if any(arm.is_moving() for arm in self.arms.values()):
-            for contact in self.contacts():
+        moving = {arm_id for arm_id, arm in self.arms.items() if arm.is_moving()}
+        if moving:
+            found = [c for c in self.contacts() if c.arm_id in moving or c.other in moving]
+            for contact in found:
                 if len(self.contact_events) < MAX_CONTACT_EVENTS:
                     self.contact_events.append(ContactEvent(self.clock.host_time_s(now_ns), contact))
                 else:
                     self.contacts_dropped += 1
+            if found and self.stop_on_contact:
+                self._on_contact(found, self.clock.host_time_s(now_ns))
         return now_ns + self._monitor_period_ns
+
+    def _on_contact(self, found: list[Contact], time_s: float) -> None:
+        """Stop both arms at once and latch the first contact as the rig's fault."""
+        for arm_id, arm in self.arms.items():
+            if arm.is_moving() and self._braking.get(arm_id) is not arm._move:  # not already braking
+                arm.stop()
+                self._braking[arm_id] = arm._move
+        if self._fault is None:
+            c = found[0]
+            arms = tuple(sorted({c.arm_id} | ({c.other} if c.other in self.arms else set())))
+            x, y, z = c.position_m
+            self._fault = RigFault(f"contact during motion at t={time_s:.3f} s: {c.arm_geom} against "
+                                   f"{c.other_geom or c.other} at ({x:.3f}, {y:.3f}, {z:.3f}) m", arms)
+
+    def fault(self) -> RigFault | None:
+        """The first contact during motion (both arms were stopped then), or None."""
+        return self._fault
 
     # -- poses --------------------------------------------------------------------------------------
     def park_q(self, arm_id: str) -> np.ndarray:
