@@ -91,7 +91,7 @@ class SurveySettings:
     confirm: ConfirmSettings = field(default_factory=ConfirmSettings)
     viewpoints: ViewpointSettings = field(default_factory=ViewpointSettings)
     coverage: CoverageSettings = field(default_factory=CoverageSettings)
-    viewpoint_strategy: str = "coverage"  # or "orbit": the paper's fixed orbit per arm
+    viewpoint_strategy: str = "orbit"  # the paper's fixed orbit per arm; or "coverage" (see docs/acquisition.md)
     confirm_from_calibration: bool = True  # confirmation thresholds from the calibration's stated uncertainty
     motion: MotionSettings = field(default_factory=MotionSettings)
     verify: VerifySettings = field(default_factory=VerifySettings)

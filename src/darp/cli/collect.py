@@ -102,7 +102,8 @@ def collect_command(
                                                     "calibration instead of --calibration.")] = False,
     viewpoints: Annotated[Viewpoints, typer.Option(
         "--viewpoints", help="Plan views for coverage of the envelope with a co-observed band and next best "
-        "views (coverage), or the paper's fixed orbit per arm (orbit).")] = Viewpoints.coverage,
+        "views (coverage; experimental: fewer views, lower completeness so far), or the paper's fixed orbit per "
+        "arm (orbit).")] = Viewpoints.orbit,
     out: Annotated[Path, out_option("Folder that receives the survey folder.", show_default=True)] = Path("."),
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing NAME (and "
                                             "NAME.partial/.rejected).")] = False,
