@@ -68,3 +68,21 @@ def test_a_folder_without_keyframes_is_a_format_error(tmp_path: Path) -> None:
 def test_the_torch_wrapper_says_torch_is_missing() -> None:
     with pytest.raises(DarpError, match="needs torch"):
         torch_dataset([])
+
+
+def test_unfinished_processed_folders_are_refused_or_skipped(tmp_path: Path) -> None:
+    """A folder marked UNFINISHED.txt by an interrupted or failed darp process is never read as a result."""
+    from darp.dataset import find_processed
+    from darp.errors import DarpWarning, FormatError
+    from darp.formats.atomic import UNFINISHED_FILE
+    from darp.reconstruction.keyframe_io import INDEX_FILE
+
+    for name in ("done", "broken"):
+        (tmp_path / name / "keyframes").mkdir(parents=True)
+        (tmp_path / name / "keyframes" / INDEX_FILE).write_text("{}", encoding="utf-8")
+    (tmp_path / "broken" / UNFINISHED_FILE).write_text("fuse failed: no point\n", encoding="utf-8")
+    with pytest.raises(FormatError, match="did not finish .fuse failed: no point."):
+        find_processed(tmp_path / "broken")
+    with pytest.warns(DarpWarning, match="broken: skipped"):
+        found = find_processed(tmp_path)
+    assert [s.name for s in found] == ["done"]

@@ -19,6 +19,7 @@ aligned to the depth image, so one ``K`` serves RGB, depth, IR and the mask.
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +27,8 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import DarpError, FormatError
+from darp.errors import DarpError, DarpWarning, FormatError
+from darp.formats.atomic import UNFINISHED_FILE
 from darp.formats.truth import OBJECT_JSON_FILE, OBJECT_MESH_FILE, TRUTH_DIR
 from darp.reconstruction.backproject import backproject
 from darp.reconstruction.cloud_io import read_ply
@@ -77,11 +79,28 @@ def find_processed(path: str | Path) -> list[ProcessedSurvey]:
     path = Path(path)
     if not path.is_dir():
         raise FormatError("not a folder", path)
+    if (path / UNFINISHED_FILE).is_file():
+        raise FormatError(f"its processing did not finish ({_first_line(path / UNFINISHED_FILE)}): run darp "
+                          "process again", path)
     candidates = [path] if (path / KEYFRAMES_DIR / INDEX_FILE).is_file() else sorted(
         p for p in path.iterdir() if (p / KEYFRAMES_DIR / INDEX_FILE).is_file())
+    unfinished = [p for p in candidates if (p / UNFINISHED_FILE).is_file()]
+    for p in unfinished:
+        warnings.warn(f"{p}: skipped, its processing did not finish ({_first_line(p / UNFINISHED_FILE)})",
+                      DarpWarning, stacklevel=2)
+    candidates = [p for p in candidates if p not in unfinished]
     if not candidates:
-        raise FormatError(f"no processed survey here (no {KEYFRAMES_DIR}/{INDEX_FILE}; run darp process first)", path)
+        raise FormatError(f"no processed survey here (no finished {KEYFRAMES_DIR}/{INDEX_FILE}; run darp process "
+                          "first)", path)
     return [_processed(p) for p in candidates]
+
+
+def _first_line(path: Path) -> str:
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").strip().splitlines()
+    except OSError:
+        return "unreadable marker"
+    return lines[0] if lines else "no reason recorded"
 
 
 def _resolve(recorded: Any, folder: Path) -> Path | None:

@@ -15,6 +15,9 @@ from pathlib import Path
 from typing import IO, Any
 
 PARTIAL_SUFFIX = ".partial"
+# Written into an output folder before a multi-file run starts and removed when it ends: every reader of
+# such a folder (report, export, view, dataset) treats a folder holding it as not there.
+UNFINISHED_FILE = "UNFINISHED.txt"
 
 
 def _current_umask() -> int:

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from darp.errors import DarpError, FormatError, ReconstructionError
-from darp.formats.atomic import write_json_atomic, write_text_atomic
+from darp.formats.atomic import UNFINISHED_FILE, write_json_atomic, write_text_atomic
 from darp.formats.calibration import Calibration, calibration_to_dict
 from darp.formats.envelope import Envelope
 from darp.formats.realsense.recording import Recording
@@ -72,7 +72,6 @@ from darp.reconstruction.mesh import ball_pivoting_mesh, ball_pivoting_radii, me
 from darp.reconstruction.poses import SurveyPoses, recover_survey_poses, write_survey_poses
 
 STAGES_FILE = "stages.json"
-UNFINISHED_FILE = "UNFINISHED.txt"
 PARTIAL_SUFFIX = ".partial"
 POSES_DIR, KEYFRAMES_DIR, FIGURES_DIR = "poses", "keyframes", "figures"
 FUSED_FILE, MESH_FILE = "fused.ply", "mesh.ply"
