@@ -1,7 +1,7 @@
 """``darp collect``: one autonomous object survey, on the digital twin or on the real rig.
 
     darp collect NAME --twin [--object mug|PATH|none] [--scale S] [--placement x,y,yaw_deg] [--seed N]
-                      [--profile ideal|realistic] [--fps 30] [--resolution 640x480]
+                      [--profile ideal|realistic|paper | --settings FILE] [--fps 30] [--resolution 640x480]
                       [-c FILE | --truth-calibration] [--rig RIG.yaml] [-o DIR] [--overwrite] [--quiet]
     darp collect NAME --hardware [--rig RIG.yaml] -c FILE [-o DIR] [--overwrite] [--quiet]
 
@@ -25,10 +25,12 @@ from darp.cli._options import (
     Quiet,
     Resolution,
     RigFile,
+    SettingsFile,
     calibration_option,
     out_option,
     parse_placement,
     parse_resolution,
+    twin_settings,
 )
 from darp.cli.twin import PLACEMENT_HELP
 
@@ -81,6 +83,7 @@ def collect_command(
         help=f"Twin: {PLACEMENT_HELP} (default: random, seeded).", show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="Twin: seed of every random draw.")] = 0,
     profile: ProfileOption = Profile.realistic,
+    settings_file: SettingsFile = None,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Twin: camera frame rate.")] = 30,
     resolution: Annotated[Resolution, typer.Option("--resolution", parser=parse_resolution, metavar="WIDTHxHEIGHT",
                                                    help="Twin: image size.")] = Resolution(640, 480),
@@ -110,7 +113,8 @@ def collect_command(
         assert calibration is not None
         _collect_hardware(name, rig_file, calibration, out, overwrite, quiet)
     else:
-        _collect_twin(name, obj_name, scale, placement, seed, profile, fps, resolution, calibration,
+        settings = twin_settings(profile, seed, settings_file)
+        _collect_twin(name, obj_name, scale, placement, settings, fps, resolution, calibration,
                       truth_calibration, rig_file, out, overwrite, quiet)
 
 
@@ -128,7 +132,7 @@ def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: 
     _report(outcome)
 
 
-def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, seed: int, profile: Profile,
+def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, settings: Any,
                   fps: int, resolution: Resolution, calibration: Path | None, truth_calibration: bool,
                   rig_file: Path | None, out: Path, overwrite: bool, quiet: bool) -> None:
     """Decisions use ``calibration``, the twin's true one (``truth_calibration``) or else the rig's nominal."""
@@ -138,11 +142,10 @@ def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement |
     from darp.kinematics.rig import load_rig
     from darp.twin.record import write_twin_truth
     from darp.twin.rig_backend import TwinRig
-    from darp.twin.settings import TwinSettings
 
     rig = load_rig(rig_file)
-    settings = TwinSettings.from_profile(profile.value, seed=seed).with_camera(
-        fps=fps, width=resolution.width, height=resolution.height)
+    settings = settings.with_camera(fps=fps, width=resolution.width, height=resolution.height)
+    seed = settings.seed
     empty = obj_name.strip().lower() == "none"  # an empty table: the survey must end cleanly
     obj = None if empty else load_object(obj_name, scale)
     place = None if obj is None else place_object(placement, obj, rig, seed)
