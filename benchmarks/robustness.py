@@ -22,6 +22,7 @@ with the paper's real-rig values as lines.
     .venv/bin/python benchmarks/robustness.py [--scales 0.5,1,2,4] [--objects mug,ketchup,dumbbell,cup]
         [--seeds 0] [--fps 6] [--resolution 640x480] [--captures 20] [--work DIR] [--keep]
         [--json robustness.json] [--plot robustness.png]
+    .venv/bin/python benchmarks/robustness.py --from-json x1.json x4.json --plot robustness.png
 
 The full sweep (4 scales x 4 objects x several seeds) takes hours on 2 cores; ``--scales 1,4 --seeds 0``
 is the reduced run whose numbers docs/twin.md reports.
@@ -236,7 +237,16 @@ def main() -> None:
     parser.add_argument("--keep", action="store_true", help="keep the work folder")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--plot", type=Path, default=Path("robustness.png"))
+    parser.add_argument("--from-json", type=Path, nargs="+", default=None,
+                        help="no runs: print the table and plot of earlier --json files (e.g. scales run in parallel)")
     args = parser.parse_args()
+    if args.from_json:
+        rows = sorted((r for f in args.from_json for r in json.loads(f.read_text())),
+                      key=lambda r: (r["seed"], r["scale"]))
+        print_table(rows)
+        plot(rows, args.plot)
+        print(f"plot: {args.plot}")
+        return
     scales = [float(s) for s in args.scales.split(",")]
     seeds = [int(s) for s in args.seeds.split(",")]
     objects = [o.strip() for o in args.objects.split(",") if o.strip()]
