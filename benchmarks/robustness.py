@@ -268,8 +268,9 @@ def main() -> None:
         plot(rows, args.plot)
         print(f"plot: {args.plot}")
     failed = [r for r in rows for s in r.get("surveys", {}).values() if s.get("accepted") and not s.get("processed")]
+    medians = [r["heldout_median_mm"] for r in rows if r.get("heldout_median_mm") is not None]
     print(f"accepted surveys without results: {len(failed)}; mean held-out median "
-          f"{fmt(np.nanmean([r.get('heldout_median_mm') or np.nan for r in rows]))} mm")
+          f"{fmt(np.mean(medians) if medians else None)} mm")
 
 
 if __name__ == "__main__":
