@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,8 +36,10 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
                  board: CharucoBoardSpec = DEFAULT_BOARD, rig: Rig | None = None, plan: CapturePlan | None = None,
                  plan_seed: int | None = None, stream: str = "color", resolution: tuple[int, int] = (640, 480),
                  mount_offsets: dict[str, np.ndarray] | None = None, overwrite: bool = False,
-                 on_capture: Callable[[str, int], None] | None = None) -> CaptureSet:
-    """Plan (unless given) and run calibration captures on the twin; returns the capture folder."""
+                 on_capture: Callable[[str, int], None] | None = None, settings: Any | None = None) -> CaptureSet:
+    """Plan (unless given) and run calibration captures on the twin; returns the capture folder.
+
+    ``settings``: the twin's :class:`~darp.twin.settings.TwinSettings` (default: ``profile`` with ``seed``)."""
     from darp.twin.objects.board import BOARD_THICKNESS_M
     from darp.twin.rig_backend import TwinRig
     from darp.twin.settings import TwinSettings
@@ -47,8 +50,9 @@ def capture_twin(out: str | Path, *, seed: int = 0, profile: str = "realistic", 
     if plan is None:
         plan = plan_captures(nominal, board, T_world_board, settings=PlanSettings(n_per_arm=n_per_arm),
                              seed=seed if plan_seed is None else plan_seed)
-    settings = TwinSettings.from_profile(profile, seed=seed).with_camera(width=resolution[0], height=resolution[1],
-                                                                         imu=False)
+    if settings is None:
+        settings = TwinSettings.from_profile(profile, seed=seed)
+    settings = settings.with_camera(width=resolution[0], height=resolution[1], imu=False)
     true_rig = moved_rig(nominal, mount_offsets) if mount_offsets else nominal
     offsets = {a: np.asarray(T).tolist() for a, T in (mount_offsets or {}).items()}
     writer = CaptureWriter(out, board, source=f"twin:{profile}:seed{seed}", overwrite=overwrite,

@@ -1,4 +1,7 @@
-"""Plain-text tables that ``darp demo`` prints: darp's numbers next to the paper's."""
+"""Plain-text tables that ``darp demo`` prints: darp's numbers next to the paper's.
+
+Ratios are darp / paper; ``!`` marks one outside +-25 % (the band the ``paper`` twin profile aims at).
+"""
 
 from __future__ import annotations
 
@@ -38,13 +41,22 @@ def calibration_table(calib_dir: Path, paper_heldout_mm: dict[str, float]) -> st
         arm_truth = truth.get("arms", {}).get(arm, {})
         he = arm_truth.get("hand_eye", {})
         rows.append([arm, _fmt(held.get("median"), 3), _fmt(paper_heldout_mm.get(arm)),
+                     _ratio(held.get("median"), paper_heldout_mm.get(arm)),
                      _fmt(he.get("translation_mm"), 3), _fmt(he.get("rotation_deg"), 3),
                      _fmt(arm_truth.get("max_identifiable_joint_offset_error_deg"), 3)])
     b2b = truth.get("base_to_base", {})
     title = (f"Calibration: held-out 3-D corner error (k-fold); twin: errors against truth\n"
              f"(base-to-base error {_fmt(b2b.get('translation_mm'), 3)} mm / {_fmt(b2b.get('rotation_deg'), 3)} deg)")
-    return _table(title, ["arm", "held-out med. mm", "paper mm", "hand-eye mm", "hand-eye deg",
+    return _table(title, ["arm", "held-out med. mm", "paper mm", "ratio", "hand-eye mm", "hand-eye deg",
                           "joint-zero deg"], rows)
+
+
+def _ratio(ours: Any, paper: Any) -> str:
+    """``ours / paper`` with a mark when it is within the issue-12 band of +-25 %."""
+    if ours is None or not paper:
+        return "--"
+    r = float(ours) / float(paper)
+    return f"{r:.2f}{'' if 0.75 <= r <= 1.25 else ' !'}"
 
 
 def heldout_table(results: dict[str, Any], paper_mm: dict[str, float], paper_within: dict[str, float]) -> str:
@@ -63,6 +75,10 @@ def heldout_table(results: dict[str, Any], paper_mm: dict[str, float], paper_wit
     rows.append(row("all (darp, twin)", agg.get("keyframes", 0), agg))
     rows.append(["paper (DARP, real)", "224", "1,563,466", _fmt(paper_mm["median"]), _fmt(paper_mm["rmse"]),
                  _fmt(paper_mm["p90"]), _fmt(paper_within["5 mm"]), _fmt(paper_within["10 mm"])])
+    ours = [agg.get("median_mm"), agg.get("rmse_mm"), agg.get("p90_mm"), agg.get("within_5mm_pct"),
+            agg.get("within_10mm_pct")]
+    theirs = [paper_mm["median"], paper_mm["rmse"], paper_mm["p90"], paper_within["5 mm"], paper_within["10 mm"]]
+    rows.append(["darp / paper", "", "", *(_ratio(a, b) for a, b in zip(ours, theirs, strict=True))])
     return _table("Held-out RGB-D evaluation, mm (point-to-mesh, kf keyframes kept out of fusion)",
                   header, rows)
 

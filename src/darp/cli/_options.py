@@ -34,6 +34,7 @@ class Profile(StrEnum):
 
     ideal = "ideal"
     realistic = "realistic"
+    paper = "paper"
 
 
 class CaptureStream(StrEnum):
@@ -254,12 +255,37 @@ RigFile = Annotated[Path | None, typer.Option("--rig", help=RIG_HELP, exists=Tru
                                               show_default=False)]
 Quiet = Annotated[bool, typer.Option("--quiet", "-q", help="No progress bar.")]
 ProfileOption = Annotated[Profile, typer.Option("--profile", help="Twin error profile.")]
+SettingsFile = Annotated[Path | None, typer.Option(
+    "--settings", help="Twin settings YAML (replaces --profile; its seed is used unless --seed is given).",
+    exists=True, dir_okay=False, show_default=False)]
+
+
+def seed_given(name: str = "seed") -> bool:
+    """Whether the running command's ``--seed`` (parameter ``name``) was given on the command line."""
+    import click
+    from click.core import ParameterSource
+
+    ctx = click.get_current_context(silent=True)
+    return ctx is not None and ctx.get_parameter_source(name) == ParameterSource.COMMANDLINE
+
+
+def twin_settings(profile: Profile, seed: int, settings_file: Path | None) -> Any:
+    """The twin settings of a twin command: ``--settings FILE`` (seed replaced only by an explicit ``--seed``)
+    or the named ``--profile`` with ``--seed``. A bad file raises a ConfigError naming it."""
+    import dataclasses
+
+    from darp.twin.settings import TwinSettings
+
+    if settings_file is None:
+        return TwinSettings.from_profile(profile.value, seed=seed)
+    settings = TwinSettings.load(settings_file)
+    return dataclasses.replace(settings, seed=seed) if seed_given() else settings
 
 __all__ = [
     "RIG_HELP", "ArmConfig", "CameraArm", "CaptureStream", "Dictionary", "ExportStream", "ImageStream", "Joints",
-    "Paper", "Placement", "Profile", "ProfileOption", "Quiet", "Resolution", "RigFile", "TwinObject",
+    "Paper", "Placement", "Profile", "ProfileOption", "Quiet", "Resolution", "RigFile", "SettingsFile", "TwinObject",
     "calibration_option", "input_argument", "out_option", "parse_camera_arm", "parse_joints", "parse_placement",
-    "parse_resolution",
+    "parse_resolution", "seed_given", "twin_settings",
 ]
 
 

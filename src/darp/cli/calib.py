@@ -3,7 +3,8 @@
     darp calib board -o board.pdf [--squares-x 10 --squares-y 7 --square-mm 30 --marker-mm 22
                      --dictionary DICT_5X5_100 --paper auto]
     darp calib plan -o plan.json [--rig RIG.yaml] [--captures 30] [--seed 0] [--board-yaw-deg 0] [--candidates 300]
-    darp calib capture (--twin [--seed N --profile realistic --captures 30] | --hardware) [--rig RIG.yaml]
+    darp calib capture (--twin [--seed N] [--profile realistic|paper | --settings FILE] [--captures 30]
+                        | --hardware) [--rig RIG.yaml]
                        -o DIR [--plan plan.json] [--stream color|ir1] [--overwrite]
     darp calib solve CAPTURES -o calibration.json [--report DIR] [--folds 5] [--truth FILE] [--epoch NAME]
     darp calib check CAPTURES -c calibration.json [--board-unmoved] [-o result.json] [--json]
@@ -31,10 +32,12 @@ from darp.cli._options import (
     ProfileOption,
     Quiet,
     RigFile,
+    SettingsFile,
     calibration_option,
     input_argument,
     out_option,
     refuse_output_over_inputs,
+    twin_settings,
 )
 
 calib_app = typer.Typer(help="Calibrate the rig with a ChArUco board: hand-eye, bases, joint-zero offsets.",
@@ -119,6 +122,7 @@ def capture_command(
                                                    exists=True, dir_okay=False, show_default=False)] = None,
     seed: Seed = 0,
     profile: ProfileOption = Profile.realistic,
+    settings_file: SettingsFile = None,
     captures: Captures = 30,
     stream: Annotated[CaptureStream, typer.Option("--stream", help="Image stream the board is detected in.")] = (
         CaptureStream.color),
@@ -142,7 +146,9 @@ def capture_command(
             from darp.cli._calib_twin import capture_twin
             from darp.kinematics.rig import load_rig
 
-            caps = capture_twin(out, seed=seed, profile=profile.value, n_per_arm=captures, plan=plan,
+            settings = twin_settings(profile, seed, settings_file)
+            caps = capture_twin(out, seed=settings.seed, profile=settings.profile, settings=settings,
+                                n_per_arm=captures, plan=plan,
                                 stream=stream.value, rig=load_rig(rig_file) if rig_file is not None else None,
                                 overwrite=overwrite, on_capture=tick)
         else:

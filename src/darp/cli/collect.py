@@ -1,10 +1,10 @@
 """``darp collect``: one autonomous object survey, on the digital twin or on the real rig.
 
     darp collect NAME --twin [--object mug|PATH|none] [--scale S] [--placement x,y,yaw_deg] [--seed N]
-                      [--profile ideal|realistic] [--fps 30] [--resolution 640x480]
-                      [-c FILE | --truth-calibration] [--viewpoints coverage|orbit] [--rig RIG.yaml] [-o DIR]
+                      [--profile ideal|realistic|paper | --settings FILE] [--fps 30] [--resolution 640x480]
+                      [-c FILE | --truth-calibration] [--viewpoints orbit|coverage] [--rig RIG.yaml] [-o DIR]
                       [--overwrite] [--quiet]
-    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [--viewpoints coverage|orbit] [-o DIR] [--overwrite]
+    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [--viewpoints orbit|coverage] [-o DIR] [--overwrite]
                       [--quiet]
 
 The survey folder is ``<out>/NAME`` when accepted, ``<out>/NAME.rejected`` when rejected (REJECTED.txt
@@ -28,10 +28,12 @@ from darp.cli._options import (
     Quiet,
     Resolution,
     RigFile,
+    SettingsFile,
     calibration_option,
     out_option,
     parse_placement,
     parse_resolution,
+    twin_settings,
 )
 from darp.cli.twin import PLACEMENT_HELP
 
@@ -92,6 +94,7 @@ def collect_command(
         help=f"Twin: {PLACEMENT_HELP} (default: random, seeded).", show_default=False)] = None,
     seed: Annotated[int, typer.Option("--seed", help="Twin: seed of every random draw.")] = 0,
     profile: ProfileOption = Profile.realistic,
+    settings_file: SettingsFile = None,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Twin: camera frame rate.")] = 30,
     resolution: Annotated[Resolution, typer.Option("--resolution", parser=parse_resolution, metavar="WIDTHxHEIGHT",
                                                    help="Twin: image size.")] = Resolution(640, 480),
@@ -125,7 +128,8 @@ def collect_command(
         assert calibration is not None
         _collect_hardware(name, rig_file, calibration, out, overwrite, quiet, viewpoints)
     else:
-        _collect_twin(name, obj_name, scale, placement, seed, profile, fps, resolution, calibration,
+        settings = twin_settings(profile, seed, settings_file)
+        _collect_twin(name, obj_name, scale, placement, settings, fps, resolution, calibration,
                       truth_calibration, rig_file, out, overwrite, quiet, viewpoints)
 
 
@@ -136,7 +140,7 @@ def _settings(viewpoints: Viewpoints) -> Any:
 
 
 def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: Path, overwrite: bool,
-                      quiet: bool, viewpoints: Viewpoints = Viewpoints.coverage) -> None:
+                      quiet: bool, viewpoints: Viewpoints = Viewpoints.orbit) -> None:
     from darp.acquisition.survey import run_survey
     from darp.formats.calibration import read_calibration
     from darp.hardware.rig import HardwareRig
@@ -150,10 +154,10 @@ def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: 
     _report(outcome)
 
 
-def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, seed: int, profile: Profile,
+def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, settings: Any,
                   fps: int, resolution: Resolution, calibration: Path | None, truth_calibration: bool,
                   rig_file: Path | None, out: Path, overwrite: bool, quiet: bool,
-                  viewpoints: Viewpoints = Viewpoints.coverage) -> None:
+                  viewpoints: Viewpoints = Viewpoints.orbit) -> None:
     """Decisions use ``calibration``, the twin's true one (``truth_calibration``) or else the rig's nominal."""
     from darp.acquisition.survey import run_survey
     from darp.cli.twin import load_object, place_object
@@ -161,11 +165,10 @@ def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement |
     from darp.kinematics.rig import load_rig
     from darp.twin.record import write_twin_truth
     from darp.twin.rig_backend import TwinRig
-    from darp.twin.settings import TwinSettings
 
     rig = load_rig(rig_file)
-    settings = TwinSettings.from_profile(profile.value, seed=seed).with_camera(
-        fps=fps, width=resolution.width, height=resolution.height)
+    settings = settings.with_camera(fps=fps, width=resolution.width, height=resolution.height)
+    seed = settings.seed
     empty = obj_name.strip().lower() == "none"  # an empty table: the survey must end cleanly
     obj = None if empty else load_object(obj_name, scale)
     place = None if obj is None else place_object(placement, obj, rig, seed)

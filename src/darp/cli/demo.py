@@ -17,7 +17,7 @@ from typing import Annotated, Any
 import typer
 
 from darp.cli._app import app, run
-from darp.cli._options import Profile, ProfileOption, TwinObject, out_option
+from darp.cli._options import Profile, ProfileOption, SettingsFile, TwinObject, out_option, twin_settings
 from darp.errors import DarpError
 
 DEFAULT_OBJECTS = (TwinObject.mug, TwinObject.ketchup, TwinObject.dumbbell)
@@ -51,9 +51,16 @@ def demo_command(
                                      "(the real rig records 30).")] = 6,
     captures: Annotated[int, typer.Option("--captures", min=1, help="Calibration captures per arm.")] = 20,
     profile: ProfileOption = Profile.realistic,
+    settings_file: SettingsFile = None,
 ) -> None:
     """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores)."""
     started = time.monotonic()
+    twin_args: list[Any] = ["--profile", profile.value]
+    label = profile.value
+    if settings_file is not None:
+        settings = twin_settings(profile, seed, settings_file)  # a bad file stops here, named
+        seed, label = settings.seed, f"{settings_file}, profile {settings.profile}"
+        twin_args = ["--settings", settings_file]
     names = list(dict.fromkeys(o.value for o in (objects or DEFAULT_OBJECTS)))
     out.mkdir(parents=True, exist_ok=True)
     calib_dir = out / "calibration"
@@ -62,9 +69,9 @@ def demo_command(
     surveys_dir = out / "surveys"
     processed = out / "processed"
 
-    _step(f"1/4 calibration: {captures} ChArUco captures per arm on the twin ({profile}, seed {seed})")
+    _step(f"1/4 calibration: {captures} ChArUco captures per arm on the twin ({label}, seed {seed})")
     if not (captures_dir / "captures.json").exists():
-        _call(["calib", "capture", "--twin", "--seed", seed, "--profile", profile.value, "--captures", captures,
+        _call(["calib", "capture", "--twin", "--seed", seed, *twin_args, "--captures", captures,
                "--out", captures_dir, "--overwrite"])
     if not calibration.exists():
         _call(["calib", "solve", captures_dir, "--out", calibration, "--report", calib_dir / "report",
@@ -76,7 +83,7 @@ def demo_command(
         folder = surveys_dir / name
         if not folder.exists():
             # The same seed as the calibration: the same true rig (its errors), another placement.
-            _call(["collect", name, "--twin", "--object", name, "--seed", seed, "--profile", profile.value,
+            _call(["collect", name, "--twin", "--object", name, "--seed", seed, *twin_args,
                    "--fps", fps, "--calibration", calibration, "--out", surveys_dir,
                    "--placement", f"{x_m:.4f},{y_m:.4f},{yaw_deg:.1f}"])
         surveys.append(folder)

@@ -1,7 +1,7 @@
 """``darp twin``: record simulated surveys with the digital twin and list its objects.
 
     darp twin record -w FILE --object NAME|PATH [--scale S] [--placement x,y,yaw_deg]
-                     [--seed N] [--profile ideal|realistic] [--fps 30] [--resolution 640x480]
+                     [--seed N] [--profile ideal|realistic|paper | --settings FILE] [--fps 30] [--resolution 640x480]
                      [--settings FILE] [--rig RIG.yaml] [-o DIR] [--overwrite]
     darp twin waypoints --object NAME|PATH [--placement ...] [--distance-m 0.35] [--elevation-deg 45]
                         [--azimuth-deg -40 --azimuth-deg 0 ...] [--dwell-s 0.5] -o FILE   (an orbit to start from)
@@ -25,6 +25,7 @@ from darp.cli._options import (
     Quiet,
     Resolution,
     RigFile,
+    SettingsFile,
     out_option,
     parse_placement,
     parse_resolution,
@@ -82,8 +83,7 @@ def record_command(
     resolution: Annotated[Resolution | None, typer.Option(
         "--resolution", parser=parse_resolution, metavar="WIDTHxHEIGHT", help="Image size (default 640x480).",
         show_default=False)] = None,
-    settings_file: Annotated[Path | None, typer.Option("--settings", help="Twin settings YAML (replaces --profile).",
-                                                       exists=True, dir_okay=False, show_default=False)] = None,
+    settings_file: SettingsFile = None,
     rig_file: RigFile = None,
     out: Annotated[Path | None, out_option("Survey folder to create (default: ./<object>).")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing survey folder.")] = False,

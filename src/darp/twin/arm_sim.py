@@ -10,11 +10,15 @@ time, the *true* joint angle at any instant is exact; nothing is integrated.
 Angles: commands and reports are in the SDK's (encoder) frame. The arm's joint-zero offsets ``dq``
 make the true angle ``q_true = q_sdk + dq`` (eq. 1's sign convention), so a commanded target ``q``
 puts the links at ``q + dq`` and the reported angle is ``q_true - dq + encoder noise``.
+
+Link-side deflection (:class:`darp.twin.arm_errors.LinkDeflection`, optional): sag under gravity,
+backlash and repeatability move the links away from the motor-side path without the encoders seeing
+it. :meth:`SimArm.true_state` (rendering, truth) includes it; :meth:`SimArm.read_state` does not.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,6 +26,7 @@ from darp.backend import ArmBackend, JointState
 from darp.errors import KinematicsError, TwinError
 from darp.kinematics import z1
 from darp.kinematics.transforms import matvec
+from darp.twin.arm_errors import LinkDeflection
 from darp.twin.clock import NS_PER_S, SimClock
 
 _SAMPLES = np.linspace(0.0, 1.0, 65)
@@ -36,6 +41,7 @@ class QuinticMove:
     duration_s: float
     coeffs: np.ndarray  # (6 joints, 6 coefficients), lowest order first, in seconds since t0
     q_end: np.ndarray  # (6,)
+    link_offset: np.ndarray | None = None  # (6,) link-side offset during this move (backlash, repeatability)
 
     @classmethod
     def plan(cls, t0_ns: int, p0: np.ndarray, v0: np.ndarray, a0: np.ndarray, p1: np.ndarray,
@@ -125,6 +131,7 @@ class SimArm(ArmBackend):
         max_speed_rad_s: float = 0.6,
         max_accel_rad_s2: float = 2.0,
         settle_s: float = 0.1,
+        deflection: LinkDeflection | None = None,
     ) -> None:
         self.arm_id = arm_id
         self.clock = clock
@@ -134,6 +141,7 @@ class SimArm(ArmBackend):
         self.max_speed_rad_s = float(max_speed_rad_s)
         self.max_accel_rad_s2 = float(max_accel_rad_s2)
         self.settle_ns = round(settle_s * NS_PER_S)
+        self.deflection = deflection if deflection is not None and deflection.active else None
         q0 = self._check_target(q_initial_rad) + self.joint_offsets_rad
         self._moves: list[QuinticMove] = [QuinticMove(clock.elapsed_ns, 0.0, np.zeros((6, 6)), q0)]
         self.moves_commanded = 0
@@ -143,13 +151,32 @@ class SimArm(ArmBackend):
         return self._moves[-1]
 
     def _start(self, move: QuinticMove) -> None:
+        if self.deflection is not None:
+            move = replace(move, link_offset=self.deflection.move_offset(self._move.q_end, move.q_end))
         # A few past moves are kept so that states shortly before the latest command (IMU central
         # differences, a frame rendered just before a new command) come from the move then running.
         self._moves = [m for m in self._moves if m.t0_ns < move.t0_ns][-(HISTORY - 1):] + [move]
 
     # -- truth ------------------------------------------------------------------------------------
     def true_state(self, t_ns: int | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """True (q, qd, qdd) at simulation time ``t_ns`` (default now); vectorised over times.
+        """True link-side (q, qd, qdd) at simulation time ``t_ns`` (default now); vectorised over times.
+
+        The motor-side path (:meth:`path_state`) plus the link deflection, if any (its rates are not added).
+        """
+        q, qd, qdd = self.path_state(t_ns)
+        if self.deflection is None:
+            return q, qd, qdd
+        t = self.clock.elapsed_ns if t_ns is None else t_ns
+        times = np.atleast_1d(np.asarray(t, dtype=np.int64))
+        starts = np.array([m.t0_ns for m in self._moves])
+        which = np.clip(np.searchsorted(starts, times, side="right") - 1, 0, len(self._moves) - 1)
+        offsets = np.array([m.link_offset if m.link_offset is not None else np.zeros(6) for m in self._moves])
+        Q = np.atleast_2d(q)
+        link = Q + offsets[which] + self.deflection.sag(Q)
+        return (link[0] if np.ndim(t) == 0 else link), qd, qdd
+
+    def path_state(self, t_ns: int | np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Motor-side (q, qd, qdd) of the commanded moves (joint-zero offsets included, no deflection).
 
         The last few moves are kept; earlier times are answered with the oldest kept move's start.
         """
@@ -183,7 +210,7 @@ class SimArm(ArmBackend):
     # -- ArmBackend -------------------------------------------------------------------------------
     def read_state(self) -> JointState:
         """Reported state: true angles minus the joint-zero offsets plus encoder noise, at ``clock.now()``."""
-        q, qd, _ = self.true_state()
+        q, qd, _ = self.path_state()
         q_reported = q - self.joint_offsets_rad
         if self.encoder_noise_std_rad > 0:
             q_reported = q_reported + self._rng.normal(0.0, self.encoder_noise_std_rad, 6)
@@ -196,7 +223,7 @@ class SimArm(ArmBackend):
         if not 0 < speed <= float(np.max(z1.VELOCITY_LIMIT_RAD_S)):
             raise KinematicsError(f"{self.arm_id}: max speed must be in (0, pi] rad/s, got {speed}")
         now = self.clock.elapsed_ns
-        q, qd, qdd = self.true_state(now)
+        q, qd, qdd = self.path_state(now)
         self._start(QuinticMove.plan(now, q, qd, qdd, target, speed, self.max_accel_rad_s2))
         self.moves_commanded += 1
 
@@ -206,7 +233,7 @@ class SimArm(ArmBackend):
     def stop(self) -> None:
         """Decelerate to rest at the acceleration limit (holds the reached position)."""
         now = self.clock.elapsed_ns
-        q, qd, qdd = self.true_state(now)
+        q, qd, qdd = self.path_state(now)
         if not np.any(qd) and not np.any(qdd):
             self._start(QuinticMove(now, 0.0, np.zeros((6, 6)), q.copy()))
             return

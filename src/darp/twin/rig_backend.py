@@ -17,6 +17,7 @@ cameras use the true ones.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +28,7 @@ from darp.backend import RigBackend, RigFault
 from darp.errors import TwinError
 from darp.formats.arm_poses import ArmPoseWriter
 from darp.kinematics.rig import Rig, load_rig
+from darp.twin.arm_errors import LinkDeflection
 from darp.twin.arm_sim import SimArm
 from darp.twin.camera.backend import TwinCameraBackend
 from darp.twin.clock import NS_PER_S, SimClock, s_to_ns
@@ -97,7 +99,8 @@ class TwinRig(RigBackend):
                 encoder_noise_std_rad=np.deg2rad(s.joints.encoder_noise_std_deg),
                 rng=s.rng(f"encoder:{arm_id}"),
                 max_speed_rad_s=s.motion.max_speed_rad_s, max_accel_rad_s2=s.motion.max_accel_rad_s2,
-                settle_s=s.motion.settle_s)
+                settle_s=s.motion.settle_s,
+                deflection=LinkDeflection(s.arm_errors, s.rng(f"deflection:{arm_id}")))
         self._world_time_ns: int | None = None
         self._renderer: SceneRenderer | None = None
         self._log_writer: ArmPoseWriter | None = None
@@ -125,7 +128,7 @@ class TwinRig(RigBackend):
         size = (c.width, c.height)
         self._renderer = SceneRenderer(self.world.model, c.width, c.height)
         # Segmentation is rendered only when an object part can drop out (the camera forces it then).
-        cam_settings = TwinCameraSettings.from_profile(c.depth_noise, segmentation=False)
+        base_cam_settings = TwinCameraSettings.from_profile(c.depth_noise, segmentation=False)
         dropouts = self._dropout_map()
         model = self.world.model
         try:
@@ -134,12 +137,13 @@ class TwinRig(RigBackend):
                 spec = make_camera_spec(unit, serial=true_arm.serial, depth_resolution=size, color_resolution=size,
                                         fps=c.fps, color_fps=c.fps, accel_hz=c.accel_hz, gyro_hz=c.gyro_hz)
                 seed = int(s.rng(f"camera:{true_arm.serial}").integers(2**31))
+                cam_settings, factory = camera_unit_errors(s, true_arm.serial, spec, base_cam_settings)
                 threads = max(1, available_cores() // len(self.true_rig.arms))
                 worker = CameraWorker(model, spec, cam_settings, seed, dropouts, threads=threads) if workers else None
                 record_cam = None if workers else TwinCamera(model, spec, cam_settings, seed=seed,
                                                              renderer=self._renderer, dropout_geoms=dropouts)
 
-                def live(spec: CameraSpec = spec, seed: int = seed) -> TwinCamera:
+                def live(spec: CameraSpec = spec, seed: int = seed, cam_settings: Any = cam_settings) -> TwinCamera:
                     return TwinCamera(model, spec, cam_settings, seed=seed + 1, renderer=self._renderer,
                                       dropout_geoms=dropouts)
 
@@ -150,7 +154,9 @@ class TwinRig(RigBackend):
                 self.cameras[arm_id] = TwinCameraBackend(
                     arm_id, spec, self.clock, self, camera=record_cam, live_camera=live, imu=imu,
                     phase_ns=s_to_ns(index * s.timing.camera_stagger_ms / 1e3),
-                    clock_offset_ms=s.timing.camera_clock_offset_ms, compression=c.compression, worker=worker)
+                    clock_offset_ms=s.timing.camera_clock_offset_ms, compression=c.compression, worker=worker,
+                    factory_spec=factory, latency_ms=s.sync.latency_ms, jitter_ms=s.sync.jitter_ms,
+                    exposure_ms=s.sync.exposure_ms, jitter_seed=seed + 2)
         except BaseException:
             self.close()
             raise
@@ -268,4 +274,38 @@ class TwinRig(RigBackend):
                 self._renderer = None
 
 
-__all__ = ["ContactEvent", "TwinRig"]
+def camera_unit_errors(settings: TwinSettings, serial: str, spec: CameraSpec,
+                       cam_settings: Any) -> tuple[Any, CameraSpec | None]:
+    """One unit's depth and image errors and its factory (recorded) spec, drawn from the settings' seed.
+
+    Returns ``cam_settings`` unchanged and None when the settings hold no such errors (the default profiles).
+    """
+    from darp.twin.camera.sensor import UnitErrors
+
+    d, im = settings.depth_errors, settings.images
+    if d == type(d)() and im == type(im)():
+        return cam_settings, None
+    g = settings.rng(f"unit_errors:{serial}")
+    errors = UnitErrors(
+        depth_scale=float(g.normal(0.0, d.scale_std_pct / 100.0)),
+        depth_offset_m=float(g.normal(0.0, d.offset_std_mm * 1e-3)),
+        depth_bias_per_m=float(g.normal(0.0, d.bias_std_mm_per_m2 * 1e-3)),
+        thermal_drift=d.thermal_drift_pct / 100.0 * float(g.choice([-1.0, 1.0])),
+        thermal_tau_s=d.thermal_tau_s,
+        session_start_s=settings.timing.start_time_s,
+        blur_sigma_px=im.blur_sigma_px,
+        shading=im.shading_pct / 100.0,
+        noise_dn=im.noise_dn,
+    )
+    factory = None
+    if d.focal_std_pct > 0 or d.centre_std_px > 0:
+        def off(i: Any) -> Any:
+            scale = 1.0 + float(g.normal(0.0, d.focal_std_pct / 100.0))
+            return dataclasses.replace(i, fx=i.fx * scale, fy=i.fy * scale,
+                                       ppx=i.ppx + float(g.normal(0.0, d.centre_std_px)),
+                                       ppy=i.ppy + float(g.normal(0.0, d.centre_std_px)))
+        factory = dataclasses.replace(spec, depth=off(spec.depth), color=off(spec.color))
+    return dataclasses.replace(cam_settings, errors=errors), factory
+
+
+__all__ = ["ContactEvent", "TwinRig", "camera_unit_errors"]

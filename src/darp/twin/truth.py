@@ -2,6 +2,7 @@
 
 The true rig differs from the nominal rig file by the errors of :mod:`darp.twin.settings`:
 
+- kinematic parameter errors (joint origins and axes, :mod:`darp.twin.arm_errors`), when set;
 - joint-zero offsets ``dq`` per arm (uniform per joint); the true link angles are ``q_sdk + dq``,
   the sign convention of eq. 1, so ``truth/calibration.json`` is exactly what a perfect calibration
   would find;
@@ -58,6 +59,7 @@ from darp.kinematics.transforms import (
     rot_z,
     world_from_base_origins,
 )
+from darp.twin.arm_errors import KinematicErrors, fk_batch_with_errors
 from darp.twin.settings import TwinSettings
 
 
@@ -70,6 +72,7 @@ class TrueArm:
     T_world_base: np.ndarray
     T_flange_cam: np.ndarray
     joint_offsets_rad: np.ndarray  # dq: q_true = q_sdk + dq
+    kinematic_errors: KinematicErrors | None = None  # link origin and axis errors (None: the nominal Z1)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,7 +86,9 @@ class TrueRig:
         """True camera pose(s) for true joint angles (6,) or (N, 6): (4, 4) or (N, 4, 4)."""
         arm = self.arms[arm_id]
         Q = np.atleast_2d(q_true_rad)
-        poses = compose(arm.T_world_base, z1.fk_batch(Q, self.nominal.wrist_frame), arm.T_flange_cam)
+        T_base_wrist = (z1.fk_batch(Q, self.nominal.wrist_frame) if arm.kinematic_errors is None
+                        else fk_batch_with_errors(Q, arm.kinematic_errors, self.nominal.wrist_frame))
+        poses = compose(arm.T_world_base, T_base_wrist, arm.T_flange_cam)
         return poses[0] if np.ndim(q_true_rad) == 1 else poses
 
     def calibration(self, settings: TwinSettings) -> Calibration:
@@ -144,7 +149,8 @@ def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
             T_world_base = make_transform(compose(R_err, T_world_base[:3, :3]),
                                           T_world_base[:3, 3] + m.base_translation_mm * 1e-3
                                           * np.array([np.cos(phi), np.sin(phi), 0.0]))
-        arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_flange_cam, dq)
+        kin = KinematicErrors.draw(settings.arm_errors, settings.rng(f"kinematics:{arm_id}"))
+        arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_flange_cam, dq, kin)
     return TrueRig(nominal=rig, arms=_in_rig_world(arms))
 
 

@@ -176,17 +176,22 @@ def _add_rod(spec: mujoco.MjSpec, body: Any, name: str, a: np.ndarray, b: np.nda
 
 
 def _add_arm(spec: mujoco.MjSpec, arm_id: str, index: int, T_world_base: np.ndarray,
-             T_flange_cam: np.ndarray, camera_body: Any) -> None:
+             T_flange_cam: np.ndarray, camera_body: Any, kinematic_errors: Any | None = None) -> None:
     own = ARM_BITS[index]
     other = ARM_BITS[1 - index]
     affinity = ARM_COLLIDES_WITH | other
     parent = spec.worldbody.add_body(name=f"{arm_id}_link00")
     _set_pose(parent, T_world_base)
     bodies = {"link00": parent}
-    for joint in z1.Z1_JOINTS:
-        body = bodies[joint.parent].add_body(name=f"{arm_id}_{joint.child}", pos=list(joint.origin_xyz_m))
+    origins = axes = None
+    if kinematic_errors is not None:  # the true chain (darp.twin.arm_errors): perturbed origins and axes
+        origins, axes = kinematic_errors.origins(), kinematic_errors.axes()
+    for i, joint in enumerate(z1.Z1_JOINTS):
+        pos = list(joint.origin_xyz_m) if origins is None else [float(v) for v in origins[i]]
+        axis = list(np.eye(3)["xyz".index(joint.axis)]) if axes is None else [float(v) for v in axes[i]]
+        body = bodies[joint.parent].add_body(name=f"{arm_id}_{joint.child}", pos=pos)
         body.add_joint(name=f"{arm_id}_{joint.name}", type=mujoco.mjtJoint.mjJNT_HINGE,
-                       axis=list(np.eye(3)["xyz".index(joint.axis)]), range=[joint.lower_rad, joint.upper_rad])
+                       axis=axis, range=[joint.lower_rad, joint.upper_rad])
         bodies[joint.child] = body
     for cyl in LINK_CYLINDERS:
         axis = np.eye(3)["xyz".index(cyl.axis)]
@@ -282,7 +287,7 @@ class TwinWorld:
         for index, arm_id in enumerate(self.arm_ids):
             arm = true_arms[arm_id]
             _add_arm(spec, arm_id, index, np.asarray(arm.T_world_base, float), np.asarray(arm.T_flange_cam, float),
-                     rig.camera_body)
+                     rig.camera_body, getattr(arm, "kinematic_errors", None))
         object_parts = []
         if parts:
             T_wo = np.eye(4) if T_world_object is None else np.asarray(T_world_object, dtype=float)

@@ -28,8 +28,9 @@ from darp.backend import CameraBackend, LiveFrameSet
 from darp.errors import RecordingError, TwinError
 from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
+from darp.kinematics.transforms import compose, matvec
 from darp.twin.camera.spec import CameraSpec
-from darp.twin.clock import NS_PER_S, SimClock
+from darp.twin.clock import NS_PER_S, SimClock, s_to_ns
 from darp.twin.truth import CameraPoseTruth
 
 if TYPE_CHECKING:  # imported for their types only: the sensor imports MuJoCo and OpenGL
@@ -75,15 +76,26 @@ class TwinCameraBackend(CameraBackend):
                  camera: TwinCamera | None, live_camera: Callable[[], TwinCamera], imu: ImuSimulator | None = None,
                  phase_ns: int = 0, clock_offset_ms: float = 0.0, compression: str = "lz4",
                  worker: CameraWorker | None = None,
-                 lz4_acceleration: int = LZ4_ACCELERATION) -> None:
+                 lz4_acceleration: int = LZ4_ACCELERATION, factory_spec: CameraSpec | None = None,
+                 latency_ms: float = 0.0, jitter_ms: float = 0.0, exposure_ms: float = 0.0,
+                 jitter_seed: int = 0) -> None:
         """``camera``: the :class:`~darp.twin.camera.sensor.TwinCamera` that renders recorded frames (None when a
         :class:`~darp.twin.camera.worker.CameraWorker` ``worker`` does); ``live_camera``: a factory of the
         camera for live queries (built on first use); ``imu``: an :class:`~darp.twin.camera.imu.ImuSimulator` or
         None (no motion streams); ``lz4_acceleration``: LZ4 fast mode of the bag chunks (see
-        :class:`~darp.formats.realsense.bag.writer.BagWriter`)."""
+        :class:`~darp.formats.realsense.bag.writer.BagWriter`); ``factory_spec``: the intrinsics the camera
+        reports and records (its factory calibration; default ``spec``, the true ones it renders with);
+        ``latency_ms`` and ``jitter_ms``: image frame stamps are the exposure instant plus the latency plus
+        Gaussian jitter (seeded per frame by ``jitter_seed``); ``exposure_ms``: the colour image is blurred
+        over the camera's motion during it."""
         self.arm_id = arm_id
         self.serial = spec.serial
         self.spec = spec
+        self.factory_spec = factory_spec if factory_spec is not None else spec
+        self.latency_ms = float(latency_ms)
+        self.jitter_ms = float(jitter_ms)
+        self.exposure_ms = float(exposure_ms)
+        self.jitter_seed = int(jitter_seed)
         self.clock = clock
         self.host = host
         if (camera is None) == (worker is None):
@@ -116,6 +128,31 @@ class TwinCameraBackend(CameraBackend):
         """The bag timestamp of a simulation instant: host-clock ms plus the camera clock offset."""
         return self.clock.start_time_s * 1e3 + t_ns / 1e6 + self.clock_offset_ms
 
+    def frame_stamp_ms(self, n: int, t_ns: int) -> float:
+        """The bag timestamp of image frame ``n`` exposed at ``t_ns``: latency and per-frame jitter added."""
+        stamp = self.timestamp_ms(t_ns)
+        if self.latency_ms or self.jitter_ms:
+            jitter = (np.random.default_rng([self.jitter_seed, n]).normal(0.0, self.jitter_ms)
+                      if self.jitter_ms > 0 else 0.0)
+            stamp += self.latency_ms + float(jitter)
+        return stamp
+
+    def motion_px(self, t_ns: int) -> np.ndarray | None:
+        """Colour image motion (dx, dy) in pixels over the exposure around ``t_ns`` (None: no exposure set).
+
+        Measured on the point 0.5 m in front of the camera: where it is seen at the exposure's start and end.
+        """
+        if self.exposure_ms <= 0:
+            return None
+        half = s_to_ns(0.5 * self.exposure_ms / 1e3)
+        T = self.host.true_camera_poses(self.arm_id, np.array([t_ns - half, t_ns + half]))
+        T_cd = self.spec.T_depth_stream("color")
+        a, b = compose(T[0], T_cd), compose(T[1], T_cd)
+        p = matvec(a[:3, :3], np.array([0.0, 0.0, 0.5])) + a[:3, 3]
+        q = matvec(b[:3, :3].T, p - b[:3, 3])
+        c = self.spec.color
+        return np.array([c.fx * q[0] / q[2], c.fy * q[1] / q[2]])
+
     def _frame_tick(self, now_ns: int) -> int:
         while self.frame_time_ns(self._tick) < now_ns:  # registered late: skip ticks already past
             self._tick += 1
@@ -126,7 +163,7 @@ class TwinCameraBackend(CameraBackend):
 
     # -- recording --------------------------------------------------------------------------------
     def stream_profiles(self) -> list[StreamProfile]:
-        profiles = self.spec.stream_profiles()
+        profiles = self.factory_spec.stream_profiles()
         keys = [*IMAGE_ORDER, *(("accel", "gyro") if self.imu is not None else ())]
         return [profiles[k] for k in keys]
 
@@ -183,20 +220,20 @@ class TwinCameraBackend(CameraBackend):
             writer.abort()
 
     def _record_frame(self, n: int, t_ns: int) -> None:
-        stamp_ms = self.timestamp_ms(t_ns)
+        stamp_ms = self.frame_stamp_ms(n, t_ns)
         motion = self._imu_samples(t_ns) if self.imu is not None else []
         data = self.host.prepare_world(t_ns)
         T_world_cam = self.host.true_camera_poses(self.arm_id, np.array([t_ns]))[0]
         t0 = time.perf_counter()
         if self.worker is not None:
-            self.worker.frame(n, stamp_ms, data.qpos.copy(), T_world_cam, motion, IMAGE_ORDER)
+            self.worker.frame(n, stamp_ms, data.qpos.copy(), T_world_cam, motion, IMAGE_ORDER, self.motion_px(t_ns))
         else:
             assert self._writer is not None and self.camera is not None
             c0 = time.process_time()
             for key, values, stamp, index in motion:
                 self._writer.write_motion(key, values, stamp, index)
             t1, c1 = time.perf_counter(), time.process_time()
-            frames = self.camera.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3)
+            frames = self.camera.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3, motion_px=self.motion_px(t_ns))
             t2, c2 = time.perf_counter(), time.process_time()
             for key in IMAGE_ORDER:
                 self._writer.write_image(key, frames[key], stamp_ms, n)
@@ -254,24 +291,24 @@ class TwinCameraBackend(CameraBackend):
         t_ns = min(self.frame_time_ns(n), now)
         data = self.host.prepare_world(t_ns)
         T_world_cam = self.host.true_camera_poses(self.arm_id, np.array([t_ns]))[0]
-        stamp_ms = self.timestamp_ms(t_ns)
+        stamp_ms = self.frame_stamp_ms(n, t_ns)
         if self._live is None:
             self._live = self._live_factory()
-        frames = self._live.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3)
+        frames = self._live.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3, motion_px=self.motion_px(t_ns))
         depth_m = frames["depth"].astype(np.float32) * np.float32(self.spec.depth_unit_m)
         return LiveFrameSet(
             timestamp_s=stamp_ms / 1e3,
             depth_m=depth_m,
-            depth_intrinsics=self.spec.depth,
+            depth_intrinsics=self.factory_spec.depth,
             color_bgr=frames["color"],
-            color_intrinsics=self.spec.color,
+            color_intrinsics=self.factory_spec.color,
             T_depth_color=self.spec.T_depth_stream("color"),
             extra={"ir1": frames["ir1"], "ir2": frames["ir2"], "frame_number": n},
         )
 
     @property
     def depth_intrinsics(self) -> Intrinsics:
-        return self.spec.depth
+        return self.factory_spec.depth
 
     def close(self) -> None:
         """Abort an unfinished recording and free the cameras' resources (idempotent)."""

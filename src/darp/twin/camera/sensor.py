@@ -46,6 +46,64 @@ DEPTH_MODES = ("model", "sgbm")
 
 
 @dataclass(frozen=True)
+class UnitErrors:
+    """One camera unit's depth errors and its colour images' photographic errors (drawn by the rig).
+
+    Valid depth becomes ``z * (1 + scale + drift(t)) + offset_m + bias_per_m * z^2`` with ``drift(t) =
+    thermal_drift * (1 - exp(-(t - session_start_s) / thermal_tau_s))`` for the frame's timestamp ``t``;
+    the colour image is blurred (``blur_sigma_px``), lit unevenly (a gradient in a random direction per
+    frame plus vignetting, each up to ``shading`` of the brightness) and gets ``noise_dn`` more noise.
+    """
+
+    depth_scale: float = 0.0
+    depth_offset_m: float = 0.0
+    depth_bias_per_m: float = 0.0
+    thermal_drift: float = 0.0
+    thermal_tau_s: float = 600.0
+    session_start_s: float = 0.0
+    blur_sigma_px: float = 0.0
+    shading: float = 0.0
+    noise_dn: float = 0.0
+
+    def depth(self, depth_m: np.ndarray, timestamp_s: float | None) -> np.ndarray:
+        """The measured depth (float32 metres, 0 stays invalid) for the model's output ``depth_m``."""
+        t = 0.0 if timestamp_s is None else max(0.0, timestamp_s - self.session_start_s)
+        scale = 1.0 + self.depth_scale + self.thermal_drift * (1.0 - np.exp(-t / self.thermal_tau_s))
+        if scale == 1.0 and self.depth_offset_m == 0.0 and self.depth_bias_per_m == 0.0:
+            return depth_m
+        z = np.asarray(depth_m, dtype=np.float64)
+        out = z * scale + self.depth_offset_m + self.depth_bias_per_m * z * z
+        return np.where(z > 0, np.maximum(out, 0.0), 0.0).astype(np.float32)
+
+    def photograph(self, bgr: np.ndarray, rng: np.random.Generator, motion_px: np.ndarray | None) -> np.ndarray:
+        """The colour image with motion blur, optical blur, uneven light and sensor noise."""
+        img = bgr
+        if motion_px is not None and float(np.hypot(*motion_px)) >= 0.5:
+            length = int(np.ceil(np.hypot(*motion_px)))
+            size = 2 * length + 1
+            kernel = np.zeros((size, size), np.float32)
+            for u in np.linspace(-0.5, 0.5, 4 * length + 1):
+                kernel[int(round(length + u * motion_px[1])), int(round(length + u * motion_px[0]))] += 1.0
+            img = cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)
+        if self.blur_sigma_px > 0:
+            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma_px)
+        if self.shading > 0 or self.noise_dn > 0:
+            h, w = img.shape[:2]
+            out = img.astype(np.float32)
+            if self.shading > 0:
+                angle = rng.uniform(0.0, 2 * np.pi)
+                y, x = np.mgrid[0:h, 0:w].astype(np.float32)
+                u = ((x - 0.5 * w) * np.cos(angle) + (y - 0.5 * h) * np.sin(angle)) / (0.5 * max(w, h))
+                r2 = ((x - 0.5 * w) ** 2 + (y - 0.5 * h) ** 2) / (0.25 * (w * w + h * h))
+                gain = 1.0 + 0.5 * self.shading * rng.uniform(0.5, 1.0) * u - 0.5 * self.shading * r2
+                out *= gain[:, :, None]
+            if self.noise_dn > 0:
+                out += rng.normal(0.0, self.noise_dn, out.shape).astype(np.float32)
+            img = np.clip(np.rint(out), 0, 255).astype(np.uint8)
+        return img
+
+
+@dataclass(frozen=True)
 class TwinCameraSettings:
     """What the camera simulates: depth, IR and IMU error models, depth mode, optional outputs.
 
@@ -61,6 +119,7 @@ class TwinCameraSettings:
     render_ir: bool = True  # False skips both IR images (and the right view unless occlusion needs it)
     segmentation: bool = True  # truth geom ids; when off, dropout geoms get ids only around their image
     imu: ImuSettings = field(default_factory=ImuSettings)
+    errors: UnitErrors | None = None  # per-unit depth errors and photographic errors (None: none)
 
     def __post_init__(self) -> None:
         if self.profile not in PROFILES:
@@ -199,9 +258,13 @@ class TwinCamera:
         return lookup
 
     def capture(
-        self, data: mujoco.MjData, T_world_cam: np.ndarray, timestamp_s: float | None = None
+        self, data: mujoco.MjData, T_world_cam: np.ndarray, timestamp_s: float | None = None,
+        motion_px: np.ndarray | None = None,
     ) -> dict[str, Any]:
         """Render one frame set for the depth-frame pose ``T_world_cam`` (see the module docstring for keys).
+
+        ``motion_px``: image motion (dx, dy) in colour pixels during the exposure (blurs colour when the
+        settings carry :class:`UnitErrors`).
 
         Deterministic for a given seed and capture order: frame k draws its noise from ``(seed, k)``.
         """
@@ -271,12 +334,16 @@ class TwinCamera:
                 depth_right_m=right.depth_m if right is not None else None,
                 dropout_prob=dropout,
             )
+        if s.errors is not None:
+            depth_m = s.errors.depth(depth_m, timestamp_s)
         t3 = cpu()
         stage["depth_noise"] += t3 - t2
 
         color_bgr = cv2.cvtColor(color_rgb, cv2.COLOR_RGB2BGR)
         if self._color_noise is not None:  # integer noise, saturating add
             color_bgr = cv2.add(color_bgr, self._color_noise.draw(rng), dtype=cv2.CV_8U)
+        if s.errors is not None:
+            color_bgr = s.errors.photograph(color_bgr, rng, motion_px)
         t4 = cpu()
         stage["colour"] += t4 - t3
         depth_z16 = depth_to_z16(depth_m, self.spec.depth_unit_m)

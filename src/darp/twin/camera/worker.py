@@ -91,7 +91,7 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
                 faults_at_open = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
                 cpu_at_open = time.process_time()
             elif kind == "frame":
-                _, n, stamp_ms, qpos, T_world_cam, motion, keys = message
+                _, n, stamp_ms, qpos, T_world_cam, motion, keys, motion_px = message
                 if writer is None:
                     raise TwinError("a frame came before the recording was opened")
                 cpu0, t0 = time.process_time(), time.perf_counter()
@@ -100,7 +100,7 @@ def _worker_main(conn: Any, model: Any, spec: Any, cam_settings: Any, seed: int,
                 cpu1, t1 = time.process_time(), time.perf_counter()
                 data.qpos[:] = qpos
                 mujoco.mj_kinematics(model, data)
-                frames = camera.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3)
+                frames = camera.capture(data, T_world_cam, timestamp_s=stamp_ms / 1e3, motion_px=motion_px)
                 cpu2, t2 = time.process_time(), time.perf_counter()
                 for key in keys:
                     writer.write_image(key, frames[key], stamp_ms, n)
@@ -209,16 +209,19 @@ class CameraWorker:
         self._guarded(self._conn.send, ("open", args, kwargs))
 
     def frame(self, n: int, stamp_ms: float, qpos: np.ndarray, T_world_cam: np.ndarray,
-              motion: list[tuple[str, np.ndarray, float, int]], keys: tuple[str, ...]) -> None:
-        """Queue one frame tick: IMU samples first, then the rendered images."""
-        self._guarded(self._frame, n, stamp_ms, qpos, T_world_cam, motion, keys)
+              motion: list[tuple[str, np.ndarray, float, int]], keys: tuple[str, ...],
+              motion_px: np.ndarray | None = None) -> None:
+        """Queue one frame tick: IMU samples first, then the rendered images (``motion_px``: see
+        :meth:`darp.twin.camera.sensor.TwinCamera.capture`)."""
+        self._guarded(self._frame, n, stamp_ms, qpos, T_world_cam, motion, keys, motion_px)
 
     def _frame(self, n: int, stamp_ms: float, qpos: np.ndarray, T_world_cam: np.ndarray,
-               motion: list[tuple[str, np.ndarray, float, int]], keys: tuple[str, ...]) -> None:
+               motion: list[tuple[str, np.ndarray, float, int]], keys: tuple[str, ...],
+               motion_px: np.ndarray | None) -> None:
         while self.pending >= self.max_pending:
             self._collect()
         self._conn.send(("frame", n, stamp_ms, np.asarray(qpos, dtype=float), np.asarray(T_world_cam, dtype=float),
-                         motion, keys))
+                         motion, keys, motion_px))
         self.pending += 1
 
     def close_recording(self, abort: bool = False) -> None:

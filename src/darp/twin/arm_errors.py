@@ -1,0 +1,156 @@
+"""Arm errors a calibration cannot absorb: kinematic parameter errors, gravity sag, backlash, repeatability.
+
+The twin's true arm differs from darp's Z1 model (:mod:`darp.kinematics.z1`) in two ways here, both
+drawn from :class:`darp.twin.settings.ArmErrorSettings` and the settings' seed:
+
+- **geometry** (:class:`KinematicErrors`, per arm, fixed): each joint's origin in its parent link is off
+  by a small vector (link lengths and offsets) and each joint's axis is tilted by a small rotation. The
+  true chain is ``T = prod_i Trans(o_i + do_i) Rot(a_i, q_i)``; :func:`fk_batch_with_errors` computes it
+  and :class:`darp.twin.world.TwinWorld` builds the MuJoCo arm with the same origins and axes, so the
+  rendered views and ``truth/`` agree.
+- **link-side deflection** (:class:`LinkDeflection`, per move and configuration): the encoders sit on
+  the motor side, so what the gearbox and links do after them is invisible to the joint log: sag of
+  joints 2-4 under gravity (links plus the camera load, divided by the joint stiffness), backlash (half
+  the dead band behind the direction the joint last moved) and repeatability (a small random arrival
+  offset per move). :class:`darp.twin.arm_sim.SimArm` adds it to its true (link) angles.
+
+With all magnitudes zero nothing here is used: the twin's files are byte-identical to an exact arm's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from darp.kinematics import z1
+from darp.kinematics.transforms import compose, matvec, rotvec_to_rotation
+from darp.twin.settings import ArmErrorSettings
+
+GRAVITY_M_S2 = 9.81
+REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repeatability to joint angles
+
+# Lumped link masses (kg) and centres of mass in their link frame (m): the Z1's arm is about 4.1-4.4 kg
+# (docs/twin.md); link01 and the base do not load joints 2-4.
+LINK_MASSES: tuple[tuple[int, float, tuple[float, float, float]], ...] = (
+    (2, 1.50, (-0.17, 0.0, 0.0)),  # link02: upper arm (two motors at joint 2 sit below it)
+    (3, 0.80, (0.12, 0.0, 0.05)),  # link03: forearm with the joint-4 motor
+    (4, 0.40, (0.05, 0.0, 0.0)),  # link04
+    (5, 0.35, (0.03, 0.0, 0.0)),  # link05
+    (6, 0.30, (0.03, 0.0, 0.0)),  # link06 (without gripper)
+)
+SAG_JOINTS = (1, 2, 3)  # joints 2, 3, 4 (0-based): horizontal axes, the ones gravity loads
+
+
+@dataclass(frozen=True, eq=False)
+class KinematicErrors:
+    """Per-joint origin errors (6, 3) in metres and axis tilts (6, 3) as rotation vectors in radians."""
+
+    origin_m: np.ndarray
+    axis_tilt_rad: np.ndarray
+
+    @classmethod
+    def draw(cls, settings: ArmErrorSettings, rng: np.random.Generator) -> KinematicErrors | None:
+        """Draw one arm's errors, or None when both magnitudes are zero."""
+        if settings.link_origin_std_mm <= 0 and settings.axis_tilt_std_deg <= 0:
+            return None
+        origin = rng.normal(0.0, settings.link_origin_std_mm * 1e-3, (6, 3))
+        tilt = rng.normal(0.0, np.deg2rad(settings.axis_tilt_std_deg), (6, 3))
+        return cls(origin, tilt)
+
+    def origins(self) -> np.ndarray:
+        """True joint origins (6, 3) in their parent link."""
+        origins: np.ndarray = np.asarray(z1.JOINT_ORIGINS_M, dtype=float) + self.origin_m
+        return origins
+
+    def axes(self) -> np.ndarray:
+        """True joint axes (6, 3), unit vectors in the child link (= parent at zero angle)."""
+        nominal = np.eye(3)[list(z1.JOINT_AXIS_INDEX)]
+        axes = matvec(rotvec_to_rotation(self.axis_tilt_rad), nominal)
+        unit: np.ndarray = axes / np.linalg.norm(axes, axis=-1, keepdims=True)
+        return unit
+
+
+def _rotations(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Rotations (N, 3, 3) about the unit ``axis`` (3,) by angles ``q`` (N,) (Rodrigues)."""
+    return rotvec_to_rotation(axis[None, :] * q[:, None])
+
+
+def fk_batch_with_errors(Q: np.ndarray, errors: KinematicErrors, frame: str = "flange") -> np.ndarray:
+    """``T_base_frame`` (N, 4, 4) of the true chain (perturbed origins and axes) for joint rows Q (N, 6)."""
+    Qa = z1.check_q(Q, batched=True)
+    n = Qa.shape[0]
+    T = np.tile(np.eye(4), (n, 1, 1))
+    for i, (origin, axis) in enumerate(zip(errors.origins(), errors.axes(), strict=True)):
+        step = np.zeros((n, 4, 4))
+        step[:, :3, :3] = _rotations(axis, Qa[:, i])
+        step[:, :3, 3] = origin
+        step[:, 3, 3] = 1.0
+        T = compose(T, step)
+    tool = np.eye(4)
+    tool[0, 3] = z1.frame_offset_m(frame)
+    out: np.ndarray = compose(T, tool)
+    return out
+
+
+def gravity_torques(Q: np.ndarray, payload_kg: float) -> np.ndarray:
+    """Gravity torques (N, 6) in N m about each joint's axis (positive: about +axis) for joint rows Q (N, 6).
+
+    Lumped masses (:data:`LINK_MASSES`) plus ``payload_kg`` (camera and bracket) 3 cm past the flange;
+    only joints 2-4 are loaded (joints 1, 5, 6 get 0: vertical or nearly unloaded axes).
+    """
+    Qa = np.atleast_2d(np.asarray(Q, dtype=float))
+    links = z1.link_transforms_batch(Qa)  # (N, 7, 4, 4)
+    masses: list[tuple[int, float, np.ndarray]] = [(i, m, np.asarray(c)) for i, m, c in LINK_MASSES]
+    if payload_kg > 0:
+        masses.append((6, payload_kg, np.array([z1.WRIST_FRAMES["flange"] + 0.03, 0.0, 0.0])))
+    tau = np.zeros((Qa.shape[0], 6))
+    down = np.array([0.0, 0.0, -GRAVITY_M_S2])
+    for j in SAG_JOINTS:
+        p = links[:, j + 1, :3, 3]  # joint j's origin = child link (j + 1)'s origin
+        axis = links[:, j + 1, :3, z1.JOINT_AXIS_INDEX[j]]
+        for link, mass, centre in masses:
+            if link < j + 1:
+                continue
+            r = matvec(links[:, link, :3, :3], centre) + links[:, link, :3, 3]
+            moment = np.cross(r - p, mass * down)
+            tau[:, j] += np.sum(moment * axis, axis=-1)
+    return tau
+
+
+class LinkDeflection:
+    """Link-side angle errors the encoders do not see: sag, backlash and per-move repeatability."""
+
+    def __init__(self, settings: ArmErrorSettings, rng: np.random.Generator) -> None:
+        self.settings = settings
+        self._rng = rng
+        self._direction = np.zeros(6)  # sign of each joint's last motion (0: not moved yet)
+        self.compliance = (1.0 / settings.joint_stiffness_nm_per_rad
+                           if settings.joint_stiffness_nm_per_rad > 0 else 0.0)
+
+    @property
+    def active(self) -> bool:
+        s = self.settings
+        return self.compliance > 0 or s.backlash_deg > 0 or s.repeatability_mm > 0
+
+    def move_offset(self, q_from: np.ndarray, q_to: np.ndarray) -> np.ndarray:
+        """The constant link offset (6,) of a new move: backlash behind its direction plus repeatability."""
+        step = np.asarray(q_to, float) - np.asarray(q_from, float)
+        moved = np.abs(step) > 1e-9
+        self._direction = np.where(moved, np.sign(step), self._direction)
+        offset: np.ndarray = -0.5 * np.deg2rad(self.settings.backlash_deg) * self._direction
+        if self.settings.repeatability_mm > 0:
+            # Per-joint std so that the flange's 3-sigma spread is about the stated repeatability.
+            sigma = self.settings.repeatability_mm * 1e-3 / (3.0 * REACH_M)
+            offset = offset + self._rng.normal(0.0, sigma, 6)
+        return offset
+
+    def sag(self, Q: np.ndarray) -> np.ndarray:
+        """Gravity sag (N, 6) in radians at link angles Q (N, 6)."""
+        if self.compliance <= 0:
+            return np.zeros(np.atleast_2d(Q).shape)
+        sag: np.ndarray = gravity_torques(Q, self.settings.payload_kg) * self.compliance
+        return sag
+
+
+__all__ = ["LINK_MASSES", "KinematicErrors", "LinkDeflection", "fk_batch_with_errors", "gravity_torques"]
