@@ -43,6 +43,7 @@ def test_the_draws_depend_on_the_seed_and_the_index_only(tmp_path: Path) -> None
     assert len({s.name for s in b}) == 9 and {s.object for s in b} == set(objects)
     assert len({(s.x_m, s.y_m, s.yaw_rad, s.twin_seed) for s in b}) == 9
     assert any(s.dark for s in b) or any(s.specular for s in b) or len({s.colour_jitter for s in b}) == 9
+    assert len({s.lighting for s in b}) == 9 and all(0.15 <= s.lighting[0] <= 0.5 for s in b)
 
 
 @pytest.fixture(scope="module")

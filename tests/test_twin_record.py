@@ -3,6 +3,7 @@ IMU, determinism, contacts, atomic output and the ``darp twin`` command."""
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import os
 import subprocess
@@ -13,7 +14,7 @@ import numpy as np
 import pytest
 
 import darp
-from darp.errors import TwinError
+from darp.errors import ConfigError, TwinError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
 from darp.formats.realsense.recording import open_recording
@@ -325,3 +326,22 @@ def test_full_resolution_thirty_fps(tmp_path: Path) -> None:
     assert len(depth) == result.frames["arm110"] > 30
     assert depth[0].data.shape == (480, 640) and played.frames["color"][0].data.shape == (480, 640, 3)
     np.testing.assert_allclose(np.diff([f.timestamp_ms for f in depth]), 1000 / 30, atol=1e-3)
+
+
+def test_lighting_setting_changes_the_colour_images_and_stays_out_of_default_settings() -> None:
+    from darp.twin.settings import LightingSettings
+
+    base = TwinSettings.from_profile("ideal", seed=0).with_camera(**SMALL)
+    assert "lighting" not in base.to_dict()  # default lights: settings files (and surveys) as before
+    means = []
+    for level in (0.1, 0.9):
+        lit = dataclasses.replace(base, lighting=LightingSettings(ambient=level, key=level, fill=level,
+                                                                  key_yaw_deg=90.0))
+        assert TwinSettings.from_dict(lit.to_dict()).lighting == lit.lighting  # round trip through YAML
+        with TwinRig(lit) as twin:
+            frame = twin.cameras["arm110"].latest_frameset()
+            assert frame.color_bgr is not None
+            means.append(float(frame.color_bgr.mean()))
+    assert means[1] > means[0] + 40  # brighter lights, brighter images
+    with pytest.raises(ConfigError, match=r"lighting\.key"):
+        LightingSettings(key=1.5)

@@ -8,8 +8,10 @@ whatever runs it (a loop, local Ray, a cluster) and survey ``i`` does not depend
 - its materials: each part's colour jittered, and ``dark`` / ``specular`` flags switched on at random
   (they change the twin's IR return and dropouts);
 - the error draws: the twin settings' seed (joint-zero biases, hand-eye and base errors, noise; it
-  also seeds the table's texture). The lights are the twin's fixed key and fill lights: lighting is
-  not randomised yet (it needs a lighting setting in ``darp.twin.world``);
+  also seeds the table's texture);
+- the lighting (:class:`darp.twin.settings.LightingSettings`): ambient, key and fill levels from dim to
+  bright and the key light's direction turned about the vertical, from a generator of its own
+  (``[seed, i, 1]``) so that the draws above are the same as before lighting was drawn;
 - the survey: per arm a few orbit views at a random distance, elevation and azimuth spread.
 
 Each survey is recorded by :func:`darp.twin.record.record_survey`, which builds it in
@@ -53,6 +55,7 @@ class SurveySpec:
     width: int = 424
     height: int = 240
     dwell_s: float = 0.6
+    lighting: tuple[float, float, float, float] = (0.35, 0.45, 0.25, 0.0)  # ambient, key, fill, key yaw (deg)
 
 
 def plan_surveys(n: int, seed: int, objects: Sequence[str], *, profile: str = "realistic", fps: int = 6,
@@ -78,8 +81,16 @@ def plan_surveys(n: int, seed: int, objects: Sequence[str], *, profile: str = "r
             colour_jitter=tuple(round(float(v), 3) for v in rng.uniform(0.7, 1.3, 3)),  # type: ignore[arg-type]
             dark=bool(rng.random() < 0.2), specular=bool(rng.random() < 0.2), twin_seed=int(rng.integers(2**31)),
             distance_m=round(float(rng.uniform(0.30, 0.38)), 3), elevation_deg=round(float(rng.uniform(30, 50)), 1),
-            azimuths_deg=azimuths, profile=profile, fps=fps, width=width, height=height))
+            azimuths_deg=azimuths, profile=profile, fps=fps, width=width, height=height,
+            lighting=_lighting(np.random.default_rng([seed, i, 1]))))
     return specs
+
+
+def _lighting(rng: np.random.Generator) -> tuple[float, float, float, float]:
+    """A dim to bright studio lighting (ambient, key, fill, key yaw in degrees), from its own generator so
+    that the other draws stay as they were."""
+    ambient, key, fill = (round(float(v), 3) for v in rng.uniform((0.15, 0.2, 0.05), (0.5, 0.7, 0.4)))
+    return ambient, key, fill, round(float(rng.uniform(-180.0, 180.0)), 1)
 
 
 def _object(spec: SurveySpec) -> Any:
@@ -105,7 +116,7 @@ def record_generated(spec: SurveySpec, out_dir: str) -> dict[str, Any]:
     from darp.kinematics.rig import load_rig
     from darp.twin.objects.model import ObjectPlacement
     from darp.twin.record import record_survey
-    from darp.twin.settings import TwinSettings
+    from darp.twin.settings import LightingSettings, TwinSettings
     from darp.twin.waypoints import WaypointPlan, orbit_waypoints
 
     folder = Path(out_dir) / spec.name
@@ -118,8 +129,11 @@ def record_generated(spec: SurveySpec, out_dir: str) -> dict[str, Any]:
     plan = WaypointPlan({arm: tuple(orbit_waypoints(rig, arm, centre, spec.distance_m, azimuths_deg=spec.azimuths_deg,
                                                     elevation_deg=spec.elevation_deg, dwell_s=spec.dwell_s))
                          for arm in rig.arm_ids}, rig.arm_ids)
-    settings = TwinSettings.from_profile(spec.profile, seed=spec.twin_seed).with_camera(
-        fps=spec.fps, width=spec.width, height=spec.height)
+    ambient, key, fill, key_yaw = spec.lighting
+    settings = dataclasses.replace(
+        TwinSettings.from_profile(spec.profile, seed=spec.twin_seed).with_camera(
+            fps=spec.fps, width=spec.width, height=spec.height),
+        lighting=LightingSettings(ambient=ambient, key=key, fill=fill, key_yaw_deg=key_yaw))
     result = record_survey(folder, plan, obj, placement, settings=settings, rig=rig)
     return {"name": spec.name, "skipped": False, "duration_s": result.duration_s, "frames": result.frames}
 

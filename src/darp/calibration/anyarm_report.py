@@ -10,21 +10,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from darp.calibration.anyarm import HandEyeOutcome
 from darp.calibration.model import per_capture, reprojection_errors
-from darp.formats.atomic import atomic_path, write_text_atomic
+from darp.calibration.report import save_png
+from darp.formats.atomic import write_text_atomic
 from darp.formats.schema import write_json_checked
 
 COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:orange")
-
-
-def _save(fig: Any, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
 
 
 def write_handeye_report(outcome: HandEyeOutcome, folder: str | Path) -> list[Path]:
@@ -55,7 +50,7 @@ def write_handeye_report(outcome: HandEyeOutcome, folder: str | Path) -> list[Pa
     ax.set_ylabel("fit reprojection\nmedian (px)")
     ax.set_xticks(x, obs.capture_ids, rotation=90, fontsize=6)
     fig.tight_layout()
-    _save(fig, folder / "per_capture_error.png")
+    save_png(fig, folder / "per_capture_error.png")
     written.append(folder / "per_capture_error.png")
 
     res = darp_residual(outcome)
@@ -74,7 +69,7 @@ def write_handeye_report(outcome: HandEyeOutcome, folder: str | Path) -> list[Pa
         rms = float(np.sqrt(np.mean(np.sum(res[sel] ** 2, axis=1)))) if sel.any() else 0.0
         ax.set_title(f"{arm}: residuals x{scale:.0f} (RMS {rms:.3f} px)")
     fig.tight_layout()
-    _save(fig, folder / "residual_vectors.png")
+    save_png(fig, folder / "residual_vectors.png")
     written.append(folder / "residual_vectors.png")
 
     if outcome.heldout:
@@ -93,7 +88,7 @@ def write_handeye_report(outcome: HandEyeOutcome, folder: str | Path) -> list[Pa
         ax.set_xlabel("held-out board consistency (mm)")
         ax.legend(fontsize=8)
         fig.tight_layout()
-        _save(fig, folder / "heldout_histogram.png")
+        save_png(fig, folder / "heldout_histogram.png")
         written.append(folder / "heldout_histogram.png")
 
     write_text_atomic(folder / "summary.md", summary_markdown(outcome))

@@ -23,7 +23,8 @@ PAPER_HELDOUT_MM = {"arm110": 3.58, "arm111": 3.93}
 COLOURS = {0: "tab:red", 1: "tab:blue"}
 
 
-def _save(fig: Any, path: Path) -> None:
+def save_png(fig: Any, path: Path) -> None:
+    """Save a matplotlib figure as a PNG report figure, atomically."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
 
@@ -57,7 +58,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
     ax.set_title(f"Per-capture reprojection error ({obs.arms[0]} red, {obs.arms[1]} blue)")
     ax.legend()
     fig.tight_layout()
-    _save(fig, folder / "per_capture_error.png")
+    save_png(fig, folder / "per_capture_error.png")
     written.append(folder / "per_capture_error.png")
 
     # residual vectors
@@ -79,7 +80,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
         rms = float(np.sqrt(np.mean(np.sum(res[sel] ** 2, axis=1)))) if sel.any() else 0.0
         ax.set_title(f"{arm}: residuals x{scale:.0f} (RMS {rms:.3f} px)")
     fig.tight_layout()
-    _save(fig, folder / "residual_vectors.png")
+    save_png(fig, folder / "residual_vectors.png")
     written.append(folder / "residual_vectors.png")
 
     # held-out histogram
@@ -101,7 +102,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
             ax.set_title(arm)
             ax.legend(fontsize=8)
         fig.tight_layout()
-        _save(fig, folder / "heldout_histogram.png")
+        save_png(fig, folder / "heldout_histogram.png")
         written.append(folder / "heldout_histogram.png")
 
     write_text_atomic(folder / "summary.md", summary_markdown(outcome))

@@ -89,7 +89,7 @@ class TwinRig(RigBackend):
             T_world_object = placement.T_world_object
         self.world = TwinWorld(self.rig, self.true_rig.arms, parts=obj.parts if obj is not None else (),
                                T_world_object=T_world_object, board=board, T_world_board=T_world_board,
-                               seed=s.seed)
+                               seed=s.seed, lighting=s.lighting)
         self.arms = {}
         for arm_id, true_arm in self.true_rig.arms.items():
             q0 = (q_initial_rad or {}).get(arm_id, self.rig.arms[arm_id].park_q_rad)

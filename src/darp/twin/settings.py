@@ -236,9 +236,33 @@ class ImageErrorSettings:
         _check_nonneg(self, "images", tuple(f.name for f in dataclasses.fields(self)))
 
 
-# Groups added with the paper profile: omitted from the YAML while they hold their (all zero) defaults, so
-# that ``ideal`` and ``realistic`` settings files, and every file that records them, stay as they were.
-OPTIONAL_GROUPS = ("arm_errors", "depth_errors", "sync", "images")
+@dataclass(frozen=True)
+class LightingSettings:
+    """The scene's lights (the defaults are the twin's fixed studio lighting).
+
+    ``ambient``: grey level of the headlight's ambient and diffuse terms; ``key`` / ``fill``: diffuse
+    intensity of the two directional lights; ``key_yaw_deg``: the key light's direction turned about the
+    vertical. ``darp twin generate`` draws these per survey to vary the lighting.
+    """
+
+    ambient: float = 0.35
+    key: float = 0.45
+    fill: float = 0.25
+    key_yaw_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check_nonneg(self, "lighting", ("ambient", "key", "fill"))
+        for name in ("ambient", "key", "fill"):
+            if getattr(self, name) > 1.0:
+                raise ConfigError(f"lighting.{name}: must be at most 1, got {getattr(self, name)!r}")
+        if not (isinstance(self.key_yaw_deg, (int, float)) and np.isfinite(self.key_yaw_deg)
+                and abs(self.key_yaw_deg) <= 360.0):
+            raise ConfigError(f"lighting.key_yaw_deg: must be a finite angle within +-360, got {self.key_yaw_deg!r}")
+
+
+# Groups added after the first profiles: omitted from the YAML while they hold their defaults, so that
+# ``ideal`` and ``realistic`` settings files, and every file that records them, stay as they were.
+OPTIONAL_GROUPS = ("arm_errors", "depth_errors", "sync", "images", "lighting")
 
 
 @dataclass(frozen=True)
@@ -256,6 +280,7 @@ class TwinSettings:
     depth_errors: DepthErrorSettings = field(default_factory=DepthErrorSettings)
     sync: SyncSettings = field(default_factory=SyncSettings)
     images: ImageErrorSettings = field(default_factory=ImageErrorSettings)
+    lighting: LightingSettings = field(default_factory=LightingSettings)
 
     def __post_init__(self) -> None:
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
@@ -307,7 +332,8 @@ class TwinSettings:
 
         Scaled: joint bias and encoder noise, mount and base errors, joint-log jitter and camera clock
         offset, every arm, depth, sync and image error (stiffness divided, so that sag scales too).
-        Not scaled: rates, resolution, dropout probabilities, the depth noise model, the thermal time constant.
+        Not scaled: rates, resolution, dropout probabilities, the depth noise model, the thermal time constant,
+        the lighting.
         """
         if not (np.isfinite(factor) and factor >= 0):
             raise ConfigError(f"scale factor must be a finite number >= 0, got {factor!r}")
@@ -412,6 +438,7 @@ PAPER_IMAGES = ImageErrorSettings(blur_sigma_px=0.8, shading_pct=20.0, noise_dn=
 
 __all__ = [
     "CAMERA_STREAMS", "OPTIONAL_GROUPS", "PROFILES", "ArmErrorSettings", "CameraSettings", "DepthErrorSettings",
-    "ImageErrorSettings", "JointErrorSettings", "MotionSettings", "MountErrorSettings", "SyncSettings",
+    "ImageErrorSettings", "JointErrorSettings", "LightingSettings", "MotionSettings", "MountErrorSettings",
+    "SyncSettings",
     "TimingSettings", "TwinSettings", "paper_profile",
 ]

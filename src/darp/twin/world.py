@@ -110,7 +110,10 @@ def _add_texture(spec: mujoco.MjSpec, name: str, rgb: np.ndarray) -> None:
     tex.data = np.ascontiguousarray(rgb, dtype=np.uint8).tobytes()
 
 
-def _add_environment(spec: mujoco.MjSpec, rig: Any, seed: int) -> None:
+def _add_environment(spec: mujoco.MjSpec, rig: Any, seed: int, lighting: Any = None) -> None:
+    """Table, floor and lights (``lighting``: a :class:`darp.twin.settings.LightingSettings`; None: defaults)."""
+    ambient, key, fill, key_yaw = ((0.35, 0.45, 0.25, 0.0) if lighting is None else
+                                   (lighting.ambient, lighting.key, lighting.fill, lighting.key_yaw_deg))
     table = rig.table
     (x0, x1), (y0, y1), top = table.x_range_m, table.y_range_m, table.height_m
     _add_texture(spec, "table_tex", table_texture(seed))
@@ -126,14 +129,18 @@ def _add_environment(spec: mujoco.MjSpec, rig: Any, seed: int) -> None:
     spec.worldbody.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_BOX, size=[4.0, 4.0, 0.01],
                             pos=[0, 0, top - FLOOR_DROP_M - 0.01], rgba=[0.42, 0.41, 0.40, 1], contype=0,
                             conaffinity=0)
-    spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
-    spec.visual.headlight.diffuse = [0.35, 0.35, 0.35]
+    spec.visual.headlight.ambient = [ambient] * 3
+    spec.visual.headlight.diffuse = [ambient] * 3
     spec.visual.headlight.specular = [0.05, 0.05, 0.05]
-    for name, pos, direction in (("key", [0.4, -1.2, 2.2], [-0.15, 0.45, -1.0]),
-                                 ("fill", [-0.6, 1.0, 2.0], [0.25, -0.4, -1.0])):
+    key_dir = [-0.15, 0.45, -1.0]
+    if key_yaw:  # turned about the vertical (exactly the default direction when not turned)
+        c, s = np.cos(np.radians(key_yaw)), np.sin(np.radians(key_yaw))
+        key_dir = [c * key_dir[0] - s * key_dir[1], s * key_dir[0] + c * key_dir[1], key_dir[2]]
+    for name, pos, direction, level in (("key", [0.4, -1.2, 2.2], key_dir, key),
+                                        ("fill", [-0.6, 1.0, 2.0], [0.25, -0.4, -1.0], fill)):
         light = spec.worldbody.add_light(name=name, pos=pos, dir=direction, castshadow=False)
         light.type = mujoco.mjtLightType.mjLIGHT_DIRECTIONAL
-        light.diffuse = [0.45, 0.45, 0.45] if name == "key" else [0.25, 0.25, 0.25]
+        light.diffuse = [level] * 3
         light.specular = [0.2, 0.2, 0.2]
 
 
@@ -266,7 +273,7 @@ class TwinWorld:
 
     def __init__(self, rig: Any, true_arms: dict[str, Any], *, parts: Sequence[Any] = (),
                  T_world_object: np.ndarray | None = None, board: CharucoBoardSpec | None = None,
-                 T_world_board: np.ndarray | None = None, seed: int = 0) -> None:
+                 T_world_board: np.ndarray | None = None, seed: int = 0, lighting: Any = None) -> None:
         """``true_arms``: arm id -> object with ``T_world_base`` and ``T_flange_cam`` (a :class:`TrueArm`).
 
         ``board``: the calibration board record, drawn at ``T_world_board`` with the twin's default
@@ -283,7 +290,7 @@ class TwinWorld:
         spec.compiler.boundmass = 1e-3
         spec.compiler.boundinertia = 1e-6
         spec.option.gravity = [0.0, 0.0, -9.81]
-        _add_environment(spec, rig, seed)
+        _add_environment(spec, rig, seed, lighting)
         for index, arm_id in enumerate(self.arm_ids):
             arm = true_arms[arm_id]
             _add_arm(spec, arm_id, index, np.asarray(arm.T_world_base, float), np.asarray(arm.T_flange_cam, float),
