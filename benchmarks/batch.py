@@ -1,9 +1,10 @@
 #!/usr/bin/env python3
 """Batches on Ray: executor overhead against a plain loop, and 1 -> 2 worker scaling, on the same surveys.
 
-1. ``--surveys`` tiny twin surveys are made with ``darp twin generate``'s draws (cube / mug / ketchup,
-   424x240 at 6 fps, 2 views per arm), in a plain loop in this process: CPU-seconds and bytes per
-   survey made.
+1. ``--surveys`` twin surveys are made with ``darp twin generate``'s draws (cube / mug / ketchup; by
+   default tiny: 424x240 at 6 fps, 2 views per arm; ``--resolution``, ``--fps`` and ``--views`` make them
+   closer to real surveys, whose processing dwarfs a fresh worker's start-up), in a plain loop in this
+   process: CPU-seconds and bytes per survey made.
 2. The same surveys are processed (``darp process --truth-poses``'s stages) three ways: a plain loop
    in this process; Ray with one worker (``num_cpus=1``); Ray with two workers. Each Ray run starts
    its own local Ray instance; its start-up is timed apart from the batch.
@@ -13,7 +14,8 @@ worker against the loop (target <= 5 %), the scaling efficiency from 1 to 2 work
 (``T1 / (2 * T2)``, target >= 90 %), and the load average before and after each run: this 2-core machine
 is shared, so wall-clock ratios move with what else runs.
 
-    .venv/bin/python benchmarks/batch.py [--surveys 4] [--seed 0] [--work DIR] [--json results.json]
+    .venv/bin/python benchmarks/batch.py [--surveys 4] [--seed 0] [--resolution 424x240] [--fps 6] [--views 2]
+        [--work DIR] [--json results.json]
 """
 
 from __future__ import annotations
@@ -97,12 +99,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--surveys", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resolution", default="424x240", help="camera resolution WxH of the surveys")
+    parser.add_argument("--fps", type=int, default=6)
+    parser.add_argument("--views", type=int, default=2, help="orbit views per arm")
     parser.add_argument("--work", type=Path, default=None, help="keep the surveys here (default: a temp folder)")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="darp-batch-"))
     gen = work / "surveys"
-    specs = plan_surveys(args.surveys, args.seed, ["cube", "mug", "ketchup"], views=2)
+    width, height = (int(v) for v in args.resolution.lower().split("x"))
+    specs = plan_surveys(args.surveys, args.seed, ["cube", "mug", "ketchup"], views=args.views, fps=args.fps,
+                         width=width, height=height)
     make = []
     for spec in specs:
         cpu0, t0 = cpu_s(), time.perf_counter()
@@ -132,7 +139,8 @@ def main() -> None:
         "ray_overhead_pct": round(100 * overhead, 1), "ray_overhead_with_init_pct": round(100 * overhead_with_init, 1),
         "scaling_efficiency_pct": round(100 * efficiency, 1),
     }
-    print(f"surveys: {args.surveys} (424x240, 6 fps, 2 views per arm), {os.cpu_count()} CPUs; shared machine: "
+    print(f"surveys: {args.surveys} ({args.resolution}, {args.fps} fps, {args.views} views per arm), "
+          f"{os.cpu_count()} CPUs; shared machine: "
           f"load averages are printed with each run")
     print(f"make a survey: {result['make_cpu_s_per_survey']} CPU-s, {result['survey_bytes_mean'] / 1e6:.1f} MB; "
           f"process it: {result['process_cpu_s_per_survey']} CPU-s, {result['processed_bytes_mean'] / 1e6:.1f} MB")
