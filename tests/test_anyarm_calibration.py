@@ -39,11 +39,10 @@ from darp.kinematics.transforms import (
     rotation_to_quaternion,
 )
 from helpers.calibration_synthetic import T_DEPTH_COLOR, board_pose, random_poses, true_rig, write_synthetic_captures
+from helpers.realdata import needs, realdata
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "doosan-a0509-d435-charuco"
-if not REAL.is_dir():
-    REAL = Path("/work/shared/realdata/doosan-a0509-d435-charuco")
-needs_real = pytest.mark.skipif(not REAL.is_dir(), reason="shared/realdata (the real Doosan set) is not present")
+REAL = realdata("doosan-a0509-d435-charuco")
+needs_real = needs(REAL)
 SIDECAR = ("board: {type: charuco, squares_x: 7, squares_y: 5, square_mm: 30, marker_mm: 22, "
            "dictionary: DICT_4X4_50}\n")
 

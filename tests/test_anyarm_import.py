@@ -24,11 +24,10 @@ from darp.formats.trajectories import (
 from darp.kinematics.transforms import axis_angle_to_rotation, invert_transform, make_transform, rotation_to_quaternion
 from darp.processing.imported import ImportSpec, ImportWarning, import_sequence
 from darp.reconstruction.keyframe_io import read_keyframe_index
+from helpers.realdata import needs, realdata
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata" / "3dmatch-frames"
-if not REAL.is_dir():
-    REAL = Path("/work/shared/realdata/3dmatch-frames")
-pytestmark = pytest.mark.skipif(not REAL.is_dir(), reason="shared/realdata (3DMatch frames) is not present")
+REAL = realdata("3dmatch-frames")
+needs_real = needs(REAL)
 SEQ = REAL / "seq-01"
 
 
@@ -47,6 +46,7 @@ def copy_seq(dst: Path, drop_pose: str | None = None) -> Path:
     return dst
 
 
+@needs_real
 def test_trajectory_formats_round_trip(tmp_path: Path) -> None:
     P = poses()
     assert sorted(P, key=int) == ["0", "1", "2", "116", "422"]
@@ -65,6 +65,7 @@ def test_trajectory_formats_round_trip(tmp_path: Path) -> None:
         read_tum(tmp_path / "dup.txt")
 
 
+@needs_real
 def test_real_3dmatch_import_writes_keyframes_with_the_poses(tmp_path: Path) -> None:
     rec = import_sequence(ImportSpec(SEQ, tmp_path / "imp", K(), poses=poses(), pose_source=str(SEQ)))
     assert rec["frames"] == 5 and rec["heldout"] == 1 and 2.5 < rec["median_depth_m"] < 3.5
@@ -77,6 +78,7 @@ def test_real_3dmatch_import_writes_keyframes_with_the_poses(tmp_path: Path) -> 
     assert kf["depth"].dtype == np.uint16 and kf["rgb"].shape == (480, 640, 3) and kf["rgb"].max() > 0
 
 
+@needs_real
 def test_flange_poses_and_hand_eye_give_the_same_camera_poses(tmp_path: Path) -> None:
     from darp.cli._app import run
 
@@ -99,6 +101,7 @@ def test_flange_poses_and_hand_eye_give_the_same_camera_poses(tmp_path: Path) ->
         assert np.allclose(e.T_world_cam, poses()[str(e.frame_number)], atol=1e-6)
 
 
+@needs_real
 def test_camera_from_world_poses_are_named_with_both_numbers(tmp_path: Path) -> None:
     inv = {k: invert_transform(T) for k, T in poses().items()}
     with pytest.raises(FormatError, match=r"camera-from-world.*mm apart \(median\) as given, .* mm with the poses "
@@ -106,11 +109,13 @@ def test_camera_from_world_poses_are_named_with_both_numbers(tmp_path: Path) -> 
         import_sequence(ImportSpec(SEQ, tmp_path / "imp", K(), poses=inv, pose_source="poses.txt"))
 
 
+@needs_real
 def test_depth_scale_inconsistent_with_the_scene_is_named(tmp_path: Path) -> None:
     with pytest.raises(FormatError, match=r"depth.png: depth scale 1 m/unit puts the scene at .* a scale of 0.001"):
         import_sequence(ImportSpec(SEQ, tmp_path / "imp", K(), depth_scale_m=1.0, poses=poses(), pose_source="x"))
 
 
+@needs_real
 def test_depth_not_registered_to_colour_is_named(tmp_path: Path) -> None:
     seq = copy_seq(tmp_path / "seq")
     for f in seq.glob("*.color.png"):
@@ -121,6 +126,7 @@ def test_depth_not_registered_to_colour_is_named(tmp_path: Path) -> None:
         import_sequence(ImportSpec(seq, tmp_path / "imp", K(), poses=read_pose_txt(seq), pose_source="x"))
 
 
+@needs_real
 def test_missing_and_duplicated_frames_are_named(tmp_path: Path) -> None:
     seq = copy_seq(tmp_path / "seq", drop_pose="116")
     with pytest.warns(ImportWarning, match=r"no pose for 1 of 5 depth frames \(e.g. frame 116\)"):
@@ -131,6 +137,7 @@ def test_missing_and_duplicated_frames_are_named(tmp_path: Path) -> None:
         import_sequence(ImportSpec(seq, tmp_path / "imp2", K(), poses=read_pose_txt(seq), pose_source="poses"))
 
 
+@needs_real
 @pytest.mark.slow
 def test_real_3dmatch_process_fuses_meshes_and_evaluates(tmp_path: Path) -> None:
     from darp.cli._app import run
@@ -152,6 +159,7 @@ def test_real_3dmatch_process_fuses_meshes_and_evaluates(tmp_path: Path) -> None
     assert "imported" in (tmp_path / "out" / "report.md").read_text()
 
 
+@needs_real
 def test_an_envelope_crops_fusion_and_evaluation(tmp_path: Path) -> None:
     from darp.formats.envelope import Envelope, write_envelope
     from darp.processing.imported import process_imported
