@@ -17,7 +17,8 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
     status          "ok", or "implausible" when ``warnings`` is not empty
     warnings        implausible results, each one line: an arm's cloud empty, fewer keyframes per arm than
                     keyframes.min_keyframes, no held-out point, a held-out median above
-                    evaluation.max_heldout_median_mm, a partial survey (PARTIAL.txt / *.bag.partial)
+                    evaluation.max_heldout_median_mm, a twin survey's fused cloud farther from the true
+                    surface than evaluation.max_truth_accuracy_mm, a partial survey (PARTIAL.txt / *.bag.partial)
     paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
                     within 5 / 10 mm, 224 keyframes, 1,563,466 points)
 
@@ -92,6 +93,13 @@ def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
     elif median > bound:
         warnings.append(f"held-out median {median:.2f} mm above the plausible bound {bound:g} mm "
                         "(calibration or poses off?)")
+    accuracy = (((results.get("truth") or {}).get("cloud") or {}).get("accuracy") or {}).get("median_mm")
+    truth_bound = job.settings.evaluation.max_truth_accuracy_mm
+    if accuracy is not None and accuracy > truth_bound:
+        shown = "n/a" if median is None else f"{median:.2f} mm"
+        warnings.append(f"fused cloud {accuracy:.2f} mm from the true surface (median), above the bound "
+                        f"{truth_bound:g} mm, while the held-out median is {shown}: whole views are moved "
+                        "together (calibration or kinematic error), which the held-out metric cannot see")
     return warnings
 
 
