@@ -35,6 +35,7 @@ from darp.kinematics import z1
 from darp.kinematics.collision import arm_primitives
 from darp.kinematics.collision_shapes import KINDS
 from darp.kinematics.rig import load_rig
+from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.cloud_io import read_ply
 from darp.reconstruction.keyframe_io import iter_keyframes
 
@@ -62,11 +63,6 @@ def _rerun() -> Any:
         raise DarpError("darp view needs rerun-sdk (pip install rerun-sdk, or make setup)") from None
     return rr
 
-
-def _quaternions(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
-    return np.asarray(Rotation.from_matrix(R).as_quat(), np.float64).reshape(-1, 4)  # x, y, z, w
 
 
 def arm_columns(arm: str, q_states: np.ndarray, calibration: Calibration) -> dict[str, Any]:
@@ -97,7 +93,7 @@ def log_arm_states(rec: Any, rr: Any, arm: str, times_s: np.ndarray, q_states: n
         c = cols[kind]
         if c["k"] == 0:
             continue
-        half, quats = c["half"], _quaternions(c["R"])
+        half, quats = c["half"], rotation_to_quaternion(c["R"]).reshape(-1, 4)
         colours = np.tile(colour, (len(half), 1))
         if kind == "cylinder":
             data = rr.Cylinders3D.columns(lengths=2 * half[:, 2], radii=half[:, 0], centers=c["centre"],

@@ -52,14 +52,6 @@ def write_lines(path: Path, lines: list[str]) -> Path:
     return path
 
 
-def quat_xyzw(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion (x, y, z, w) of a rotation matrix, w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, np.float64)).as_quat()
-    return np.asarray(-q if q[3] < 0 else q, np.float64)
-
-
 def frame_name(kf: Keyframe) -> str:
     """``<arm>_<frame number>``: unique within a survey."""
     return f"{kf.arm}_{kf.frame_number:06d}"

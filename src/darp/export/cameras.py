@@ -36,8 +36,9 @@ from typing import Any
 import numpy as np
 
 from darp.dataset import ProcessedSurvey
-from darp.export._io import OPENCV_TO_OPENGL, depth_png, fmt, frame_name, quat_xyzw, write_lines, write_png
+from darp.export._io import OPENCV_TO_OPENGL, depth_png, fmt, frame_name, write_lines, write_png
 from darp.formats.atomic import write_json_atomic
+from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.keyframe_io import Keyframe, iter_keyframes
 
 NERFSTUDIO_DEPTH_UNITS_PER_M = 1000.0
@@ -93,7 +94,7 @@ def export_colmap(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
             cameras[key] = len(cameras) + 1
             camera_lines.append(f"{cameras[key]} OPENCV {i.width} {i.height} " + " ".join(fmt(p) for p in params))
         T_cam_world = np.linalg.inv(np.asarray(kf.T_world_cam, np.float64))
-        x, y, z, w = quat_xyzw(T_cam_world[:3, :3])
+        x, y, z, w = rotation_to_quaternion(T_cam_world[:3, :3])
         tx, ty, tz = T_cam_world[:3, 3]
         name = f"{frame_name(kf)}.png"
         write_png(out / "images" / name, kf.rgb)
@@ -147,7 +148,7 @@ def export_tum(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
             rgb.append(f"{stamp} rgb/{stamp}.png")
             depth.append(f"{stamp} depth/{stamp}.png")
             T = np.asarray(kf.T_world_cam, np.float64)
-            gt.append(f"{stamp} " + " ".join(fmt(v) for v in (*T[:3, 3], *quat_xyzw(T[:3, :3]))))
+            gt.append(f"{stamp} " + " ".join(fmt(v) for v in (*T[:3, 3], *rotation_to_quaternion(T[:3, :3]))))
         write_lines(folder / "rgb.txt", rgb)
         write_lines(folder / "depth.txt", depth)
         write_lines(folder / "groundtruth.txt", gt)
