@@ -304,15 +304,17 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     from darp.formats.envelope import ENVELOPE_FILE, read_envelope
 
     envelope_info: dict[str, Any]
+    fuse_frames: list[PosedDepth] | None = None
     if (folder / ENVELOPE_FILE).is_file():
         crop = settings.crop(read_envelope(folder / ENVELOPE_FILE))
         envelope_info = {"source": "manip_envelope.json", "center_m": list(crop.center_m), "radius_m": crop.radius_m,
                          "height_m": crop.height_m}
-    else:
-        crop, envelope_info = _estimated_crop(kdir, settings)
+    else:  # the fuse frames are read once: for the estimate, then for fusion
+        fuse_frames = [kf.posed_depth() for kf in iter_keyframes(kdir, FUSE)]
+        crop, envelope_info = _estimated_crop(fuse_frames, kdir, settings)
     fz = VoxelFusion(settings, crop)
-    for kf in iter_keyframes(kdir, FUSE):
-        fz.add(kf.posed_depth())
+    for frame in fuse_frames if fuse_frames is not None else (kf.posed_depth() for kf in iter_keyframes(kdir, FUSE)):
+        fz.add(frame)
     result = fz.result()
     if len(result.fused) < 10:
         raise ReconstructionError("fusion kept fewer than 10 points: do the frames overlap (poses, depth scale)?",
@@ -353,12 +355,11 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     return res
 
 
-def _estimated_crop(kdir: Path, settings: FusionSettings) -> tuple[Any, dict[str, Any]]:
+def _estimated_crop(frames: list[PosedDepth], kdir: Path, settings: FusionSettings) -> tuple[Any, dict[str, Any]]:
     """The object cylinder estimated from the fuse keyframes (as for a DARP survey without an envelope), or
     no crop with a warning when no object stands on a table at z = 0 where the cameras look."""
     from darp.reconstruction.envelope_estimate import envelope_from_frames, robust_look_at, search_region
 
-    frames = [kf.posed_depth() for kf in iter_keyframes(kdir, FUSE)]
     try:
         look_at, _ = robust_look_at(np.stack([f.T_world_cam for f in frames]))
         estimate = envelope_from_frames(frames, look_at, search_region(look_at, []), depth_settings=settings.depth,
