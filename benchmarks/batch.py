@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 from darp.batch.executor import Executor, run_tasks
 from darp.batch.generate import plan_surveys, record_generated
 from darp.batch.tasks import process_one
+from darp.processing.settings import ProcessSettings
 
 
 def cpu_s() -> float:
@@ -71,7 +72,8 @@ def fixed_cost(n: int) -> dict[str, float]:
 
 def process_all(surveys: list[Path], out: Path, executor: Executor, workers: int) -> dict[str, Any]:
     shutil.rmtree(out, ignore_errors=True)
-    calls = [(str(s), str(out / s.name), None, True, None, False) for s in surveys]
+    settings = ProcessSettings().to_dict()
+    calls = [(str(s), str(out / s.name), None, True, settings, False) for s in surveys]
     before = load()
     init_s = 0.0
     if executor.kind == "ray":

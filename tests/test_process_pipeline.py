@@ -61,6 +61,7 @@ def test_results_are_sane_with_the_true_calibration(processed) -> None:
     job, _, _ = processed
     r = read_results(job.out)
     assert r["schema"] == "darp-results/1" and r["pose_source"] == "calibration"
+    assert r["corrections"] == {"mode": "paper", "applied": []}
     assert r["keyframes"]["total"] == r["keyframes"]["fuse"] + r["keyframes"]["heldout"]
     assert r["keyframes"]["heldout"] >= 2 and r["keyframes"]["fuse"] >= 8
     held = r["heldout"]["aggregate"]

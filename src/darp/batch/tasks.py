@@ -15,17 +15,19 @@ from darp.errors import DarpError
 from darp.formats.calibration import read_calibration
 from darp.processing.batch import DONE, SurveyOutcome, outcome_of_failure, process_survey_folder
 from darp.processing.imported import is_imported, process_imported
-from darp.processing.settings import ProcessSettings, load_settings
+from darp.processing.settings import ProcessSettings, settings_from_dict
 
 RECOVERABLE = (DarpError, ValueError, RuntimeError, ArithmeticError, MemoryError, OSError)
 
 
-def process_one(folder: str, out: str, calibration: str | None, truth_poses: bool, settings_file: str | None,
+def process_one(folder: str, out: str, calibration: str | None, truth_poses: bool, settings_values: dict[str, Any],
                 resume: bool) -> SurveyOutcome:
-    """``darp process`` of one survey into ``out`` (the calibration given, or the twin's true one)."""
+    """``darp process`` of one survey into ``out`` (the calibration given, or the twin's true one).
+
+    ``settings_values`` is :meth:`ProcessSettings.to_dict` (plain data travels to a worker safely)."""
     survey_path, target = Path(folder), Path(out)
     try:
-        settings = ProcessSettings() if settings_file is None else load_settings(Path(settings_file))
+        settings = settings_from_dict(settings_values)
         if is_imported(survey_path):
             results = process_imported(survey_path, target, settings.fusion, settings.mesh)
         else:
@@ -39,12 +41,12 @@ def process_one(folder: str, out: str, calibration: str | None, truth_poses: boo
 
 
 def process_batch(folders: Sequence[Path], out: Path, calibration: Path | None, truth_poses: bool,
-                  settings_file: Path | None, resume: bool, executor: Any, progress: Any = None) -> list[SurveyOutcome]:
+                  settings: ProcessSettings, resume: bool, executor: Any, progress: Any = None) -> list[SurveyOutcome]:
     """:func:`process_one` of every survey folder into ``out/<name>`` on ``executor`` (one task each)."""
     from darp.batch.executor import run_tasks
 
     calls = [(str(f), str(out / f.name), None if calibration is None else str(calibration), truth_poses,
-              None if settings_file is None else str(settings_file), resume) for f in folders]
+              settings.to_dict(), resume) for f in folders]
     return list(run_tasks(process_one, calls, executor, progress=progress))
 
 

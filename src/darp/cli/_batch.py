@@ -37,10 +37,10 @@ def batch_progress(label: str, total: int) -> tuple[Any, Any]:
 
 
 def process_on_executor(folders: list[Path], out: Path, calibration: Path | None, truth_poses: bool,
-                        settings_file: Path | None, resume: bool, executor: Any) -> list[Any]:
+                        settings: Any, resume: bool, executor: Any) -> list[Any]:
     """``darp process`` of every survey, one task each on ``executor``, with a batch progress bar: the outcomes."""
     from darp.batch.tasks import process_batch
 
     bar, progress = batch_progress(f"surveys on {executor}", len(folders))
     with bar:
-        return process_batch(folders, out, calibration, truth_poses, settings_file, resume, executor, progress)
+        return process_batch(folders, out, calibration, truth_poses, settings, resume, executor, progress)

@@ -32,10 +32,24 @@ def _warn_estimated_envelope(survey: str, envelope: dict[str, Any] | None) -> No
               f"height {1000 * envelope['height_m']:.0f} mm")
 
 
-def _settings(path: Path | None) -> Any:
-    from darp.processing.settings import ProcessSettings, load_settings
+Corrections = Annotated[str | None, typer.Option(
+    "--corrections", help="darp's improvements over the paper's method: paper (none), all, or a comma-separated "
+    "subset of kinematics, time, depth, refine (docs/accuracy.md). Overrides the settings file's 'corrections'.")]
 
-    return ProcessSettings() if path is None else load_settings(path)
+
+def _settings(path: Path | None, corrections: str | None = None) -> Any:
+    import dataclasses
+
+    from darp.errors import ConfigError
+    from darp.processing.settings import CorrectionSettings, ProcessSettings, load_settings
+
+    settings = ProcessSettings() if path is None else load_settings(path)
+    if corrections is None:
+        return settings
+    try:
+        return dataclasses.replace(settings, corrections=CorrectionSettings.parse(corrections))
+    except ConfigError as err:
+        raise typer.BadParameter(err.message, param_hint="'--corrections'") from None
 
 
 def _job(survey_path: Path, out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
@@ -100,6 +114,7 @@ def keyframes(
     calibration: Annotated[Path | None, calibration_option(CALIBRATION_HELP)] = None,
     truth_poses: TruthPoses = False,
     settings_file: SettingsFile = None,
+    corrections: Corrections = None,
 ) -> None:
     """Select settled, view-diverse keyframes per arm and export them (aligned RGB, depth, IR, mask, pose)."""
     _need_calibration(calibration, truth_poses)
@@ -109,7 +124,7 @@ def keyframes(
 
     from darp.processing.pipeline import stage_keyframes, stage_poses
 
-    settings = _settings(settings_file)
+    settings = _settings(settings_file, corrections)
     with _progress_bars() as progress:
         job = _job(survey, out, calibration, truth_poses, settings, _stage_callback(progress, survey.name))
         job.keyframes_folder = out
@@ -139,6 +154,7 @@ def process(
     resume: Annotated[bool, typer.Option("--resume", help="Skip stages already done with the same inputs and "
                                          "settings.")] = False,
     executor: ExecutorOption = None,
+    corrections: Corrections = None,
 ) -> None:
     """Poses -> keyframes -> fusion -> mesh -> evaluation for each survey; results.json per survey and overall.
 
@@ -155,7 +171,7 @@ def process(
     from darp.processing.batch import FAILED
     from darp.processing.results import write_summary
 
-    settings = _settings(settings_file)
+    settings = _settings(settings_file, corrections)
     folders = imported + (find_survey_folders(surveys) if surveys else [])
     for folder in folders:  # <out>/<survey>/ must not be (or be inside, or hold) a raw survey
         refuse_output_over_inputs(out / folder.name, [folder], "--out", folder_output=True)
@@ -165,7 +181,7 @@ def process(
         raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
                                  param_hint="'SURVEYS...'")
     if executor is not None:  # one task per survey on Ray (darp.batch), failures contained the same way
-        outcomes = process_on_executor(folders, out, calibration, truth_poses, settings_file, resume, executor)
+        outcomes = process_on_executor(folders, out, calibration, truth_poses, settings, resume, executor)
     else:
         outcomes = _process_here(folders, out, calibration, truth_poses, settings, resume, imported)
     done = [o.out for o in outcomes if o.status != FAILED]

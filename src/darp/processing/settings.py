@@ -6,6 +6,10 @@ A settings file (YAML or JSON) gives any subset; everything not given keeps its 
     fusion: {voxel_size_m: 0.0015, min_frames: 3, depth: {max_depth_m: 1.0}}
     mesh: {radius_factors: [2, 4, 8]}
     evaluation: {truth_sample_spacing_m: 0.001, figures: true}
+    corrections: {kinematics: true, depth: true, time: true, refine: true}
+
+``corrections`` switches darp's improvements over the paper's method (docs/accuracy.md); all off is
+"paper mode": camera poses from the calibration and the kinematics alone, as the paper computed them.
 
 Unknown keys are errors naming the file and the key (a typo must not silently keep a default).
 """
@@ -48,6 +52,44 @@ class EvaluationSettings:
             raise ConfigError("evaluation: max_heldout_median_mm and max_truth_accuracy_mm must be > 0")
 
 
+CORRECTIONS = ("kinematics", "time", "depth", "refine")
+
+
+@dataclass(frozen=True)
+class CorrectionSettings:
+    """Which of darp's improvements over the paper's method to apply (all off: paper mode)."""
+
+    kinematics: bool = False  # the calibration's richer kinematic model (link, axis and compliance terms)
+    time: bool = False  # the calibration's camera-to-joint-log time offset
+    depth: bool = False  # the calibration's per-camera depth scale and offset, at back-projection
+    refine: bool = False  # survey-level pose refinement from overlapping depth, within the calibration's bounds
+
+    @classmethod
+    def parse(cls, spec: str) -> CorrectionSettings:
+        """``paper`` (none), ``all``, or a comma-separated subset of kinematics, time, depth, refine."""
+        words = [w.strip().lower() for w in spec.split(",") if w.strip()]
+        if words == ["paper"] or words == ["none"]:
+            return cls()
+        if words == ["all"]:
+            return cls(**dict.fromkeys(CORRECTIONS, True))
+        unknown = sorted(set(words) - set(CORRECTIONS))
+        if unknown or not words:
+            raise ConfigError(f"corrections: unknown {', '.join(unknown) or 'empty list'} "
+                              f"(use paper, all, or a list of {', '.join(CORRECTIONS)})")
+        return cls(**{name: name in words for name in CORRECTIONS})
+
+    @property
+    def applied(self) -> tuple[str, ...]:
+        """The names of the corrections switched on, in a fixed order."""
+        return tuple(name for name in CORRECTIONS if getattr(self, name))
+
+    @property
+    def label(self) -> str:
+        """``paper`` when none is on, ``all`` when all are, else the names joined by ``+``."""
+        on = self.applied
+        return "paper" if not on else "all" if len(on) == len(CORRECTIONS) else "+".join(on)
+
+
 @dataclass(frozen=True)
 class ProcessSettings:
     """Every setting of the processing pipeline."""
@@ -56,6 +98,7 @@ class ProcessSettings:
     fusion: FusionSettings = field(default_factory=FusionSettings)
     mesh: MeshSettings = field(default_factory=MeshSettings)
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
+    corrections: CorrectionSettings = field(default_factory=CorrectionSettings)
 
     def to_dict(self) -> dict[str, Any]:
         plain: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(self)))
@@ -93,7 +136,7 @@ def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None
 
 def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
     """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
-    groups = {"keyframes", "fusion", "mesh", "evaluation"}
+    groups = {"keyframes", "fusion", "mesh", "evaluation", "corrections"}
     unknown = sorted(map(str, set(values) - groups))
     if unknown:
         raise ConfigError(f"unknown settings group(s) {', '.join(unknown)} (groups: {', '.join(sorted(groups))})")
@@ -102,6 +145,7 @@ def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
         fusion=_build(FusionSettings, values.get("fusion"), "fusion", {"depth": DepthFilterSettings}),
         mesh=_build(MeshSettings, values.get("mesh"), "mesh"),
         evaluation=_build(EvaluationSettings, values.get("evaluation"), "evaluation"),
+        corrections=_build(CorrectionSettings, values.get("corrections"), "corrections"),
     )
 
 
@@ -115,4 +159,5 @@ def load_settings(path: str | Path) -> ProcessSettings:
         raise ConfigError(err.message, path) from None
 
 
-__all__ = ["EvaluationSettings", "ProcessSettings", "load_settings", "settings_from_dict"]
+__all__ = ["CORRECTIONS", "CorrectionSettings", "EvaluationSettings", "ProcessSettings", "load_settings",
+           "settings_from_dict"]
