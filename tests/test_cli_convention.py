@@ -33,7 +33,7 @@ INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--w
 FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics",
              "--envelope"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.
-CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config"}
+CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config", "--model"}
 # Words that name a physical quantity: an option containing one ends in its unit.
 UNIT_WORDS = {"distance", "elevation", "azimuth", "dwell", "timeout", "tolerance", "gap", "offset", "speed",
               "radius", "height", "angle", "yaw", "pitch", "roll", "length", "size", "duration", "delay", "start",
@@ -254,6 +254,7 @@ def test_twin_or_hardware_is_two_flags_with_the_rig_apart() -> None:
     ("--paper", "darp.calibration.board:PAPER_CHOICES"),
     ("--dictionary", "darp.calibration.board:ARUCO_DICTIONARIES"),
     ("--config", "darp.kinematics.z1:NAMED_CONFIGS"),
+    ("--model", "darp.calibration.kinematic_ident:MODELS"),
 ])
 def test_choices_mirror_the_library(option: str, library: str) -> None:
     """The CLI's Enums are written out (so that `darp --help` imports nothing heavy); they must not drift."""

@@ -9,6 +9,10 @@ its start value; with ``R(w)`` its rotation and ``Jr(w)`` the right Jacobian of 
 - base, hand-eye (inverted): dP_s/dw =  R_N [V]x Jr(w),                   dP_s/dt = -R_N R(w)^T
   where V is the point in the perturbed frame and N the rotation of the chain before it;
 - joint offset j (axis z_j through p_j in the base frame): dP_s/ddq_j = -R_{S X^-1 F^-1} (z_j x (V_base - p_j)).
+- richer model (:mod:`darp.kinematics.kinematic_model`): an origin offset of joint j along its parent
+  link's axis e translates the downstream chain by ``R_j e``; a tilt of joint j's axis about e turns it
+  by ``(R_j - R_{j+1}) e`` about p_j (first order; exact at zero tilt); a compliance moves link angle j
+  by ``tau_j(q)`` (the joint column times the gravity torque).
 
 Then the pinhole derivative ``du/dP = [fx/Z, 0, -fx X/Z^2]`` (and v alike), divided by the pixel noise.
 Exact at any parameter value, so the solver's steps are Gauss-Newton steps; checked against central
@@ -23,6 +27,7 @@ import numpy as np
 
 from darp.calibration.model import ChainParams, Observations
 from darp.kinematics import z1
+from darp.kinematics.kinematic_model import SAG_JOINTS, gravity_torques, links_params
 from darp.kinematics.transforms import invert_transform, rotvec_to_rotation
 
 
@@ -57,11 +62,22 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
     links = np.empty((M, 7, 4, 4))
     B = np.empty((M, 4, 4))
     X = np.empty((M, 4, 4))
+    axes_child = np.broadcast_to(z1.JOINT_AXES, (M, 6, 3)).copy()  # joint axes in their child link
+    tau = np.zeros((M, 6))  # gravity torques (richer model only)
+    tool = np.eye(4)
+    tool[0, 3] = z1.frame_offset_m(wrist_frame)
+    free_kin: dict[str, np.ndarray] = getattr(layout, "free_kin", {})
     for a, arm in enumerate(obs.arms):
         sel = obs.arm_index == a
         if np.any(sel):
             if obs.T_base_flange is not None:  # measured flange poses (any arm): no joint offsets
                 F[sel] = obs.T_base_flange[sel]
+            elif arm in p.kin:  # the richer model: perturbed origins, tilted axes, compliance
+                Q = obs.q_rad[sel] + p.dq[arm]
+                links[sel] = links_params(Q, p.kin[arm])
+                F[sel] = links[sel, 6] @ tool
+                axes_child[sel] = p.kin[arm].axes()
+                tau[sel] = gravity_torques(Q, p.kin[arm].payload_kg)
             else:
                 Q = obs.q_rad[sel] + p.dq[arm]
                 F[sel] = z1.fk_batch(Q, wrist_frame)
@@ -119,13 +135,35 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
         blk[mine, :, 3:] = -R_S[c] @ Rt
         put(f"handeye:{arm}", blk)
         free = np.flatnonzero(layout.free_joints[arm])  # type: ignore[attr-defined]
+
+        def joint_column(j: int, c: np.ndarray, mine: np.ndarray) -> np.ndarray:
+            """d P_s / d(link angle j) of this arm's corners (n, 3)."""
+            axis = np.einsum("cij,cj->ci", links[c, j + 1, :3, :3], axes_child[c, j])
+            point = links[c, j + 1, :3, 3]
+            return cast(np.ndarray, -np.einsum("cij,cj->ci", R_SXF[c], np.cross(axis, V_base[mine] - point)))
+
         if free.size:
             blk = np.zeros((C, 3, free.size))
-            for k, j in enumerate(free):
-                axis = links[c, j + 1, :3, z1.JOINT_AXIS_INDEX[j]]
-                point = links[c, j + 1, :3, 3]
-                blk[mine, :, k] = -np.einsum("cij,cj->ci", R_SXF[c], np.cross(axis, V_base[mine] - point))
+            for k, jf in enumerate(free):
+                blk[mine, :, k] = joint_column(int(jf), c, mine)
             put(f"dq:{arm}", blk)
+        kin_free = np.flatnonzero(free_kin.get(arm, np.zeros(0, bool)))
+        if kin_free.size:
+            blk = np.zeros((C, 3, kin_free.size))
+            for k, nk in enumerate(kin_free):
+                n = int(nk)
+                if n < 18:  # origin of joint j along parent axis e: the downstream chain translates by R_j e
+                    j, e = divmod(n, 3)
+                    blk[mine, :, k] = -np.einsum("cij,cj->ci", R_SXF[c], links[c, j, :3, e])
+                elif n < 36:  # tilt of joint j about e: the downstream chain turns by (R_j - R_j+1) e about p_j
+                    j, e = divmod(n - 18, 3)
+                    omega = links[c, j, :3, e] - links[c, j + 1, :3, e]
+                    point = links[c, j + 1, :3, 3]
+                    blk[mine, :, k] = -np.einsum("cij,cj->ci", R_SXF[c], np.cross(omega, V_base[mine] - point))
+                else:  # compliance of joint j: its link angle moves by tau_j(q)
+                    j = SAG_JOINTS[n - 36]
+                    blk[mine, :, k] = joint_column(j, c, mine) * tau[c, j][:, None]
+            put(f"kin:{arm}", blk)
     return r, J.reshape(2 * C, -1)
 
 

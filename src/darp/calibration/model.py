@@ -23,6 +23,7 @@ from darp.calibration.detect import Detection
 from darp.errors import CalibrationError
 from darp.formats.calibration import CharucoBoardSpec
 from darp.kinematics import z1
+from darp.kinematics.kinematic_model import KinematicParams, fk_batch_params
 from darp.kinematics.transforms import invert_transform
 
 
@@ -35,11 +36,14 @@ class ChainParams:
     T_flange_cam: dict[str, np.ndarray]
     dq: dict[str, np.ndarray]
     T_ref_board: np.ndarray
+    # arm -> kinematic parameter errors of the richer model (absent: the nominal Z1, the paper's model)
+    kin: dict[str, KinematicParams] = field(default_factory=dict)
 
     def copy(self) -> ChainParams:
         return replace(self, T_ref_base={a: T.copy() for a, T in self.T_ref_base.items()},
                        T_flange_cam={a: T.copy() for a, T in self.T_flange_cam.items()},
-                       dq={a: v.copy() for a, v in self.dq.items()}, T_ref_board=self.T_ref_board.copy())
+                       dq={a: v.copy() for a, v in self.dq.items()}, T_ref_board=self.T_ref_board.copy(),
+                       kin={a: k.copy() for a, k in self.kin.items()})
 
 
 @dataclass(eq=False)
@@ -111,10 +115,14 @@ def build_observations(detections: Sequence[Detection], board: CharucoBoardSpec,
     )
 
 
-def flange_poses(obs: Observations, sel: np.ndarray, dq: np.ndarray, wrist_frame: str = "flange") -> np.ndarray:
-    """``T_base_flange`` (n, 4, 4) of the selected captures: measured poses when given, else ``fk(q + dq)``."""
+def flange_poses(obs: Observations, sel: np.ndarray, dq: np.ndarray, wrist_frame: str = "flange",
+                 kin: KinematicParams | None = None) -> np.ndarray:
+    """``T_base_flange`` (n, 4, 4) of the selected captures: measured poses when given, else ``fk(q + dq)``
+    (with the richer model's parameter errors ``kin`` when given)."""
     if obs.T_base_flange is not None:
         return cast(np.ndarray, obs.T_base_flange[sel])
+    if kin is not None:
+        return fk_batch_params(obs.q_rad[sel] + dq, kin, wrist_frame)
     return cast(np.ndarray, z1.fk_batch(obs.q_rad[sel] + dq, wrist_frame))
 
 
@@ -124,7 +132,8 @@ def camera_poses(params: ChainParams, obs: Observations, wrist_frame: str = "fla
     for a, arm in enumerate(obs.arms):
         sel = obs.arm_index == a
         if np.any(sel):
-            T[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm], wrist_frame)
+            T[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm], wrist_frame,
+                                                            params.kin.get(arm))
                       @ params.T_flange_cam[arm])
     return T
 

@@ -39,6 +39,13 @@ from darp.calibration.geometry import delta
 from darp.calibration.jacobian import residuals_and_jacobian
 from darp.calibration.model import ChainParams, Observations, predict_pixels
 from darp.errors import CalibrationError
+from darp.kinematics.kinematic_model import PARAM_NAMES as KIN_NAMES
+from darp.kinematics.kinematic_model import KinematicParams
+
+# Prior std of the richer model's parameters ("vendor tolerances", docs/accuracy.md): joint origins 1 mm
+# per axis (machined links and bearing seats), axis tilts 0.2 deg, compliance 2e-3 rad/N m (a harmonic
+# drive joint of about 500 N m/rad or stiffer).
+KIN_PRIOR_STD = np.array([1e-3] * 18 + [np.radians(0.2)] * 18 + [2e-3] * 3)
 
 POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
 DEGENERACY_DECIMALS = 9  # projection coefficients (O(1)) equal to this many decimals rank as ties
@@ -67,6 +74,8 @@ class Layout:
     free_joints: dict[str, np.ndarray]  # arm -> bool (6,)
     names: list[str] = field(default_factory=list)
     slices: dict[str, slice] = field(default_factory=dict)
+    # arm -> bool (N_PARAMS,): the richer model's free kinematic parameters (empty: the paper's model)
+    free_kin: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = 0
@@ -75,6 +84,8 @@ class Layout:
         blocks += [(f"handeye:{a}", POSE_AXES) for a in self.arms]
         blocks += [(f"dq:{a}", tuple(f"joint{j + 1}" for j in np.flatnonzero(self.free_joints[a])))
                    for a in self.arms]
+        blocks += [(f"kin:{a}", tuple(KIN_NAMES[k] for k in np.flatnonzero(self.free_kin[a])))
+                   for a in self.arms if a in self.free_kin and np.any(self.free_kin[a])]
         for key, axes in blocks:
             self.slices[key] = slice(n, n + len(axes))
             self.names += [f"{key}.{ax}" for ax in axes]
@@ -95,7 +106,34 @@ class Layout:
             dq = p0.dq[a].copy()
             dq[self.free_joints[a]] += x[self.slices[f"dq:{a}"]]
             p.dq[a] = dq
+            if f"kin:{a}" in self.slices:
+                k0 = p0.kin.get(a, KinematicParams())
+                v = k0.to_vector()
+                v[self.free_kin[a]] += x[self.slices[f"kin:{a}"]]
+                p.kin[a] = KinematicParams.from_vector(v, k0.payload_kg)
         return p
+
+    def kin_values(self, x: np.ndarray, p0: ChainParams) -> np.ndarray:
+        """The free kinematic parameters (absolute) of every arm, concatenated."""
+        out = [np.zeros(0)]
+        for a in self.arms:
+            if f"kin:{a}" in self.slices:
+                v = p0.kin[a].to_vector() if a in p0.kin else np.zeros(len(KIN_NAMES))
+                out.append(v[self.free_kin[a]] + x[self.slices[f"kin:{a}"]])
+        return np.concatenate(out)
+
+    def kin_columns(self) -> np.ndarray:
+        """Indices of the free kinematic parameters in the vector."""
+        return np.concatenate([np.zeros(0, int)] + [np.arange(self.slices[k].start, self.slices[k].stop)
+                                                     for k in self.slices if k.startswith("kin:")]).astype(int)
+
+    def kin_prior(self) -> np.ndarray:
+        """Prior std of each free kinematic parameter (vendor tolerances, :data:`KIN_PRIOR_STD`)."""
+        out = [np.zeros(0)]
+        for a in self.arms:
+            if f"kin:{a}" in self.slices:
+                out.append(KIN_PRIOR_STD[self.free_kin[a]])
+        return np.concatenate(out)
 
     def dq_values(self, x: np.ndarray, p0: ChainParams) -> np.ndarray:
         """The free joint offsets (absolute, rad) for the prior."""
@@ -107,7 +145,7 @@ def _residuals(x: np.ndarray, layout: Layout, p0: ChainParams, obs: Observations
     """Residuals by direct prediction (reference for the analytic Jacobian's tests)."""
     p = layout.unpack(x, p0)
     r = (predict_pixels(p, obs, wrist_frame) - obs.uv).ravel() / sigma_px
-    return np.concatenate([r, layout.dq_values(x, p0) / prior_rad])
+    return np.concatenate([r, layout.dq_values(x, p0) / prior_rad, layout.kin_values(x, p0) / layout.kin_prior()])
 
 
 class _Problem:
@@ -128,7 +166,11 @@ class _Problem:
             r_prior = self.layout.dq_values(x, self.p0) / self.prior
             J_prior = np.zeros((len(r_prior), self.layout.size))
             J_prior[np.arange(len(r_prior)), self.dq_cols] = 1.0 / self.prior
-            self._x, self._rj = x.copy(), (np.concatenate([r, r_prior]), np.vstack([J, J_prior]))
+            kin_std = self.layout.kin_prior()
+            r_kin = self.layout.kin_values(x, self.p0) / kin_std
+            J_kin = np.zeros((len(r_kin), self.layout.size))
+            J_kin[np.arange(len(r_kin)), self.layout.kin_columns()] = 1.0 / kin_std
+            self._x, self._rj = x.copy(), (np.concatenate([r, r_prior, r_kin]), np.vstack([J, J_prior, J_kin]))
         assert self._rj is not None
         return self._rj
 
@@ -236,14 +278,15 @@ class RefineResult:
 
 
 def refine(p0: ChainParams, obs: Observations, free_joints: dict[str, np.ndarray] | None = None,
-           settings: RefineSettings | None = None) -> RefineResult:
-    """Refine every unknown from ``p0`` (``free_joints``: arm -> bool (6,), default none free)."""
+           settings: RefineSettings | None = None, free_kin: dict[str, np.ndarray] | None = None) -> RefineResult:
+    """Refine every unknown from ``p0`` (``free_joints``: arm -> bool (6,), default none free; ``free_kin``:
+    arm -> bool (N_PARAMS,) free parameters of the richer kinematic model, default none)."""
     s = settings or RefineSettings()
     if obs.n_captures < 3:
         raise CalibrationError(f"refinement needs at least 3 usable captures, got {obs.n_captures}")
     free = {a: (np.zeros(6, bool) if free_joints is None or not s.estimate_offsets
                 else np.asarray(free_joints[a], bool)) for a in p0.arms}
-    layout = Layout(p0.arms, free)
+    layout = Layout(p0.arms, free, free_kin={a: np.asarray(v, bool) for a, v in (free_kin or {}).items()})
     prior = np.radians(s.prior_deg)
     sigma = s.sigma_px
     start = p0

@@ -22,6 +22,7 @@ from darp.calibration import handeye
 from darp.calibration.captures import CaptureSet
 from darp.calibration.detect import Detection, DetectionSettings, detect_captures
 from darp.calibration.evaluate import kfold_heldout, summarise, truth_errors
+from darp.calibration.kinematic_ident import KinIdentifiability, KinIdentSettings, analyse_kinematics
 from darp.calibration.model import ChainParams, Observations, build_observations, reprojection_errors
 from darp.calibration.refine import (
     Identifiability,
@@ -33,6 +34,8 @@ from darp.calibration.refine import (
 from darp.calibration.world_frame import WORLD_FRAME_TEXT, world_from_reference
 from darp.errors import CalibrationError
 from darp.formats.calibration import ArmCalibration, Calibration
+from darp.kinematics.kinematic_model import PARAM_NAMES as KIN_NAMES
+from darp.kinematics.kinematic_model import KinematicParams
 from darp.kinematics.transforms import invert_transform
 
 METHODS = ("darp", "darp_no_offsets", "opencv_hand_eye", "opencv_robot_world")
@@ -41,6 +44,7 @@ METHOD_LABELS = {
     "darp_no_offsets": "darp refinement without joint offsets",
     "opencv_hand_eye": "OpenCV calibrateHandEye (best of 5 methods) + board-averaged bases",
     "opencv_robot_world": "OpenCV calibrateRobotWorldHandEye (best of SHAH, LI) + board-averaged bases",
+    "darp_paper_model": "darp with the paper's model (joint zeros only), beside a richer --model",
 }
 
 
@@ -56,6 +60,8 @@ class SolveSettings:
     arms: tuple[str, ...] | None = None  # order: first = reference; default sorted arm ids
     compare: bool = True  # also solve with OpenCV alone and without joint offsets
     epoch: str | None = None
+    model: str = "paper"  # paper | kinematic | kinematic+compliance (darp.calibration.kinematic_ident)
+    kin_ident: KinIdentSettings = field(default_factory=KinIdentSettings)
 
 
 @dataclass
@@ -67,6 +73,8 @@ class CoreResult:
     identifiability: Identifiability | None  # None when the free offsets were given
     opencv: dict[str, list[handeye.HandEyeEstimate]]
     start: ChainParams
+    kin_ident: KinIdentifiability | None = None  # the richer model's identifiability (None: paper model)
+    paper: RefineResult | None = None  # the paper model's refinement, when a richer model was solved
 
 
 def opencv_chain(estimates: dict[str, list[handeye.HandEyeEstimate]], arms: tuple[str, ...],
@@ -76,15 +84,29 @@ def opencv_chain(estimates: dict[str, list[handeye.HandEyeEstimate]], arms: tupl
 
 
 def calibrate_observations(obs: Observations, settings: RefineSettings | None = None,
-                           free_joints: dict[str, np.ndarray] | None = None) -> CoreResult:
-    """OpenCV start, identifiability (unless ``free_joints`` is given), joint refinement."""
+                           free_joints: dict[str, np.ndarray] | None = None, *, model: str = "paper",
+                           free_kin: dict[str, np.ndarray] | None = None,
+                           kin_settings: KinIdentSettings | None = None) -> CoreResult:
+    """OpenCV start, identifiability (unless ``free_joints`` is given), joint refinement; with a richer
+    ``model``, then the kinematic identifiability (unless ``free_kin`` is given) and a second refinement
+    of everything from the paper model's solution."""
     s = settings or RefineSettings()
     estimates = {a: handeye.opencv_hand_eye(obs, a, s.wrist_frame) for a in obs.arms}
     start = opencv_chain(estimates, obs.arms, None)
     ident = analyse_identifiability(start, obs, s) if free_joints is None else None
     free = ident.identifiable if ident is not None else free_joints
+    assert free is not None
     refined = refine(start, obs, free, s)
-    return CoreResult(refined.params, refined, ident, estimates, start)
+    if model == "paper":
+        return CoreResult(refined.params, refined, ident, estimates, start)
+    kin_ident = None
+    if free_kin is None:
+        kin_ident = analyse_kinematics(refined.params, obs, free, model, refined.sigma_px, kin_settings)
+        free_kin = kin_ident.free
+    rich = refine(refined.params, obs, free, s, free_kin)
+    for a in rich.params.arms:  # an arm with nothing estimated still carries the model (all zero)
+        rich.params.kin.setdefault(a, KinematicParams())
+    return CoreResult(rich.params, rich, ident, estimates, start, kin_ident, refined)
 
 
 @dataclass
@@ -150,14 +172,18 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
     obs = build_observations(detections, captures.board, arms)
 
     tick = time.perf_counter()
-    core = calibrate_observations(obs, s.refine)
+    core = calibrate_observations(obs, s.refine, model=s.model, kin_settings=s.kin_ident)
     timings["solve"] = time.perf_counter() - tick
     T_ref_world = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, arms)
     assert core.identifiability is not None
     free = core.identifiability.identifiable
     methods: dict[str, ChainParams] = {"darp": core.params}
+    free_kin = core.kin_ident.free if core.kin_ident is not None else None
     solvers: dict[str, Callable[[Observations], ChainParams]] = {
-        "darp": lambda o: calibrate_observations(o, s.refine, free).params}
+        "darp": lambda o: calibrate_observations(o, s.refine, free, model=s.model, free_kin=free_kin).params}
+    if core.paper is not None:  # a richer model: the paper's model beside it, always
+        methods["darp_paper_model"] = core.paper.params
+        solvers["darp_paper_model"] = lambda o: calibrate_observations(o, s.refine, free).params
     if s.compare:
         methods["darp_no_offsets"] = refine(core.start, obs, None, s.refine).params
         methods["opencv_hand_eye"] = opencv_chain(core.opencv, arms, "calibrateHandEye")
@@ -202,6 +228,8 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
                                            "translation_mm": (1e3 * b_std[3:]).tolist()}
         if "darp" in heldout:
             entry.residuals["heldout"] = {k: summarise(v) for k, v in heldout["darp"]["per_arm"][a].items()}
+        if core.kin_ident is not None:
+            entry.kinematics = _kinematics_entry(core, a, obs)
     truth_cmp = None
     if truth is not None:
         q_by_arm = {a: obs.q_rad[obs.for_arm(a)] for a in arms}
@@ -213,6 +241,28 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
             truth_cmp[name] = truth_errors(other, truth, arms, ident, q_by_arm, s.refine.wrist_frame)
     cal.report = _report(s, captures, detections, obs, core, T_ref_world, heldout, truth_cmp, timings, arms)
     return SolveOutcome(cal, core, obs, detections, T_ref_world, methods, heldout, truth_cmp, timings)
+
+
+def _kinematics_entry(core: CoreResult, arm: str, obs: Observations) -> dict[str, Any]:
+    """calibration.json's ``kinematics`` of one arm: the parameters, their std, the identifiability table."""
+    assert core.kin_ident is not None
+    res = core.refined
+    kin = core.params.kin[arm]
+    std = np.zeros(len(KIN_NAMES))
+    if f"kin:{arm}" in res.layout.slices:
+        std[core.kin_ident.free[arm]] = res.std(f"kin:{arm}")
+    return {"model": core.kin_ident.model, **kin.to_dict(),
+            "estimated": [KIN_NAMES[k] for k in np.flatnonzero(core.kin_ident.free[arm])],
+            "std": {KIN_NAMES[k]: float(std[k]) for k in np.flatnonzero(core.kin_ident.free[arm])},
+            "identifiability": core.kin_ident.table[arm],
+            "mass_model": "darp.kinematics.kinematic_model.LINK_MASSES (nominal lumped Z1 links) + payload_kg "
+                          "3 cm past the flange; base level, z up"}
+
+
+def _fit_rms(params: ChainParams, obs: Observations, wrist_frame: str) -> dict[str, float]:
+    err = reprojection_errors(params, obs, wrist_frame)
+    arm_of = obs.arm_index[obs.corner_capture]
+    return {arm: float(np.sqrt(np.mean(err[arm_of == a] ** 2))) for a, arm in enumerate(obs.arms)}
 
 
 def _report(s: SolveSettings, captures: CaptureSet, detections: list[Detection], obs: Observations,
@@ -231,6 +281,11 @@ def _report(s: SolveSettings, captures: CaptureSet, detections: list[Detection],
                    "message": res.message, "parameters": res.layout.names,
                    "std": np.sqrt(np.clip(np.diag(res.covariance), 0, None)).tolist()},
         "identifiability": core.identifiability.to_dict() if core.identifiability else None,
+        "model": s.model,
+        "kinematics": None if core.kin_ident is None else {
+            **core.kin_ident.to_dict(),
+            "fit_rms_px": {"paper": _fit_rms(core.paper.params, obs, s.refine.wrist_frame) if core.paper else None,
+                           s.model: _fit_rms(core.params, obs, s.refine.wrist_frame)}},
         "opencv": {a: [{"method": e.method, "median_px": e.median_px if np.isfinite(e.median_px) else None,
                         "ok": e.ok} for e in est] for a, est in core.opencv.items()},
         "heldout": {name: {arm: {k: summarise(v) for k, v in d.items()} for arm, d in h["per_arm"].items()}

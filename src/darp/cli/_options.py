@@ -37,6 +37,14 @@ class Profile(StrEnum):
     paper = "paper"
 
 
+class CalibModel(StrEnum):
+    """Arm models of the calibration solve (darp.calibration.kinematic_ident.MODELS)."""
+
+    paper = "paper"
+    kinematic = "kinematic"
+    kinematic_compliance = "kinematic+compliance"
+
+
 class CaptureStream(StrEnum):
     """The image a calibration capture detects the board in (darp.calibration.capture_run)."""
 

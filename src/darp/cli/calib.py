@@ -25,6 +25,7 @@ import typer
 
 from darp.cli._app import app
 from darp.cli._options import (
+    CalibModel,
     CaptureStream,
     Dictionary,
     Paper,
@@ -192,6 +193,10 @@ def solve_command(
                                               show_default=False)] = None,
     compare: Annotated[bool, typer.Option("--compare/--no-compare", help="Also solve with OpenCV alone, for the "
                                           "comparison table.")] = True,
+    model: Annotated[CalibModel, typer.Option("--model", help="Arm model: paper (joint zeros), kinematic (+ joint "
+                                              "origins and axis tilts), kinematic+compliance (+ gravity sag of "
+                                              "joints 2-4); the paper model is solved beside a richer one.")]
+    = CalibModel.paper,
     quiet: Quiet = False,
 ) -> None:
     """Calibrate from captures: hand-eye per arm, bases in one world frame, joint-zero offsets."""
@@ -213,8 +218,8 @@ def solve_command(
                 tasks[stage] = bar.add_task(stage, total=total)
             bar.update(tasks[stage], completed=done)
 
-        outcome = solve_captures(caps, SolveSettings(folds=folds, compare=compare, epoch=epoch), truth=truth_cal,
-                                 progress=progress)
+        outcome = solve_captures(caps, SolveSettings(folds=folds, compare=compare, epoch=epoch, model=model.value),
+                                 truth=truth_cal, progress=progress)
     write_calibration(out, outcome.calibration)
     if report is not None:
         from darp.calibration.report import write_report
@@ -226,6 +231,11 @@ def solve_command(
         held = a.residuals.get("heldout", {}).get("corner_3d_mm")
         held_text = f", held-out 3-D corner error median {held['median']:.3f} mm" if held else ""
         typer.echo(f"  {arm}: fit {a.residuals['fit_reprojection_px']['median']:.3f} px{held_text}")
+        if a.kinematics is not None:
+            paper = outcome.heldout.get("darp_paper_model", {}).get("per_arm", {}).get(arm, {}).get("corner_3d_mm")
+            paper_text = f" (paper model: {float(np.median(paper)):.3f} mm)" if paper is not None else ""
+            typer.echo(f"    model {a.kinematics['model']}: {len(a.kinematics['estimated'])} kinematic parameters "
+                       f"estimated{paper_text}")
     if outcome.truth is not None:
         t = outcome.truth["darp"]
         he = max(v["hand_eye"]["translation_mm"] for v in t["arms"].values())

@@ -45,7 +45,7 @@ SCHEMA_VERSION = 1
 N_JOINTS = 6
 TOP_KEYS = ("schema_version", "epoch", "date", "board", "world_frame", "arms", "report")
 ARM_KEYS = ("serial", "T_world_base", "T_wrist_cam", "joint_offsets_rad", "joint_offsets_std_rad", "identifiable",
-            "residuals", "n_captures")
+            "residuals", "n_captures", "kinematics")
 
 
 def _refuse_unknown(record: dict[str, Any], known: tuple[str, ...], where: str, path: Path | None) -> None:
@@ -79,6 +79,9 @@ class ArmCalibration:
     identifiable: tuple[bool, ...] | None = None  # per joint: could its offset be estimated?
     residuals: dict[str, Any] = field(default_factory=dict)
     n_captures: int | None = None
+    # the richer kinematic model (issue 16 item 1; darp.kinematics.kinematic_model.KinematicParams.to_dict
+    # plus "model" and "identifiability"); None: the paper's model (joint zeros only)
+    kinematics: dict[str, Any] | None = None
 
 
 @dataclass
@@ -153,6 +156,7 @@ def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
         identifiable=None if flags is None else tuple(flags),
         residuals=as_dict(arm.get("residuals", {}), f"{where}.residuals", path),
         n_captures=None if n_captures is None else as_int(n_captures, f"{where}.n_captures", path, minimum=0),
+        kinematics=None if arm.get("kinematics") is None else as_dict(arm["kinematics"], f"{where}.kinematics", path),
     )
     _check_ranges(result, where, path)
     return result
@@ -233,6 +237,8 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
         entry["residuals"] = arm.residuals
         if arm.n_captures is not None:
             entry["n_captures"] = int(arm.n_captures)
+        if arm.kinematics is not None:
+            entry["kinematics"] = arm.kinematics
         arms[name] = entry
     board = None if cal.board is None else {
         "squares_x": cal.board.squares_x,

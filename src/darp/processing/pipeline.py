@@ -167,7 +167,8 @@ class SurveyJob:
         if self._poses is None:
             poses = recover_survey_poses(  # with this run's open recordings
                 self.survey, self.calibration, calibration_path=self.calibration_path,
-                open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)))
+                open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)),
+                kinematics=self.settings.corrections.kinematics)
             if self.truth_poses:
                 poses = with_truth_poses(poses, self.survey)
             self._poses = poses
@@ -395,7 +396,7 @@ def staged_outputs(folder: Path, names: Sequence[str]) -> Any:
 
 
 RECONSTRUCTION_STAGES: tuple[Stage, ...] = (
-    Stage("poses", stage_poses, (f"{POSES_DIR}/summary.json",)),
+    Stage("poses", stage_poses, (f"{POSES_DIR}/summary.json",), ("corrections",)),
     Stage("keyframes", stage_keyframes, (f"{KEYFRAMES_DIR}/keyframes.json",), ("keyframes", "fusion")),
     Stage("fusion", stage_fusion, (FUSED_FILE,), ("fusion",)),
     Stage("mesh", stage_mesh, (MESH_FILE,), ("mesh",)),

@@ -9,6 +9,7 @@ atomically; the survey folder is never written to.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
@@ -19,14 +20,17 @@ import numpy as np
 
 from darp.errors import FormatError, SurveyError
 from darp.formats.atomic import atomic_open, write_text_atomic
-from darp.formats.calibration import Calibration
+from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.envelope import Envelope
 from darp.formats.realsense.recording import Recording
 from darp.formats.schema import write_json_checked
 from darp.formats.survey import Survey
 from darp.kinematics.camera_poses import DEFAULT_MAX_GAP_S, STATUS_NAMES, CameraPoses, camera_poses
+from darp.kinematics.kinematic_model import KinematicParams, fk_batch_params
 from darp.kinematics.transforms import quaternion_to_rotation, rotation_to_quaternion
 from darp.reconstruction.keyframes import joint_speed_noise
+
+_log = logging.getLogger(__name__)
 
 HOST_TIME_DOMAINS = ("Global Time", "System Time")
 SUMMARY_FILE = "summary.json"
@@ -84,9 +88,12 @@ class SurveyPoses:
     trajectories: dict[str, CameraTrajectory]
     envelope: Envelope | None = None
     warnings: list[str] = field(default_factory=list)
+    # the richer kinematic model per arm when corrections.kinematics is on (None: off, the paper's eq. 1)
+    kinematics: dict[str, Any] | None = None
 
     def summary(self) -> dict[str, Any]:
-        return {
+        extra = {} if self.kinematics is None else {"kinematics": self.kinematics}
+        return {**extra,
             "survey": str(self.survey_path),
             "calibration": {
                 "path": None if self.calibration_path is None else str(self.calibration_path),
@@ -112,6 +119,7 @@ def recover_survey_poses(
     wrist_frame: str = "flange",
     on_arm: Callable[[str], None] | None = None,
     open_recording: Callable[[str], AbstractContextManager[Recording]] | None = None,
+    kinematics: bool = False,
 ) -> SurveyPoses:
     """Eq. 1 at every ``stream`` frame of every camera of ``survey``.
 
@@ -119,6 +127,9 @@ def recover_survey_poses(
     serial differs from the calibration's for its arm is refused: its poses would belong to another arm.
     ``open_recording(arm)``: a context manager giving ``arm``'s recording (default: ``survey.open_recording``,
     which opens and closes it; a caller that holds the recordings open passes its own).
+    ``kinematics``: use the calibration's richer kinematic model (``kinematics`` per arm: joint origins, axis
+    tilts, compliance; :mod:`darp.kinematics.kinematic_model`) in eq. 1; an arm without one is posed with the
+    paper's model and a warning naming the calibration file.
     """
     opener = open_recording if open_recording is not None else survey.open_recording
     log = survey.arm_poses()
@@ -132,6 +143,8 @@ def recover_survey_poses(
         trajectories={},
         envelope=survey.envelope(),
     )
+    if kinematics:
+        result.kinematics = {}
     for arm in survey.arms:
         if on_arm is not None:
             on_arm(arm)
@@ -157,11 +170,14 @@ def recover_survey_poses(
                 f"{arm}: {stream} timestamps are in the {', '.join(foreign)} domain, not host time; "
                 "poses assume camera time = host time + clock offset")
         log_t, log_q = log.times(arm), log.joints(arm)
+        fk = None
+        if result.kinematics is not None:
+            fk, result.kinematics[arm] = _kinematic_fk(cal, arm, calibration_path, wrist_frame, result.warnings)
         poses = camera_poses(
             log_t, log_q, timestamps_ms / 1000.0,
             T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam,
             joint_offsets_rad=cal.joint_offsets_rad, max_gap_s=max_gap_s,
-            clock_offset_s=clock_offset_s, wrist_frame=wrist_frame,
+            clock_offset_s=clock_offset_s, wrist_frame=wrist_frame, fk_batch=fk,
         )
         counts = poses.counts()
         if counts["frames"] and counts["posed"] == 0:
@@ -175,6 +191,26 @@ def recover_survey_poses(
             speed_noise_rad_s=joint_speed_noise(log_t, log_q),
         )
     return result
+
+
+def _kinematic_fk(cal: ArmCalibration, arm: str, calibration_path: Path | None, wrist_frame: str,
+                  warnings: list[str]) -> tuple[Callable[[np.ndarray], np.ndarray] | None, dict[str, Any]]:
+    """The richer model's forward kinematics of one arm and what was applied (None: paper model, warned)."""
+    where = calibration_path if calibration_path is not None else "the calibration"
+    if cal.kinematics is None:
+        message = (f"{arm}: {where} has no kinematics (solve it with darp calib solve --model kinematic...); "
+                   "posed with the paper's model")
+        warnings.append(message)
+        _log.warning(message)
+        return None, {"applied": False, "reason": "calibration has no kinematics"}
+    try:
+        params = KinematicParams.from_dict(cal.kinematics, f"arms.{arm}.kinematics")
+    except FormatError as err:
+        raise FormatError(err.message, calibration_path) from None
+    info = {"applied": True, "model": cal.kinematics.get("model"),
+            "estimated": list(cal.kinematics.get("estimated", [])),
+            "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
+    return (lambda Q: fk_batch_params(Q, params, wrist_frame)), info
 
 
 # -- TUM trajectories ----------------------------------------------------------------------------

@@ -24,23 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from darp.kinematics import z1
-from darp.kinematics.transforms import compose, matvec, rotvec_to_rotation
+from darp.kinematics.kinematic_model import LINK_MASSES, chain_fk, gravity_torques, tilted_axes
 from darp.twin.settings import ArmErrorSettings
 
-GRAVITY_M_S2 = 9.81
 REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repeatability to joint angles
-
-# Lumped link masses (kg) and centres of mass in their link frame (m): the Z1's arm is about 4.1-4.4 kg
-# (docs/twin.md); link01 and the base do not load joints 2-4.
-LINK_MASSES: tuple[tuple[int, float, tuple[float, float, float]], ...] = (
-    (2, 1.50, (-0.17, 0.0, 0.0)),  # link02: upper arm (two motors at joint 2 sit below it)
-    (3, 0.80, (0.12, 0.0, 0.05)),  # link03: forearm with the joint-4 motor
-    (4, 0.40, (0.05, 0.0, 0.0)),  # link04
-    (5, 0.35, (0.03, 0.0, 0.0)),  # link05
-    (6, 0.30, (0.03, 0.0, 0.0)),  # link06 (without gripper)
-)
-SAG_JOINTS = (1, 2, 3)  # joints 2, 3, 4 (0-based): horizontal axes, the ones gravity loads
-
 
 @dataclass(frozen=True, eq=False)
 class KinematicErrors:
@@ -65,57 +52,13 @@ class KinematicErrors:
 
     def axes(self) -> np.ndarray:
         """True joint axes (6, 3), unit vectors in the child link (= parent at zero angle)."""
-        nominal = np.eye(3)[list(z1.JOINT_AXIS_INDEX)]
-        axes = matvec(rotvec_to_rotation(self.axis_tilt_rad), nominal)
-        unit: np.ndarray = axes / np.linalg.norm(axes, axis=-1, keepdims=True)
-        return unit
-
-
-def _rotations(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Rotations (N, 3, 3) about the unit ``axis`` (3,) by angles ``q`` (N,) (Rodrigues)."""
-    return rotvec_to_rotation(axis[None, :] * q[:, None])
+        return tilted_axes(self.axis_tilt_rad)
 
 
 def fk_batch_with_errors(Q: np.ndarray, errors: KinematicErrors, frame: str = "flange") -> np.ndarray:
-    """``T_base_frame`` (N, 4, 4) of the true chain (perturbed origins and axes) for joint rows Q (N, 6)."""
-    Qa = z1.check_q(Q, batched=True)
-    n = Qa.shape[0]
-    T = np.tile(np.eye(4), (n, 1, 1))
-    for i, (origin, axis) in enumerate(zip(errors.origins(), errors.axes(), strict=True)):
-        step = np.zeros((n, 4, 4))
-        step[:, :3, :3] = _rotations(axis, Qa[:, i])
-        step[:, :3, 3] = origin
-        step[:, 3, 3] = 1.0
-        T = compose(T, step)
-    tool = np.eye(4)
-    tool[0, 3] = z1.frame_offset_m(frame)
-    out: np.ndarray = compose(T, tool)
-    return out
-
-
-def gravity_torques(Q: np.ndarray, payload_kg: float) -> np.ndarray:
-    """Gravity torques (N, 6) in N m about each joint's axis (positive: about +axis) for joint rows Q (N, 6).
-
-    Lumped masses (:data:`LINK_MASSES`) plus ``payload_kg`` (camera and bracket) 3 cm past the flange;
-    only joints 2-4 are loaded (joints 1, 5, 6 get 0: vertical or nearly unloaded axes).
-    """
-    Qa = np.atleast_2d(np.asarray(Q, dtype=float))
-    links = z1.link_transforms_batch(Qa)  # (N, 7, 4, 4)
-    masses: list[tuple[int, float, np.ndarray]] = [(i, m, np.asarray(c)) for i, m, c in LINK_MASSES]
-    if payload_kg > 0:
-        masses.append((6, payload_kg, np.array([z1.WRIST_FRAMES["flange"] + 0.03, 0.0, 0.0])))
-    tau = np.zeros((Qa.shape[0], 6))
-    down = np.array([0.0, 0.0, -GRAVITY_M_S2])
-    for j in SAG_JOINTS:
-        p = links[:, j + 1, :3, 3]  # joint j's origin = child link (j + 1)'s origin
-        axis = links[:, j + 1, :3, z1.JOINT_AXIS_INDEX[j]]
-        for link, mass, centre in masses:
-            if link < j + 1:
-                continue
-            r = matvec(links[:, link, :3, :3], centre) + links[:, link, :3, 3]
-            moment = np.cross(r - p, mass * down)
-            tau[:, j] += np.sum(moment * axis, axis=-1)
-    return tau
+    """``T_base_frame`` (N, 4, 4) of the true chain (perturbed origins and axes) for joint rows Q (N, 6)
+    (the chain of :func:`darp.kinematics.kinematic_model.chain_fk`, shared with calibration and processing)."""
+    return chain_fk(Q, errors.origins(), errors.axes(), frame)
 
 
 class LinkDeflection:
