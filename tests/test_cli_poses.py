@@ -255,3 +255,36 @@ def test_tum_round_trip_and_bad_lines(tmp_path: Path) -> None:
     path.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n")
     with pytest.raises(FormatError, match="line 3: expected 8 values"):
         read_tum(path)
+
+
+def test_kinematics_switch_uses_the_richer_model_and_warns_without_it(survey) -> None:
+    """corrections.kinematics: eq. 1 with the calibration's richer model (its own transforms, origins, tilts,
+    compliance); off, or for an arm whose calibration has none, the paper's eq. 1 (with a warning)."""
+    from darp.formats.survey import open_survey
+    from darp.kinematics.kinematic_model import KinematicParams, fk_batch_params
+    from darp.reconstruction.poses import recover_survey_poses
+
+    folder, _, _ = survey
+    cal = _calibration()
+    rng = np.random.default_rng(0)
+    kin = KinematicParams(rng.normal(0, 1e-3, (6, 3)), rng.normal(0, 3e-3, (6, 3)),
+                          np.array([0, 1e-3, 5e-4, 2e-3, 0, 0]))
+    T_wb = cal.arms["arm110"].T_world_base @ make_transform(rot_z(0.002), [0.001, 0.0, 0.0])
+    dq = DQ["arm110"] + 0.001
+    cal.arms["arm110"].kinematics = {"model": "kinematic+compliance", **kin.to_dict(), "T_world_base": T_wb.tolist(),
+                                     "T_wrist_cam": cal.arms["arm110"].T_wrist_cam.tolist(),
+                                     "joint_offsets_rad": dq.tolist(), "estimated": ["joint2.compliance"]}
+    survey_ = open_survey(folder)
+    paper = recover_survey_poses(survey_, cal)
+    rich = recover_survey_poses(survey_, cal, kinematics=True)
+    assert "kinematics" not in paper.summary()  # off: the summary is what it always was
+    assert rich.kinematics is not None and rich.kinematics["arm110"]["applied"] is True
+    assert rich.kinematics["arm111"]["applied"] is False
+    assert len([w for w in rich.warnings if "arm111" in w and "no kinematics" in w]) == 1
+    traj, traj_paper = rich.trajectories["arm110"].poses, paper.trajectories["arm110"].poses
+    ok = traj.posed
+    expected = T_wb @ fk_batch_params(traj.q_rad[ok] + dq, kin) @ cal.arms["arm110"].T_wrist_cam
+    assert np.allclose(traj.T_world_cam[ok], expected, atol=1e-12)
+    assert np.max(np.abs(traj.T_world_cam[ok][:, :3, 3] - traj_paper.T_world_cam[ok][:, :3, 3])) > 1e-3
+    assert np.array_equal(rich.trajectories["arm111"].poses.T_world_cam, paper.trajectories["arm111"].poses.T_world_cam,
+                          equal_nan=True)

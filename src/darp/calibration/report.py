@@ -38,7 +38,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    obs, params = outcome.observations, outcome.core.params
+    obs, params = outcome.observations, outcome.methods["darp"]
     written = []
     write_json_checked(folder / "report.json", outcome.calibration.report)
     written.append(folder / "report.json")
@@ -62,7 +62,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
     written.append(folder / "per_capture_error.png")
 
     # residual vectors
-    res = outcome.core.refined.residual_px
+    res = (outcome.core.paper or outcome.core.refined).residual_px
     fig = Figure(figsize=(12, 4.8))
     scale = 200.0
     for a, arm in enumerate(obs.arms):
@@ -149,6 +149,28 @@ def summary_markdown(outcome: SolveOutcome) -> str:
             lines.append(f"- {arm}: " + ", ".join(f"j{j + 1} {v:.2g}" for j, v in enumerate(rho)))
         for k, v in ident["degenerate_with"].items():
             lines.append(f"- {k} is imitated by {', '.join(v)}")
+    kin = rep.get("kinematics")
+    if kin:
+        lines += ["", f"## Arm model: {kin['model']}", "",
+                  "Fit reprojection RMS (px): " + "; ".join(
+                      f"{m}: " + ", ".join(f"{a} {v:.3f}" for a, v in per.items())
+                      for m, per in kin["fit_rms_px"].items() if per), "",
+                  "| arm | parameter | status | value | std | prior std | unique fraction | reason |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for arm, entry in cal.arms.items():
+            k = entry.kinematics or {}
+            values = np.concatenate([np.ravel(k.get("joint_origin_offsets_m", np.zeros(18))),
+                                     np.ravel(k.get("joint_axis_tilts_rad", np.zeros(18))),
+                                     np.ravel(k.get("compliance_rad_per_nm", np.zeros(6)))[1:4]])
+            for i, row in enumerate(kin["table"].get(arm, [])):
+                if row["status"] == "no effect":
+                    continue
+                std = k.get("std", {}).get(row["parameter"])
+                lines.append(f"| {arm} | {row['parameter']} | {row['status']} | {values[i]:.3g} | "
+                             f"{'-' if std is None else f'{std:.2g}'} | {row['prior_std']:.2g} | {row['rho']:.3f} | "
+                             f"{row.get('reason', '')} |")
+        lines += ["", "Units: origins m, tilts rad, compliance rad/N m. Tilts about a joint's own axis change "
+                  "nothing and are not listed."]
     held = rep.get("heldout", {})
     if held:
         lines += ["", "## Methods: held-out 3-D corner error (median mm)", "", "| method | "

@@ -44,7 +44,7 @@ METHOD_LABELS = {
     "darp_no_offsets": "darp refinement without joint offsets",
     "opencv_hand_eye": "OpenCV calibrateHandEye (best of 5 methods) + board-averaged bases",
     "opencv_robot_world": "OpenCV calibrateRobotWorldHandEye (best of SHAH, LI) + board-averaged bases",
-    "darp_paper_model": "darp with the paper's model (joint zeros only), beside a richer --model",
+    "darp_model": "darp with the richer arm model (--model: + joint origins, axis tilts[, compliance])",
 }
 
 
@@ -174,16 +174,18 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
     tick = time.perf_counter()
     core = calibrate_observations(obs, s.refine, model=s.model, kin_settings=s.kin_ident)
     timings["solve"] = time.perf_counter() - tick
-    T_ref_world = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, arms)
+    main = core.paper if core.paper is not None else core.refined  # the calibration's own fields: paper model
+    T_ref_world = world_from_reference(main.params.T_ref_base, main.params.T_ref_board, arms)
     assert core.identifiability is not None
     free = core.identifiability.identifiable
-    methods: dict[str, ChainParams] = {"darp": core.params}
+    methods: dict[str, ChainParams] = {"darp": main.params}
     free_kin = core.kin_ident.free if core.kin_ident is not None else None
     solvers: dict[str, Callable[[Observations], ChainParams]] = {
-        "darp": lambda o: calibrate_observations(o, s.refine, free, model=s.model, free_kin=free_kin).params}
-    if core.paper is not None:  # a richer model: the paper's model beside it, always
-        methods["darp_paper_model"] = core.paper.params
-        solvers["darp_paper_model"] = lambda o: calibrate_observations(o, s.refine, free).params
+        "darp": lambda o: calibrate_observations(o, s.refine, free).params}
+    if core.paper is not None:  # a richer model, beside the paper's, always
+        methods["darp_model"] = core.params
+        solvers["darp_model"] = lambda o: calibrate_observations(o, s.refine, free, model=s.model,
+                                                                  free_kin=free_kin).params
     if s.compare:
         methods["darp_no_offsets"] = refine(core.start, obs, None, s.refine).params
         methods["opencv_hand_eye"] = opencv_chain(core.opencv, arms, "calibrateHandEye")
@@ -206,10 +208,10 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
     serials = {a: next(d.record.camera_serial for d in detections if d.arm == a) for a in arms}
     date = dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
     epoch = s.epoch or f"calib-{date[:10]}"
-    cal = to_calibration(core.params, T_ref_world, serials, epoch=epoch, date=date, board=captures.board)
-    fit_px = reprojection_errors(core.params, obs, s.refine.wrist_frame)
+    cal = to_calibration(main.params, T_ref_world, serials, epoch=epoch, date=date, board=captures.board)
+    fit_px = reprojection_errors(main.params, obs, s.refine.wrist_frame)
     fit_stats = _stats_by_arm(fit_px, obs)
-    res = core.refined
+    res = main
     for a in arms:
         entry = cal.arms[a]
         entry.joint_offsets_std_rad = res.joint_offset_std(a)
@@ -229,7 +231,7 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
         if "darp" in heldout:
             entry.residuals["heldout"] = {k: summarise(v) for k, v in heldout["darp"]["per_arm"][a].items()}
         if core.kin_ident is not None:
-            entry.kinematics = _kinematics_entry(core, a, obs)
+            entry.kinematics = _kinematics_entry(core, a, obs, T_ref_world, heldout.get("darp_model"))
     truth_cmp = None
     if truth is not None:
         q_by_arm = {a: obs.q_rad[obs.for_arm(a)] for a in arms}
@@ -237,21 +239,31 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
         for name, params in methods.items():
             other = to_calibration(params, world_from_reference(params.T_ref_base, params.T_ref_board, arms),
                                    serials, epoch=name, date=date, board=captures.board)
-            ident = free if name == "darp" else {a: np.zeros(6, bool) for a in arms}
+            ident = free if name in ("darp", "darp_model") else {a: np.zeros(6, bool) for a in arms}
             truth_cmp[name] = truth_errors(other, truth, arms, ident, q_by_arm, s.refine.wrist_frame)
     cal.report = _report(s, captures, detections, obs, core, T_ref_world, heldout, truth_cmp, timings, arms)
     return SolveOutcome(cal, core, obs, detections, T_ref_world, methods, heldout, truth_cmp, timings)
 
 
-def _kinematics_entry(core: CoreResult, arm: str, obs: Observations) -> dict[str, Any]:
-    """calibration.json's ``kinematics`` of one arm: the parameters, their std, the identifiability table."""
+def _kinematics_entry(core: CoreResult, arm: str, obs: Observations, T_ref_world: np.ndarray,
+                      heldout: dict[str, Any] | None) -> dict[str, Any]:
+    """calibration.json's ``kinematics`` of one arm: the richer model's own eq. 1 transforms and joint zeros
+    (the file's main fields stay the paper model's, so paper mode is unchanged), its parameters and their
+    std, the identifiability table and its fit and held-out errors."""
     assert core.kin_ident is not None
     res = core.refined
-    kin = core.params.kin[arm]
+    p = core.params
+    kin = p.kin[arm]
+    fit = reprojection_errors(p, obs)[obs.arm_index[obs.corner_capture] == obs.arms.index(arm)]
     std = np.zeros(len(KIN_NAMES))
     if f"kin:{arm}" in res.layout.slices:
         std[core.kin_ident.free[arm]] = res.std(f"kin:{arm}")
-    return {"model": core.kin_ident.model, **kin.to_dict(),
+    return {"model": core.kin_ident.model,
+            "T_world_base": (invert_transform(T_ref_world) @ p.T_ref_base[arm]).tolist(),
+            "T_wrist_cam": p.T_flange_cam[arm].tolist(), "joint_offsets_rad": p.dq[arm].tolist(),
+            **kin.to_dict(),
+            "fit_reprojection_px": summarise(fit),
+            "heldout": None if heldout is None else {k: summarise(v) for k, v in heldout["per_arm"][arm].items()},
             "estimated": [KIN_NAMES[k] for k in np.flatnonzero(core.kin_ident.free[arm])],
             "std": {KIN_NAMES[k]: float(std[k]) for k in np.flatnonzero(core.kin_ident.free[arm])},
             "identifiability": core.kin_ident.table[arm],
@@ -268,14 +280,14 @@ def _fit_rms(params: ChainParams, obs: Observations, wrist_frame: str) -> dict[s
 def _report(s: SolveSettings, captures: CaptureSet, detections: list[Detection], obs: Observations,
             core: CoreResult, T_ref_world: np.ndarray, heldout: dict[str, Any], truth_cmp: dict[str, Any] | None,
             timings: dict[str, float], arms: tuple[str, ...]) -> dict[str, Any]:
-    res = core.refined
+    res = core.paper if core.paper is not None else core.refined
     return {
         "source": str(captures.folder),
         "n_captures": len(captures.captures),
         "n_used": obs.n_captures,
         "rejected": {d.capture_id: d.reason for d in detections if not d.ok},
         "reference_arm": arms[0],
-        "T_world_board": (invert_transform(T_ref_world) @ core.params.T_ref_board).tolist(),
+        "T_world_board": (invert_transform(T_ref_world) @ res.params.T_ref_board).tolist(),
         "sigma_px": res.sigma_px,
         "refine": {"cost": res.cost, "n_residuals": res.n_residuals, "nfev": res.nfev, "success": res.success,
                    "message": res.message, "parameters": res.layout.names,

@@ -232,10 +232,11 @@ def solve_command(
         held_text = f", held-out 3-D corner error median {held['median']:.3f} mm" if held else ""
         typer.echo(f"  {arm}: fit {a.residuals['fit_reprojection_px']['median']:.3f} px{held_text}")
         if a.kinematics is not None:
-            paper = outcome.heldout.get("darp_paper_model", {}).get("per_arm", {}).get(arm, {}).get("corner_3d_mm")
-            paper_text = f" (paper model: {float(np.median(paper)):.3f} mm)" if paper is not None else ""
-            typer.echo(f"    model {a.kinematics['model']}: {len(a.kinematics['estimated'])} kinematic parameters "
-                       f"estimated{paper_text}")
+            k = a.kinematics
+            rich = (k.get("heldout") or {}).get("corner_3d_mm")
+            rich_text = f", held-out median {rich['median']:.3f} mm" if rich else ""
+            typer.echo(f"    model {k['model']}: {len(k['estimated'])} kinematic parameters estimated, fit "
+                       f"{k['fit_reprojection_px']['median']:.3f} px{rich_text} (used by --corrections kinematics)")
     if outcome.truth is not None:
         t = outcome.truth["darp"]
         he = max(v["hand_eye"]["translation_mm"] for v in t["arms"].values())

@@ -171,12 +171,16 @@ def recover_survey_poses(
                 "poses assume camera time = host time + clock offset")
         log_t, log_q = log.times(arm), log.joints(arm)
         fk = None
+        T_world_base, T_wrist_cam, joint_offsets = cal.T_world_base, cal.T_wrist_cam, cal.joint_offsets_rad
         if result.kinematics is not None:
             fk, result.kinematics[arm] = _kinematic_fk(cal, arm, calibration_path, wrist_frame, result.warnings)
+            if fk is not None and cal.kinematics is not None:  # the richer model's own eq. 1 transforms
+                T_world_base, T_wrist_cam, joint_offsets = _kinematic_transforms(cal.kinematics, arm,
+                                                                                 calibration_path, cal)
         poses = camera_poses(
             log_t, log_q, timestamps_ms / 1000.0,
-            T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam,
-            joint_offsets_rad=cal.joint_offsets_rad, max_gap_s=max_gap_s,
+            T_world_base=T_world_base, T_wrist_cam=T_wrist_cam,
+            joint_offsets_rad=joint_offsets, max_gap_s=max_gap_s,
             clock_offset_s=clock_offset_s, wrist_frame=wrist_frame, fk_batch=fk,
         )
         counts = poses.counts()
@@ -211,6 +215,19 @@ def _kinematic_fk(cal: ArmCalibration, arm: str, calibration_path: Path | None, 
             "estimated": list(cal.kinematics.get("estimated", [])),
             "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
     return (lambda Q: fk_batch_params(Q, params, wrist_frame)), info
+
+
+def _kinematic_transforms(kin: dict[str, Any], arm: str, calibration_path: Path | None,
+                          cal: ArmCalibration) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``T_world_base``, ``T_wrist_cam`` and joint zeros solved with the richer model (the arm's own when absent)."""
+    out = []
+    for key, shape, default in (("T_world_base", (4, 4), cal.T_world_base), ("T_wrist_cam", (4, 4), cal.T_wrist_cam),
+                                ("joint_offsets_rad", (6,), cal.joint_offsets_rad)):
+        value = np.asarray(kin.get(key, default), dtype=float)
+        if value.shape != shape or not np.all(np.isfinite(value)):
+            raise FormatError(f"arms.{arm}.kinematics.{key}: expected finite {shape} values", calibration_path)
+        out.append(value)
+    return out[0], out[1], out[2]
 
 
 # -- TUM trajectories ----------------------------------------------------------------------------
