@@ -128,20 +128,25 @@ def test_richer_model_recovers_compliance_and_predicts_new_views_better(data, co
 
 
 @pytest.mark.slow
-def test_calibration_file_carries_the_model_and_old_files_still_read(data) -> None:
-    _, obs, _ = data
-    core = calibrate_observations(obs.subset(np.r_[0:10, 14:24]), model="kinematic")
-    ident = analyse_kinematics(core.paper.params, obs.subset(np.r_[0:10, 14:24]),
-                               core.identifiability.identifiable, "kinematic", core.paper.sigma_px)
-    assert not any(r["parameter"].endswith("compliance") for r in ident.table["arm110"])
+def test_calibration_file_carries_the_model_and_old_files_still_read(data, cores) -> None:
     from darp.calibration.solve import _kinematics_entry, to_calibration
     from darp.calibration.world_frame import world_from_reference
+
+    _, obs, _ = data
+    paper = cores["paper"]
+    ident = analyse_kinematics(paper.params, obs, paper.identifiability.identifiable, "kinematic",
+                               paper.refined.sigma_px)
+    assert not any(r["parameter"].endswith("compliance") for r in ident.table["arm110"])
+    assert ident.table["arm110"][0]["parameter"] == "joint1.origin.x"
+    core = cores["kinematic+compliance"]
     T_rw = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, ARMS)
-    cal = to_calibration(core.params, T_rw, {a: a for a in ARMS}, epoch="t", date="2026-01-01", board=DEFAULT_BOARD)
-    cal.arms["arm110"].kinematics = _kinematics_entry(core, "arm110", obs.subset(np.r_[0:10, 14:24]), T_rw, None)
+    cal = to_calibration(paper.params, T_rw, {a: a for a in ARMS}, epoch="t", date="2026-01-01", board=DEFAULT_BOARD)
+    cal.arms["arm110"].kinematics = _kinematics_entry(core, "arm110", obs, T_rw, None)
     back = calibration_from_dict(calibration_to_dict(cal))
     kin = back.arms["arm110"].kinematics
-    assert kin is not None and kin["model"] == "kinematic"
+    assert kin is not None and kin["model"] == "kinematic+compliance"
     assert set(kin["estimated"]) <= set(PARAM_NAMES)
     assert np.allclose(KinematicParams.from_dict(kin).origin_m, core.params.kin["arm110"].origin_m)
+    assert np.allclose(kin["T_wrist_cam"], core.params.T_flange_cam["arm110"])
+    assert np.allclose(back.arms["arm110"].T_wrist_cam, paper.params.T_flange_cam["arm110"])  # main: paper model
     assert back.arms["arm111"].kinematics is None  # absent: nothing to apply

@@ -293,11 +293,10 @@ def _report(s: SolveSettings, captures: CaptureSet, detections: list[Detection],
                    "message": res.message, "parameters": res.layout.names,
                    "std": np.sqrt(np.clip(np.diag(res.covariance), 0, None)).tolist()},
         "identifiability": core.identifiability.to_dict() if core.identifiability else None,
-        "model": s.model,
-        "kinematics": None if core.kin_ident is None else {
+        **({} if core.kin_ident is None else {"model": s.model, "kinematics": {
             **core.kin_ident.to_dict(),
             "fit_rms_px": {"paper": _fit_rms(core.paper.params, obs, s.refine.wrist_frame) if core.paper else None,
-                           s.model: _fit_rms(core.params, obs, s.refine.wrist_frame)}},
+                           s.model: _fit_rms(core.params, obs, s.refine.wrist_frame)}}}),
         "opencv": {a: [{"method": e.method, "median_px": e.median_px if np.isfinite(e.median_px) else None,
                         "ok": e.ok} for e in est] for a, est in core.opencv.items()},
         "heldout": {name: {arm: {k: summarise(v) for k, v in d.items()} for arm, d in h["per_arm"].items()}
