@@ -142,6 +142,9 @@ def test_calibration_file_carries_the_model_and_old_files_still_read(data, cores
     T_rw = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, ARMS)
     cal = to_calibration(paper.params, T_rw, {a: a for a in ARMS}, epoch="t", date="2026-01-01", board=DEFAULT_BOARD)
     cal.arms["arm110"].kinematics = _kinematics_entry(core, "arm110", obs, T_rw, None)
+    other = _kinematics_entry(core, "arm111", obs, T_rw, None)
+    mid = 0.5 * (np.asarray(cal.arms["arm110"].kinematics["T_world_base"]) + np.asarray(other["T_world_base"]))
+    assert np.allclose(mid[:3, 3], 0.0, atol=1e-9)  # the richer model's bases in the world it realises itself
     back = calibration_from_dict(calibration_to_dict(cal))
     kin = back.arms["arm110"].kinematics
     assert kin is not None and kin["model"] == "kinematic+compliance"

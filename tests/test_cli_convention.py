@@ -29,7 +29,7 @@ SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--f
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
 OUTPUT_PATHS = {"--out", "--report", "--save"}  # --save: darp view's recording (no window)
 INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics",
-               "--trajectory", "--flange-poses", "--envelope"}
+               "--trajectory", "--flange-poses", "--envelope", "--extend"}
 FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics",
              "--envelope"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.

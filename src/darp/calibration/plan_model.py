@@ -13,15 +13,24 @@ design that most shrinks the joint covariance of the poorly determined combinati
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from darp.calibration.board import corners_board_m
+from darp.calibration.captures import CaptureSet
+from darp.calibration.detect import DetectionSettings, detect_captures
 from darp.calibration.jacobian import residuals_and_jacobian
 from darp.calibration.kinematic_ident import MODEL_CANDIDATES
-from darp.calibration.model import ChainParams, Observations, board_in_stream
+from darp.calibration.model import ChainParams, Observations, board_in_stream, build_observations
+from darp.calibration.plan import CapturePlan, PlannedPose, PlanSettings, _order, plan_captures
 from darp.calibration.refine import Layout
+from darp.calibration.solve import calibrate_observations
+from darp.calibration.world_frame import world_from_reference
 from darp.errors import CalibrationError
 from darp.formats.calibration import CharucoBoardSpec
+from darp.kinematics.rig import Rig
+from darp.kinematics.transforms import invert_transform
 
 
 def candidate_observations(params: ChainParams, obs: Observations, board: CharucoBoardSpec,
@@ -112,4 +121,35 @@ def select_extra_poses(params: ChainParams, obs: Observations, board: CharucoBoa
     return [ids[c] for c in chosen]
 
 
-__all__ = ["candidate_observations", "select_extra_poses"]
+def extend_plan(captures: CaptureSet, rig: Rig, n_per_arm: int, *, model: str = "kinematic+compliance",
+                n_candidates: int = 300, seed: int = 0) -> tuple[CapturePlan, dict[str, Any]]:
+    """A capture plan of ``n_per_arm`` extra poses per arm for ``captures`` (already taken): the captures are
+    solved with ``model``, feasible candidate poses planned on the nominal ``rig`` around the board the solve
+    found, and the extra poses chosen by :func:`select_extra_poses`. Returns the plan and a summary."""
+    detections = detect_captures(captures, DetectionSettings())
+    arms = tuple(sorted(captures.arms))
+    obs = build_observations(detections, captures.board, arms)
+    core = calibrate_observations(obs, model=model)
+    assert core.identifiability is not None
+    T_ref_world = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, arms)
+    T_world_board = invert_transform(T_ref_world) @ core.params.T_ref_board
+    s = PlanSettings(n_per_arm=min(60, n_candidates), n_candidates=n_candidates)
+    pool = plan_captures(rig, captures.board, T_world_board, settings=s, seed=seed, arms=arms)
+    picks = select_extra_poses(core.params, obs, captures.board,
+                               {a: np.array([p.q_rad for p in pool.poses[a]]) for a in arms},
+                               core.identifiability.identifiable, n_per_arm * len(arms), model,
+                               core.refined.sigma_px)
+    chosen: dict[str, list[PlannedPose]] = {a: [] for a in arms}
+    for arm, k in picks:
+        if len(chosen[arm]) < n_per_arm:
+            chosen[arm].append(pool.poses[arm][k])
+    rejected: dict[str, dict[str, int]] = {a: {} for a in arms}
+    poses = {a: _order(rig, a, chosen[a], s, rejected[a]) for a in arms}
+    plan = CapturePlan(board=captures.board, T_world_board=T_world_board, seed=seed, settings=s, poses=poses,
+                       rejected=rejected)
+    summary = {"model": model, "captures": obs.n_captures, "candidates": {a: len(pool.poses[a]) for a in arms},
+               "chosen": {a: len(v) for a, v in poses.items()}}
+    return plan, summary
+
+
+__all__ = ["candidate_observations", "extend_plan", "select_extra_poses"]

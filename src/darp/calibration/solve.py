@@ -230,8 +230,9 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
                                            "translation_mm": (1e3 * b_std[3:]).tolist()}
         if "darp" in heldout:
             entry.residuals["heldout"] = {k: summarise(v) for k, v in heldout["darp"]["per_arm"][a].items()}
-        if core.kin_ident is not None:
-            entry.kinematics = _kinematics_entry(core, a, obs, T_ref_world, heldout.get("darp_model"))
+        if core.kin_ident is not None:  # in the world the richer model itself realises (its bases and board)
+            T_ref_world_model = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, arms)
+            entry.kinematics = _kinematics_entry(core, a, obs, T_ref_world_model, heldout.get("darp_model"))
     truth_cmp = None
     if truth is not None:
         q_by_arm = {a: obs.q_rad[obs.for_arm(a)] for a in arms}

@@ -96,6 +96,12 @@ def plan_command(
     candidates: Annotated[int, typer.Option("--candidates", help="Random candidate poses tried per arm.")] = 300,
     squares_x: SquaresX = 10, squares_y: SquaresY = 7, square_mm: SquareMm = 30.0, marker_mm: MarkerMm = 22.0,
     dictionary: DictionaryOption = Dictionary.DICT_5X5_100,
+    extend: Annotated[Path | None, typer.Option("--extend", help="Capture folder already taken: plan --captures "
+                                                "extra poses per arm where --model is poorly determined (greedy "
+                                                "D-optimal; the board is where those captures saw it).",
+                                                exists=True, file_okay=False, show_default=False)] = None,
+    model: Annotated[CalibModel, typer.Option("--model", help="Arm model the extra poses should determine "
+                                              "(with --extend).")] = CalibModel.kinematic_compliance,
 ) -> None:
     """Plan diverse, feasible, collision-free capture poses for both arms (nominal rig)."""
     import numpy as np
@@ -104,6 +110,17 @@ def plan_command(
     from darp.kinematics.rig import load_rig
 
     rig = load_rig(rig_file)
+    if extend is not None:
+        from darp.calibration.captures import read_captures
+        from darp.calibration.plan_model import extend_plan
+
+        refuse_output_over_inputs(out, [extend], "--out")
+        extra, info = extend_plan(read_captures(extend), rig, captures, model=model.value,
+                                  n_candidates=max(candidates, 2 * captures), seed=seed)
+        extra.save(out)
+        typer.echo(f"wrote {out}: {info['chosen']} extra poses for {info['model']} (from {info['candidates']} "
+                   f"feasible candidates, {info['captures']} captures taken)")
+        return
     board = _board(squares_x, squares_y, square_mm, marker_mm, dictionary)
     plan = plan_captures(rig, board, default_board_pose(rig, board, np.radians(board_yaw_deg)),
                          settings=PlanSettings(n_per_arm=captures, n_candidates=max(candidates, captures)), seed=seed)
@@ -237,12 +254,13 @@ def solve_command(
             rich_text = f", held-out median {rich['median']:.3f} mm" if rich else ""
             typer.echo(f"    model {k['model']}: {len(k['estimated'])} kinematic parameters estimated, fit "
                        f"{k['fit_reprojection_px']['median']:.3f} px{rich_text} (used by --corrections kinematics)")
-    if outcome.truth is not None:
-        t = outcome.truth["darp"]
-        he = max(v["hand_eye"]["translation_mm"] for v in t["arms"].values())
-        b2b = t["base_to_base"]
-        typer.echo(f"  against truth: hand-eye <= {he:.3f} mm, base-to-base {b2b['translation_mm']:.3f} mm"
-                   f" / {b2b['rotation_deg']:.4f} deg")
+    for name, label in (("darp", "against truth"), ("darp_model", f"against truth ({model.value} model)")):
+        if outcome.truth is not None and name in outcome.truth:
+            t = outcome.truth[name]
+            he = max(v["hand_eye"]["translation_mm"] for v in t["arms"].values())
+            b2b = t["base_to_base"]
+            typer.echo(f"  {label}: hand-eye <= {he:.3f} mm, base-to-base {b2b['translation_mm']:.3f} mm"
+                       f" / {b2b['rotation_deg']:.4f} deg")
 
 
 @calib_app.command("check")
