@@ -153,3 +153,34 @@ def test_calibration_file_carries_the_model_and_old_files_still_read(data, cores
     assert np.allclose(kin["T_wrist_cam"], core.params.T_flange_cam["arm110"])
     assert np.allclose(back.arms["arm110"].T_wrist_cam, paper.params.T_flange_cam["arm110"])  # main: paper model
     assert back.arms["arm111"].kinematics is None  # absent: nothing to apply
+
+
+@pytest.mark.slow
+def test_d_optimal_extra_poses_carry_more_information_than_random_ones(data, cores) -> None:
+    from darp.calibration.plan_model import _information, _kin_logdet, candidate_observations, select_extra_poses
+
+    truth, obs, _ = data
+    core = cores["paper"]
+    T_wb = board_pose(truth.nominal)
+    candidates = {a: random_poses(truth.nominal, a, 10, T_wb, 11) for a in ARMS}
+    free = core.identifiability.identifiable
+    picks = select_extra_poses(core.params, obs, DEFAULT_BOARD, candidates, free, 4, sigma_px=0.5)
+    assert len(picks) == 4 and len(set(picks)) == 4
+    # the criterion the selection maximises, for its picks and for random ones
+    cand_obs, ids = candidate_observations(core.params, obs, DEFAULT_BOARD, candidates)
+    cand = MODEL_CANDIDATES["kinematic+compliance"]
+    layout = Layout(ARMS, {a: np.asarray(free[a], bool) for a in ARMS}, free_kin={a: cand.copy() for a in ARMS})
+    _, J0 = residuals_and_jacobian(np.zeros(layout.size), layout, core.params, obs, 0.5)
+    A0 = J0.T @ J0
+    kin = layout.kin_columns()
+    A0[kin, kin] += 1.0 / layout.kin_prior() ** 2
+    other = np.setdiff1d(np.arange(layout.size), kin)
+    info, _ = _information(layout, core.params, cand_obs, 0.5)
+
+    def gain(sel: list[int]) -> float:
+        return _kin_logdet(A0 + info[sel].sum(axis=0), kin, other)
+
+    chosen = gain([ids.index(p) for p in picks])
+    rng = np.random.default_rng(0)
+    randoms = [gain(list(rng.choice(len(ids), 4, replace=False))) for _ in range(5)]
+    assert chosen > max(randoms)

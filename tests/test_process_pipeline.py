@@ -140,3 +140,15 @@ def test_truth_poses_give_the_true_camera_poses(survey_path: Path, tmp_path: Pat
         truth = read_camera_poses(survey_path / "truth" / f"camera_poses_{kf.arm}.npz")
         i = int(np.flatnonzero(truth["frame_number"] == kf.frame_number)[0])
         np.testing.assert_allclose(kf.T_world_cam, truth["T_world_cam"][i], atol=1e-12)
+
+
+def test_a_corrections_switch_changes_the_poses_fingerprint(survey_path: Path, tmp_path: Path) -> None:
+    """--resume re-runs the poses (and everything after) when corrections.kinematics changes."""
+    from darp.processing.pipeline import stage_fingerprints
+    from darp.processing.settings import CorrectionSettings
+
+    paper = stage_fingerprints(make_job(survey_path, tmp_path), PROCESS_STAGES)
+    kin = ProcessSettings(corrections=CorrectionSettings.parse("kinematics"))
+    rich = stage_fingerprints(make_job(survey_path, tmp_path, kin), PROCESS_STAGES)
+    assert all(paper[s] != rich[s] for s in paper)
+    assert stage_fingerprints(make_job(survey_path, tmp_path), PROCESS_STAGES) == paper
