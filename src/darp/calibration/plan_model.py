@@ -135,14 +135,12 @@ def extend_plan(captures: CaptureSet, rig: Rig, n_per_arm: int, *, model: str = 
     T_world_board = invert_transform(T_ref_world) @ core.params.T_ref_board
     s = PlanSettings(n_per_arm=min(60, n_candidates), n_candidates=n_candidates)
     pool = plan_captures(rig, captures.board, T_world_board, settings=s, seed=seed, arms=arms)
-    picks = select_extra_poses(core.params, obs, captures.board,
-                               {a: np.array([p.q_rad for p in pool.poses[a]]) for a in arms},
-                               core.identifiability.identifiable, n_per_arm * len(arms), model,
-                               core.refined.sigma_px)
-    chosen: dict[str, list[PlannedPose]] = {a: [] for a in arms}
-    for arm, k in picks:
-        if len(chosen[arm]) < n_per_arm:
-            chosen[arm].append(pool.poses[arm][k])
+    chosen: dict[str, list[PlannedPose]] = {}
+    for arm in arms:  # each arm its own quota (the arms share only the board and the base-to-base)
+        candidates = {arm: np.array([p.q_rad for p in pool.poses[arm]])}
+        picks = select_extra_poses(core.params, obs, captures.board, candidates, core.identifiability.identifiable,
+                                   n_per_arm, model, core.refined.sigma_px)
+        chosen[arm] = [pool.poses[arm][k] for _, k in picks]
     rejected: dict[str, dict[str, int]] = {a: {} for a in arms}
     poses = {a: _order(rig, a, chosen[a], s, rejected[a]) for a in arms}
     plan = CapturePlan(board=captures.board, T_world_board=T_world_board, seed=seed, settings=s, poses=poses,
