@@ -20,6 +20,7 @@ import numpy as np
 
 from darp.calibration import handeye
 from darp.calibration.captures import CaptureSet
+from darp.calibration.depth_fit import DepthFitSettings, estimate_depth_corrections
 from darp.calibration.detect import Detection, DetectionSettings, detect_captures
 from darp.calibration.evaluate import kfold_heldout, summarise, truth_errors
 from darp.calibration.model import ChainParams, Observations, build_observations, reprojection_errors
@@ -56,6 +57,7 @@ class SolveSettings:
     arms: tuple[str, ...] | None = None  # order: first = reference; default sorted arm ids
     compare: bool = True  # also solve with OpenCV alone and without joint offsets
     epoch: str | None = None
+    depth: DepthFitSettings = field(default_factory=DepthFitSettings)  # captures with depth: per-camera fit
 
 
 @dataclass
@@ -202,6 +204,13 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
                                            "translation_mm": (1e3 * b_std[3:]).tolist()}
         if "darp" in heldout:
             entry.residuals["heldout"] = {k: summarise(v) for k, v in heldout["darp"]["per_arm"][a].items()}
+    tick = time.perf_counter()
+    depth_corr, depth_skipped = estimate_depth_corrections(captures, detections, s.depth)
+    for a, corr in depth_corr.items():
+        if a in cal.arms:
+            cal.arms[a].depth_correction = corr
+    if depth_corr or depth_skipped:
+        timings["depth_correction"] = time.perf_counter() - tick
     truth_cmp = None
     if truth is not None:
         q_by_arm = {a: obs.q_rad[obs.for_arm(a)] for a in arms}
@@ -212,6 +221,9 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
             ident = free if name == "darp" else {a: np.zeros(6, bool) for a in arms}
             truth_cmp[name] = truth_errors(other, truth, arms, ident, q_by_arm, s.refine.wrist_frame)
     cal.report = _report(s, captures, detections, obs, core, T_ref_world, heldout, truth_cmp, timings, arms)
+    cal.report["depth_correction"] = {
+        "captures_with_depth": sum(1 for c in captures.captures if c.has_depth),
+        "estimated": sorted(depth_corr), "skipped": depth_skipped}
     return SolveOutcome(cal, core, obs, detections, T_ref_world, methods, heldout, truth_cmp, timings)
 
 

@@ -116,7 +116,10 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
         "object": heldout.get("object") or job.survey.name,
         "pose_source": "truth" if job.truth_poses else "calibration",
         # darp's improvements applied ("paper" = none: poses from calibration and kinematics, as the paper)
-        "corrections": {"mode": job.settings.corrections.label, "applied": list(job.settings.corrections.applied)},
+        "corrections": {"mode": job.settings.corrections.label, "applied": list(job.settings.corrections.applied),
+                        **({"depth": keyframes["depth_correction"]} if keyframes.get("depth_correction") else {}),
+                        **({"time": summary["poses"]["time_alignment"]}
+                           if (summary.get("poses") or {}).get("time_alignment") else {})},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),

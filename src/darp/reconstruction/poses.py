@@ -9,7 +9,7 @@ atomically; the survey folder is never written to.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -112,6 +112,7 @@ def recover_survey_poses(
     wrist_frame: str = "flange",
     on_arm: Callable[[str], None] | None = None,
     open_recording: Callable[[str], AbstractContextManager[Recording]] | None = None,
+    time_offsets_s: Mapping[str, float] | None = None,
 ) -> SurveyPoses:
     """Eq. 1 at every ``stream`` frame of every camera of ``survey``.
 
@@ -119,6 +120,8 @@ def recover_survey_poses(
     serial differs from the calibration's for its arm is refused: its poses would belong to another arm.
     ``open_recording(arm)``: a context manager giving ``arm``'s recording (default: ``survey.open_recording``,
     which opens and closes it; a caller that holds the recordings open passes its own).
+    ``time_offsets_s``: per arm, the camera's frame-stamp latency (issue 16's time alignment): the log is
+    sampled at ``stamp - clock_offset_s - offset``; absent arms get none.
     """
     opener = open_recording if open_recording is not None else survey.open_recording
     log = survey.arm_poses()
@@ -161,7 +164,7 @@ def recover_survey_poses(
             log_t, log_q, timestamps_ms / 1000.0,
             T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam,
             joint_offsets_rad=cal.joint_offsets_rad, max_gap_s=max_gap_s,
-            clock_offset_s=clock_offset_s, wrist_frame=wrist_frame,
+            clock_offset_s=clock_offset_s + float((time_offsets_s or {}).get(arm, 0.0)), wrist_frame=wrist_frame,
         )
         counts = poses.counts()
         if counts["frames"] and counts["posed"] == 0:
