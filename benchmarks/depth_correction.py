@@ -8,7 +8,10 @@ written intrinsics' focal error; used here only for evaluation). Printed per cam
 its standard errors, and the error of the corrected depth at 0.3 .. 0.7 m, with and without the
 colour focal error that PnP's range inherits.
 
-    .venv/bin/python benchmarks/depth_correction.py CAPTURES [--json out.json]
+    .venv/bin/python benchmarks/depth_correction.py [CAPTURES] [--json out.json]
+
+Without CAPTURES (``make bench``) it first captures 20 per arm on the twin's paper profile, seed 0
+(about two minutes), into a temporary folder.
 """
 
 from __future__ import annotations
@@ -50,13 +53,21 @@ def true_unit_errors(captures_dir: Path) -> dict[str, dict[str, Any]]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("captures", type=Path)
+    ap.add_argument("captures", type=Path, nargs="?")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     from darp.calibration.captures import read_captures
     from darp.calibration.depth_fit import DepthFitSettings, capture_depth_samples, fit_depth_correction
     from darp.calibration.detect import detect_captures
 
+    if args.captures is None:
+        import tempfile
+
+        from darp.cli._calib_twin import capture_twin
+
+        args.captures = Path(tempfile.mkdtemp(prefix="darp-depthcorr-")) / "captures"
+        print(f"capturing 20 per arm on the twin (paper profile, seed 0) into {args.captures}")
+        capture_twin(args.captures, seed=0, profile="paper", n_per_arm=20)
     cs = read_captures(args.captures)
     t0 = time.perf_counter()
     dets = detect_captures(cs)

@@ -208,7 +208,7 @@ class SurveyJob:
     def _time_offsets(self, poses: SurveyPoses) -> tuple[dict[str, float], dict[str, Any]]:
         """Per arm the camera's time offset: the calibration's ``time_offset_s`` when it has one, else
         estimated from this survey's moving frames (:mod:`darp.reconstruction.time_align`)."""
-        from darp.reconstruction.time_align import estimate_arm_offset, reference_surface
+        from darp.reconstruction.time_align import accept, estimate_arm_offset, pooled_offset, reference_surface
 
         offsets: dict[str, float] = {}
         record: dict[str, Any] = {"arms": {}}
@@ -224,6 +224,7 @@ class SurveyJob:
         if to_estimate:
             region = self.crop()
             depth = self.settings.fusion.depth
+            estimates = {}
             for arm in to_estimate:
                 # the arm's own settled frames: the other arm's carry the base-to-base error, which a moving
                 # frame of this arm would also be pulled toward
@@ -233,11 +234,22 @@ class SurveyJob:
                     record["arms"][arm] = {"source": "survey", "offset_s": None,
                                            "reason": "no settled frame sees the support region"}
                     continue
-                est = estimate_arm_offset(frames, reference, region, TIME_ALIGN, depth)
-                record["arms"][arm] = {"source": "survey", **est.to_dict()}
-                if est.offset_s is not None:
-                    offsets[arm] = est.offset_s
-        not_applied = [a for a, r in record["arms"].items() if r.get("offset_s") is None]
+                estimates[arm] = estimate_arm_offset(frames, reference, region, TIME_ALIGN, depth)
+            pooled = pooled_offset(list(estimates.values()), TIME_ALIGN) if len(estimates) > 1 else None
+            if pooled is not None:
+                record["pooled"] = {k: v for k, v in pooled.to_dict().items() if k not in ("grid_s", "cost_mm2")}
+            for arm, est in estimates.items():
+                entry = {"source": "survey", **est.to_dict()}
+                if accept(est, TIME_ALIGN):
+                    offsets[arm] = float(est.offset_s)  # type: ignore[arg-type]
+                elif pooled is not None and accept(pooled, TIME_ALIGN):
+                    offsets[arm] = float(pooled.offset_s)  # type: ignore[arg-type]
+                    entry["applied"] = f"pooled estimate (this camera's std above {TIME_ALIGN.max_std_s:g} s)"
+                else:
+                    entry["not_applied"] = (f"std above {TIME_ALIGN.max_std_s:g} s"
+                                            if est.offset_s is not None else est.reason)
+                record["arms"][arm] = entry
+        not_applied = [a for a in self.arms if a not in offsets]
         if not_applied:
             record["warning"] = (f"corrections.time is on but no time offset for {', '.join(not_applied)}: "
                                  "paper mode (frame stamps as recorded) there")

@@ -13,7 +13,10 @@ error. Per arm: each camera has its own latency.
 
 What it cannot do: with no moving frame overlapping the support region (a survey recorded only at rest)
 there is nothing to estimate; a parabola that does not open upwards, or a minimum on the grid's edge,
-is reported as not estimated. Calibration errors that vary along the path bias it slightly.
+is reported as not estimated. The pose errors that calibration leaves vary along the path and enter the
+cost as a floor that moves with the configuration, so the estimate is noisy when the arm moves slowly
+or the calibration is poor: an estimate whose bootstrap std exceeds ``max_std_s`` is not applied, and
+the cameras' moving frames pooled (one latency for cameras of one model) are tried instead.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ class TimeAlignSettings:
     reference_voxel_m: float = 0.002
     bootstrap: int = 200
     seed: int = 0
+    max_std_s: float = 0.004  # an estimate less certain than this is not applied (paper mode for that camera)
 
 
 @dataclass
@@ -61,6 +65,7 @@ class TimeOffsetEstimate:
     reason: str = ""
     grid_s: list[float] = field(default_factory=list)
     cost: list[float] = field(default_factory=list)
+    frame_costs: np.ndarray | None = field(default=None, repr=False)  # (moving frames, grid) for pooling
 
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"offset_s": self.offset_s, "std_s": self.std_s, "n_moving_frames": self.n_moving,
@@ -182,7 +187,14 @@ def estimate_arm_offset(arm: ArmFrames, reference: tuple[cKDTree, np.ndarray, in
     if len(costs) < 3:
         est.reason = f"only {len(costs)} moving frames overlap the support region (need 3)"
         return est
-    C = np.array(costs)
+    est.frame_costs = np.array(costs)
+    return _from_costs(est, grid, est.frame_costs, s)
+
+
+def _from_costs(est: TimeOffsetEstimate, grid: np.ndarray, C: np.ndarray,
+                s: TimeAlignSettings) -> TimeOffsetEstimate:
+    """The parabola minimum of the mean cost and its bootstrap std over frames (rows of ``C``)."""
+    rng = np.random.default_rng(s.seed + 1)
     total = C.mean(axis=0)
     est.cost = total.tolist()
     best = _parabola_min(grid, total)
@@ -195,8 +207,32 @@ def estimate_arm_offset(arm: ArmFrames, reference: tuple[cKDTree, np.ndarray, in
         if b is not None:
             boots.append(b)
     est.offset_s = best
+    # a resample without an interior minimum counts as the grid's half-width away
+    boots += [best + 0.5 * (grid[-1] - grid[0])] * (s.bootstrap - len(boots))
     est.std_s = float(np.std(boots, ddof=1)) if len(boots) > 1 else None
     return est
 
 
-__all__ = ["ArmFrames", "TimeAlignSettings", "TimeOffsetEstimate", "estimate_arm_offset", "reference_surface"]
+def pooled_offset(estimates: Sequence[TimeOffsetEstimate], settings: TimeAlignSettings | None = None
+                  ) -> TimeOffsetEstimate:
+    """One offset for all cameras from their moving frames together (cameras of one model share a latency)."""
+    s = settings or TimeAlignSettings()
+    usable = [e for e in estimates if e.frame_costs is not None]
+    est = TimeOffsetEstimate("pooled", None, n_moving=sum(e.n_moving for e in usable),
+                             n_reference=sum(e.n_reference for e in usable))
+    if not usable:
+        est.reason = "no camera had moving frames to score"
+        return est
+    est.grid_s = usable[0].grid_s
+    frame_costs = [e.frame_costs for e in usable if e.frame_costs is not None]
+    return _from_costs(est, np.asarray(est.grid_s), np.concatenate(frame_costs), s)
+
+
+def accept(est: TimeOffsetEstimate, settings: TimeAlignSettings | None = None) -> bool:
+    """Whether ``est`` is certain enough to apply (an offset with a std at most ``max_std_s``)."""
+    s = settings or TimeAlignSettings()
+    return est.offset_s is not None and est.std_s is not None and est.std_s <= s.max_std_s
+
+
+__all__ = ["ArmFrames", "TimeAlignSettings", "TimeOffsetEstimate", "accept", "estimate_arm_offset", "pooled_offset",
+           "reference_surface"]
