@@ -203,6 +203,7 @@ class SurveyJob:
                         self.survey, self.calibration, calibration_path=self.calibration_path,
                         open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)),
                         time_offsets_s=offsets)
+                self._poses.time_alignment = self._time_record
         return self._poses
 
     def _time_offsets(self, poses: SurveyPoses) -> tuple[dict[str, float], dict[str, Any]]:
@@ -337,8 +338,6 @@ def stage_poses(job: SurveyJob) -> dict[str, Any]:
     job.report("poses", 1, 1)
     summary = poses.summary()
     summary["pose_source"] = "truth" if job.truth_poses else "calibration"
-    if job.time_alignment_record():
-        summary["time_alignment"] = job.time_alignment_record()
     return summary
 
 

@@ -84,8 +84,10 @@ class SurveyPoses:
     trajectories: dict[str, CameraTrajectory]
     envelope: Envelope | None = None
     warnings: list[str] = field(default_factory=list)
+    time_alignment: dict[str, Any] = field(default_factory=dict)  # what the time alignment did (issue 16)
 
     def summary(self) -> dict[str, Any]:
+        extra = {"time_alignment": self.time_alignment} if self.time_alignment else {}
         return {
             "survey": str(self.survey_path),
             "calibration": {
@@ -98,6 +100,7 @@ class SurveyPoses:
             "clock_offset_s": self.clock_offset_s,
             "arms": {arm: traj.summary() for arm, traj in self.trajectories.items()},
             "warnings": list(self.warnings),
+            **extra,
         }
 
 
