@@ -269,3 +269,14 @@ def test_switches_off_change_nothing_and_depth_on_corrects_what_keyframes_store(
     stages = json.loads((runs["on"] / "stages.json").read_text())["stages"]
     assert stages["poses"]["summary"]["time_alignment"]["applied_s"] == {"arm110": 0.004, "arm111": 0.004}
     assert summary["time_alignment"]["arms"]["arm110"]["source"] == "calibration"
+
+
+def test_a_switched_on_correction_without_its_calibration_field_warns_once(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from darp.cli.process import _warn_corrections
+
+    _warn_corrections("mug", {"mode": "depth", "depth": {"warning": "corrections.depth is on but cal.json has no "
+                                                                    "depth_correction for arm111"}})
+    _warn_corrections("mug", {"mode": "paper"})
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["darp: warning: mug: corrections.depth is on but cal.json has no depth_correction for arm111"]
