@@ -65,3 +65,22 @@ def test_a_known_offset_is_recovered_from_a_small_twin_survey(survey_path: Path,
         assert est is not None and std is not None, entry
         assert abs(est - 0.015) < max(3 * std, 0.004), (arm, est, std)
     assert record["applied_s"], record
+
+
+def test_cameras_that_disagree_are_not_pooled() -> None:
+    from darp.reconstruction.time_align import pooled_offset
+
+    grid = np.arange(-0.03, 0.0401, 0.0025)
+    rng = np.random.default_rng(1)
+    s = TimeAlignSettings(bootstrap=100)
+
+    def camera(arm: str, centre_s: float) -> TimeOffsetEstimate:
+        costs = np.array([(grid - centre_s - rng.normal(0.0, 0.004)) ** 2 for _ in range(30)])
+        est = _from_costs(TimeOffsetEstimate(arm, None, n_moving=30, grid_s=grid.tolist()), grid, costs, s)
+        est.frame_costs = costs
+        return est
+
+    agree = pooled_offset([camera("a", 0.005), camera("b", 0.006)], s)
+    assert agree.offset_s == pytest.approx(0.0055, abs=0.002) and accept(agree, s)
+    split = pooled_offset([camera("a", 0.0), camera("b", 0.015)], s)
+    assert split.offset_s is None and "disagree" in split.reason and not accept(split, s)
