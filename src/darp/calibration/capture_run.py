@@ -38,6 +38,7 @@ class CaptureRunSettings:
     read_interval_s: float = 0.02
     move_timeout_s: float = 60.0
     max_speed_rad_s: float | None = None
+    depth: bool = True  # also store the depth image (for the depth correction, darp.calibration.depth_fit)
 
 
 def _grab_image(frameset: Any, stream: str) -> tuple[np.ndarray, Any, np.ndarray]:
@@ -91,7 +92,9 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
             q = np.array([r.q_rad for r in reads])
             frameset = camera.latest_frameset()
             image, intr, T_depth_stream = _grab_image(frameset, s.stream)
-            writer.add(arm=arm, camera_serial=camera.serial, time_s=float(np.mean([r.time_s for r in reads])),
+            depth = frameset.depth_m if s.depth and frameset.depth_m is not None else None
+            writer.add(depth_m=depth, depth_intrinsics=frameset.depth_intrinsics if depth is not None else None,
+                       arm=arm, camera_serial=camera.serial, time_s=float(np.mean([r.time_s for r in reads])),
                        q_rad=q.mean(axis=0), q_std_rad=q.std(axis=0), image=image, intrinsics=intr,
                        T_depth_stream=T_depth_stream, stream=s.stream,
                        extra={"planned_q_rad": pose.q_rad.tolist(), "frame_time_s": float(frameset.timestamp_s)})

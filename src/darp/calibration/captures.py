@@ -6,6 +6,7 @@ run leaves a readable folder of the captures taken so far)::
     captures.json          schema "darp-calib-captures/1": board spec, source, notes, list of captures
     arm110_000.png         the image (8-bit grey or BGR) exactly as the camera gave it
     arm110_000.json        schema "darp-calib-capture/1": the capture's record (below)
+    arm110_000_depth.png   optional: the depth image (16-bit PNG, depth frame, units of depth_unit_m)
     ...
     truth/calibration.json optional (twin captures): the true calibration, for evaluation only
 
@@ -24,6 +25,10 @@ A capture record holds what the solver needs and nothing it has to guess::
     T_depth_stream 4x4 pose of the stream's optical frame in the depth (left IR) optical frame; the
                    hand-eye is calibrated for the depth frame, so colour captures carry the factory
                    depth-to-colour extrinsic (identity for ir1)
+    depth_image    optional: the depth image file (16-bit PNG in the depth optical frame as the camera
+                   gave it, not aligned to the stream; 0 = no depth), with ``depth_unit_m`` (metres per
+                   unit) and ``depth_intrinsics``. Folders without it still solve; the depth correction
+                   (``darp.calibration.depth_fit``) needs it.
 """
 
 from __future__ import annotations
@@ -77,6 +82,13 @@ class CaptureRecord:
     T_depth_stream: np.ndarray
     q_std_rad: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    depth_file: str | None = None  # optional 16-bit depth PNG (depth optical frame)
+    depth_unit_m: float | None = None
+    depth_intrinsics: Intrinsics | None = None
+
+    @property
+    def has_depth(self) -> bool:
+        return self.depth_file is not None and self.depth_intrinsics is not None and self.depth_unit_m is not None
 
     @property
     def image_size(self) -> tuple[int, int]:
@@ -123,6 +135,24 @@ class CaptureSet:
             raise FormatError(f"capture {record.capture_id}: image is {w}x{h} but its intrinsics say "
                               f"{record.image_size[0]}x{record.image_size[1]}", path)
         return image
+
+    def load_depth(self, record: CaptureRecord) -> np.ndarray:
+        """The capture's depth image in metres (float64, 0 = no depth); the record must have one."""
+        if not record.has_depth:
+            raise FormatError(f"capture {record.capture_id}: has no depth image", self.folder / INDEX_FILE)
+        assert record.depth_file is not None and record.depth_intrinsics is not None
+        path = self.folder / record.depth_file
+        if not path.is_file():
+            raise FormatError(f"capture {record.capture_id}: depth image file is missing", path)
+        with native_stderr_silenced():
+            depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if depth is None or depth.dtype != np.uint16 or depth.ndim != 2:
+            raise FormatError(f"capture {record.capture_id}: not a 16-bit single-channel depth PNG", path)
+        h, w = depth.shape
+        if (w, h) != (record.depth_intrinsics.width, record.depth_intrinsics.height):
+            raise FormatError(f"capture {record.capture_id}: depth image is {w}x{h} but its depth intrinsics say "
+                              f"{record.depth_intrinsics.width}x{record.depth_intrinsics.height}", path)
+        return depth.astype(np.float64) * float(record.depth_unit_m or 0.0)
 
     def truth_calibration_path(self) -> Path | None:
         """``truth/calibration.json`` of twin captures, if present."""
@@ -183,6 +213,10 @@ def record_to_dict(rec: CaptureRecord) -> dict[str, Any]:
     out.update({"stream": rec.stream, "image": rec.image_file, "image_size": list(rec.image_size),
                 "intrinsics": intrinsics_to_dict(rec.intrinsics),
                 "T_depth_stream": np.asarray(rec.T_depth_stream, float).tolist()})
+    if rec.has_depth:
+        assert rec.depth_intrinsics is not None
+        out.update({"depth_image": rec.depth_file, "depth_unit_m": rec.depth_unit_m,
+                    "depth_intrinsics": intrinsics_to_dict(rec.depth_intrinsics)})
     if rec.extra:
         out["extra"] = rec.extra
     return out
@@ -213,6 +247,15 @@ def record_from_dict(data: dict[str, Any], path: Path | None) -> CaptureRecord:
     on_arm = DEFAULT_SERIAL_TO_ARM.get(str(data["camera_serial"]))
     if not arm.strip() or (on_arm is not None and arm != on_arm):
         raise FormatError(f"arm: {arm!r} does not carry camera {data['camera_serial']} (it is on {on_arm})", path)
+    depth_file = depth_unit = depth_intr = None
+    if data.get("depth_image") is not None:
+        depth_file = as_str(data["depth_image"], "depth_image", path)
+        if Path(depth_file).is_absolute() or ".." in Path(depth_file).parts:
+            raise FormatError(f"depth_image: must be a file name inside the capture folder, got {depth_file!r}", path)
+        if "depth_unit_m" not in data or "depth_intrinsics" not in data:
+            raise FormatError("depth_image needs depth_unit_m and depth_intrinsics", path)
+        depth_unit = as_float(data["depth_unit_m"], "depth_unit_m", path, positive=True)
+        depth_intr = intrinsics_from_dict(data["depth_intrinsics"], "depth_intrinsics", path)
     q = as_array(data["q_rad"], "q_rad", path, (6,))
     if float(np.max(np.abs(q))) > JOINT_ABS_MAX_RAD:
         raise FormatError(f"q_rad: {float(q[np.argmax(np.abs(q))])!r} rad is not a joint angle (beyond "
@@ -229,6 +272,7 @@ def record_from_dict(data: dict[str, Any], path: Path | None) -> CaptureRecord:
         T_depth_stream=as_rigid_transform(data["T_depth_stream"], "T_depth_stream", path),
         q_std_rad=None if std is None else as_array(std, "q_std_rad", path, (6,)),
         extra=as_dict(data.get("extra", {}), "extra", path),
+        depth_file=depth_file, depth_unit_m=depth_unit, depth_intrinsics=depth_intr,
     )
 
 
@@ -285,8 +329,10 @@ class CaptureWriter:
 
     def add(self, *, arm: str, camera_serial: str, time_s: float, q_rad: np.ndarray, image: np.ndarray,
             intrinsics: Intrinsics, T_depth_stream: np.ndarray, stream: str = "color",
-            q_std_rad: np.ndarray | None = None, extra: dict[str, Any] | None = None) -> CaptureRecord:
-        """Write one capture; returns its record."""
+            q_std_rad: np.ndarray | None = None, extra: dict[str, Any] | None = None,
+            depth_m: np.ndarray | None = None, depth_intrinsics: Intrinsics | None = None,
+            depth_unit_m: float = 0.001) -> CaptureRecord:
+        """Write one capture (with its depth image when ``depth_m``, metres, is given); returns its record."""
         if stream not in STREAMS:
             raise CalibrationError(f"stream must be one of {', '.join(STREAMS)}, got {stream!r}")
         image = np.asarray(image)
@@ -302,6 +348,22 @@ class CaptureWriter:
         ok, png = cv2.imencode(".png", image)
         if not ok:
             raise CalibrationError(f"cannot encode capture {capture_id} as PNG")
+        depth_file = None
+        if depth_m is not None:
+            if depth_intrinsics is None:
+                raise CalibrationError("a capture's depth image needs the depth intrinsics")
+            depth = np.asarray(depth_m, dtype=np.float64)
+            if depth.shape != (depth_intrinsics.height, depth_intrinsics.width):
+                raise CalibrationError(f"depth image is {depth.shape[1]}x{depth.shape[0]} but the depth intrinsics "
+                                       f"are for {depth_intrinsics.width}x{depth_intrinsics.height}")
+            units = np.rint(np.where(np.isfinite(depth) & (depth > 0), depth, 0.0) / depth_unit_m)
+            units = np.where(units > 65535, 0, units).astype(np.uint16)  # beyond the unit's range: no depth
+            ok, dpng = cv2.imencode(".png", units)
+            if not ok:
+                raise CalibrationError(f"cannot encode capture {capture_id}'s depth as PNG")
+            depth_file = f"{capture_id}_depth.png"
+            with atomic_path(self.folder / depth_file) as tmp:
+                tmp.write_bytes(dpng.tobytes())
         with atomic_path(self.folder / f"{capture_id}.png") as tmp:
             tmp.write_bytes(png.tobytes())
         record = CaptureRecord(capture_id=capture_id, arm=arm, camera_serial=str(camera_serial),
@@ -309,7 +371,9 @@ class CaptureWriter:
                                image_file=f"{capture_id}.png", intrinsics=intrinsics,
                                T_depth_stream=np.asarray(T_depth_stream, float).copy(),
                                q_std_rad=None if q_std_rad is None else np.asarray(q_std_rad, float).copy(),
-                               extra=dict(extra or {}))
+                               extra=dict(extra or {}), depth_file=depth_file,
+                               depth_unit_m=None if depth_file is None else float(depth_unit_m),
+                               depth_intrinsics=None if depth_file is None else depth_intrinsics)
         write_json_checked(self.folder / f"{capture_id}.json", record_to_dict(record))
         self.records.append(record)
         self._write_index()

@@ -20,6 +20,7 @@ import numpy as np
 
 from darp.calibration import handeye
 from darp.calibration.captures import CaptureSet
+from darp.calibration.depth_fit import DepthFitSettings, estimate_depth_corrections
 from darp.calibration.detect import Detection, DetectionSettings, detect_captures
 from darp.calibration.evaluate import kfold_heldout, summarise, truth_errors
 from darp.calibration.kinematic_ident import KinIdentifiability, KinIdentSettings, analyse_kinematics
@@ -62,6 +63,7 @@ class SolveSettings:
     epoch: str | None = None
     model: str = "paper"  # paper | kinematic | kinematic+compliance (darp.calibration.kinematic_ident)
     kin_ident: KinIdentSettings = field(default_factory=KinIdentSettings)
+    depth: DepthFitSettings = field(default_factory=DepthFitSettings)  # captures with depth: per-camera fit
 
 
 @dataclass
@@ -233,6 +235,13 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
         if core.kin_ident is not None:  # in the world the richer model itself realises (its bases and board)
             T_ref_world_model = world_from_reference(core.params.T_ref_base, core.params.T_ref_board, arms)
             entry.kinematics = _kinematics_entry(core, a, obs, T_ref_world_model, heldout.get("darp_model"))
+    tick = time.perf_counter()
+    depth_corr, depth_skipped = estimate_depth_corrections(captures, detections, s.depth)
+    for a, corr in depth_corr.items():
+        if a in cal.arms:
+            cal.arms[a].depth_correction = corr
+    if depth_corr or depth_skipped:
+        timings["depth_correction"] = time.perf_counter() - tick
     truth_cmp = None
     if truth is not None:
         q_by_arm = {a: obs.q_rad[obs.for_arm(a)] for a in arms}
@@ -243,6 +252,9 @@ def solve_captures(captures: CaptureSet, settings: SolveSettings | None = None, 
             ident = free if name in ("darp", "darp_model") else {a: np.zeros(6, bool) for a in arms}
             truth_cmp[name] = truth_errors(other, truth, arms, ident, q_by_arm, s.refine.wrist_frame)
     cal.report = _report(s, captures, detections, obs, core, T_ref_world, heldout, truth_cmp, timings, arms)
+    cal.report["depth_correction"] = {
+        "captures_with_depth": sum(1 for c in captures.captures if c.has_depth),
+        "estimated": sorted(depth_corr), "skipped": depth_skipped}
     return SolveOutcome(cal, core, obs, detections, T_ref_world, methods, heldout, truth_cmp, timings)
 
 

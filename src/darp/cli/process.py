@@ -23,6 +23,14 @@ def _warn(message: str) -> None:
     typer.echo(f"darp: warning: {message}", err=True)
 
 
+def _warn_corrections(survey: str, corrections: dict[str, Any] | None) -> None:
+    """One line per switched-on correction that had nothing to apply for some arm (paper mode there)."""
+    for name in ("depth", "time"):
+        warning = ((corrections or {}).get(name) or {}).get("warning")
+        if warning:
+            _warn(f"{survey}: {warning}")
+
+
 def _warn_estimated_envelope(survey: str, envelope: dict[str, Any] | None) -> None:
     """One line when the envelope was estimated from the survey (manip_envelope.json had no geometry)."""
     if envelope and envelope.get("source") == "estimated":
@@ -141,6 +149,8 @@ def keyframes(
         table.add_row(arm, *(str(c.get(k, 0)) for k in keys), f"{c.get('still_threshold_rad_s', 0):.3f}")
     Console().print(table)
     _warn_estimated_envelope(job.survey.name, summary.get("envelope"))
+    _warn_corrections(job.survey.name, {"depth": summary.get("depth_correction"),
+                                        "time": job.time_alignment_record()})
     typer.echo(f"wrote {out}")
 
 
@@ -271,6 +281,7 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
     Console().print(table)
     for folder, r in zip(done, results, strict=True):
         _warn_estimated_envelope(folder.name, r.get("envelope"))
+        _warn_corrections(folder.name, r.get("corrections"))
 
 
 @app.command("report")

@@ -10,12 +10,19 @@ This module is only the data container and its on-disk form; computing a calibra
                     (null when the calibration did not come from a board, e.g. a nominal one)
     world_frame     free text: how the world frame is defined
     arms            {arm: {serial, T_world_base, T_wrist_cam, joint_offsets_rad,
-                           joint_offsets_std_rad?, identifiable?, residuals?, n_captures?}}
+                           joint_offsets_std_rad?, identifiable?, residuals?, n_captures?,
+                           depth_correction?, time_offset_s?, time_offset_std_s?}}
     report          free object (statistics, settings, notes)
 
 ``T_world_base`` and ``T_wrist_cam`` are 4x4 rigid transforms (``T_a_b`` maps points from b to a);
 the wrist frame is the Z1 flange. ``joint_offsets_rad`` is the static joint-zero correction dq of
 eq. 1: the model is evaluated at q + dq.
+
+Optional per-arm corrections (issue 16; absent = nothing to apply): ``depth_correction`` is the camera's
+depth correction estimated from the board captures (:class:`DepthCorrection`: corrected depth =
+``scale * z + offset_m + quad_per_m * z^2`` for measured depth ``z`` in metres, with standard errors);
+``time_offset_s`` (+ ``time_offset_std_s``) is how far the camera's frame stamps are behind the true
+exposure instants relative to the joint log (the log is sampled at ``stamp - time_offset_s``).
 """
 
 from __future__ import annotations
@@ -45,7 +52,10 @@ SCHEMA_VERSION = 1
 N_JOINTS = 6
 TOP_KEYS = ("schema_version", "epoch", "date", "board", "world_frame", "arms", "report")
 ARM_KEYS = ("serial", "T_world_base", "T_wrist_cam", "joint_offsets_rad", "joint_offsets_std_rad", "identifiable",
-            "residuals", "n_captures", "kinematics")
+            "residuals", "n_captures", "kinematics", "depth_correction", "time_offset_s", "time_offset_std_s")
+DEPTH_CORRECTION_KEYS = ("model", "scale", "offset_m", "quad_per_m", "scale_std", "offset_std_m", "quad_std_per_m",
+                         "quad_identifiable", "range_m", "n_captures", "n_pixels", "residual_mad_m", "notes")
+DEPTH_CORRECTION_MODEL = "z_true = scale * z + offset_m + quad_per_m * z^2"
 
 
 def _refuse_unknown(record: dict[str, Any], known: tuple[str, ...], where: str, path: Path | None) -> None:
@@ -67,6 +77,83 @@ class CharucoBoardSpec:
     dictionary: str  # OpenCV name, e.g. "DICT_5X5_100"
 
 
+@dataclass(frozen=True)
+class DepthCorrection:
+    """One camera's depth correction: ``z_true = scale * z + offset_m + quad_per_m * z**2`` (metres).
+
+    Estimated from board captures (``darp.calibration.depth_fit``); the ``*_std`` fields are standard
+    errors; ``quad_identifiable`` says whether the distance-dependent term was estimated (False: fixed at 0);
+    ``range_m`` is the span of measured depths the fit saw (outside it the model is extrapolated).
+    """
+
+    scale: float = 1.0
+    offset_m: float = 0.0
+    quad_per_m: float = 0.0
+    scale_std: float | None = None
+    offset_std_m: float | None = None
+    quad_std_per_m: float | None = None
+    quad_identifiable: bool = False
+    range_m: tuple[float, float] | None = None
+    n_captures: int = 0
+    n_pixels: int = 0
+    residual_mad_m: float | None = None
+    notes: str = ""
+
+    def apply(self, depth_m: np.ndarray) -> np.ndarray:
+        """Corrected depth (float64 metres); 0 (no depth) stays 0, a correction below 0 becomes 0."""
+        z = np.asarray(depth_m, dtype=np.float64)
+        out = self.scale * z + self.offset_m + self.quad_per_m * z * z
+        return np.where(z > 0, np.maximum(out, 0.0), 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"model": DEPTH_CORRECTION_MODEL, "scale": self.scale, "offset_m": self.offset_m,
+                               "quad_per_m": self.quad_per_m}
+        for key in ("scale_std", "offset_std_m", "quad_std_per_m"):
+            if getattr(self, key) is not None:
+                out[key] = getattr(self, key)
+        out["quad_identifiable"] = bool(self.quad_identifiable)
+        if self.range_m is not None:
+            out["range_m"] = [float(v) for v in self.range_m]
+        out.update({"n_captures": int(self.n_captures), "n_pixels": int(self.n_pixels)})
+        if self.residual_mad_m is not None:
+            out["residual_mad_m"] = self.residual_mad_m
+        if self.notes:
+            out["notes"] = self.notes
+        return out
+
+
+def depth_correction_from_dict(value: Any, where: str, path: Path | None) -> DepthCorrection:
+    """Parse and check a ``depth_correction`` record (scale within 0.8..1.2, offset within +-0.1 m)."""
+    data = as_dict(value, where, path)
+    _refuse_unknown(data, DEPTH_CORRECTION_KEYS, where, path)
+    missing = [k for k in ("scale", "offset_m") if k not in data]
+    if missing:
+        raise FormatError(f"{where}: missing {', '.join(missing)}", path)
+    if "model" in data and data["model"] != DEPTH_CORRECTION_MODEL:
+        raise FormatError(f"{where}.model: expected {DEPTH_CORRECTION_MODEL!r}, got {data['model']!r}", path)
+
+    def opt(key: str) -> float | None:
+        return None if data.get(key) is None else as_float(data[key], f"{where}.{key}", path)
+
+    rng = data.get("range_m")
+    corr = DepthCorrection(
+        scale=as_float(data["scale"], f"{where}.scale", path, positive=True),
+        offset_m=as_float(data["offset_m"], f"{where}.offset_m", path),
+        quad_per_m=as_float(data.get("quad_per_m", 0.0), f"{where}.quad_per_m", path),
+        scale_std=opt("scale_std"), offset_std_m=opt("offset_std_m"), quad_std_per_m=opt("quad_std_per_m"),
+        quad_identifiable=bool(data.get("quad_identifiable", False)),
+        range_m=None if rng is None else tuple(float(v) for v in as_array(rng, f"{where}.range_m", path, (2,))),  # type: ignore[arg-type]
+        n_captures=as_int(data.get("n_captures", 0), f"{where}.n_captures", path, minimum=0),
+        n_pixels=as_int(data.get("n_pixels", 0), f"{where}.n_pixels", path, minimum=0),
+        residual_mad_m=opt("residual_mad_m"),
+        notes=as_str(data.get("notes", ""), f"{where}.notes", path),
+    )
+    if not (0.8 <= corr.scale <= 1.2 and abs(corr.offset_m) <= 0.1 and abs(corr.quad_per_m) <= 0.2):
+        raise FormatError(f"{where}: scale {corr.scale:.4g}, offset {corr.offset_m:.4g} m, quad "
+                          f"{corr.quad_per_m:.4g} /m is not a plausible depth correction", path)
+    return corr
+
+
 @dataclass
 class ArmCalibration:
     """The static transforms and joint-zero correction of one arm."""
@@ -82,6 +169,9 @@ class ArmCalibration:
     # the richer kinematic model (issue 16 item 1; darp.kinematics.kinematic_model.KinematicParams.to_dict
     # plus "model" and "identifiability"); None: the paper's model (joint zeros only)
     kinematics: dict[str, Any] | None = None
+    depth_correction: DepthCorrection | None = None  # issue 16 item 3 (absent: nothing to apply)
+    time_offset_s: float | None = None  # issue 16 item 2: log sampled at frame stamp - offset
+    time_offset_std_s: float | None = None
 
 
 @dataclass
@@ -157,7 +247,16 @@ def _arm_from(name: str, value: Any, path: Path | None) -> ArmCalibration:
         residuals=as_dict(arm.get("residuals", {}), f"{where}.residuals", path),
         n_captures=None if n_captures is None else as_int(n_captures, f"{where}.n_captures", path, minimum=0),
         kinematics=None if arm.get("kinematics") is None else as_dict(arm["kinematics"], f"{where}.kinematics", path),
+        depth_correction=None if arm.get("depth_correction") is None
+        else depth_correction_from_dict(arm["depth_correction"], f"{where}.depth_correction", path),
+        time_offset_s=None if arm.get("time_offset_s") is None
+        else as_float(arm["time_offset_s"], f"{where}.time_offset_s", path),
+        time_offset_std_s=None if arm.get("time_offset_std_s") is None
+        else as_float(arm["time_offset_std_s"], f"{where}.time_offset_std_s", path),
     )
+    if result.time_offset_s is not None and abs(result.time_offset_s) > 1.0:
+        raise FormatError(f"{where}.time_offset_s: {result.time_offset_s!r} s is not a plausible camera latency "
+                          "(more than 1 s)", path)
     _check_ranges(result, where, path)
     return result
 
@@ -239,6 +338,12 @@ def calibration_to_dict(cal: Calibration) -> dict[str, Any]:
             entry["n_captures"] = int(arm.n_captures)
         if arm.kinematics is not None:
             entry["kinematics"] = arm.kinematics
+        if arm.depth_correction is not None:
+            entry["depth_correction"] = arm.depth_correction.to_dict()
+        if arm.time_offset_s is not None:
+            entry["time_offset_s"] = float(arm.time_offset_s)
+        if arm.time_offset_std_s is not None:
+            entry["time_offset_std_s"] = float(arm.time_offset_std_s)
         arms[name] = entry
     board = None if cal.board is None else {
         "squares_x": cal.board.squares_x,

@@ -70,8 +70,10 @@ from darp.reconstruction.keyframe_io import (
 from darp.reconstruction.keyframes import FUSE, select_survey_keyframes
 from darp.reconstruction.mesh import ball_pivoting_mesh, ball_pivoting_radii, mesh_area, write_mesh
 from darp.reconstruction.poses import SurveyPoses, recover_survey_poses, write_survey_poses
+from darp.reconstruction.time_align import TimeAlignSettings
 
 STAGES_FILE = "stages.json"
+TIME_ALIGN = TimeAlignSettings()
 PARTIAL_SUFFIX = ".partial"
 POSES_DIR, KEYFRAMES_DIR, FIGURES_DIR = "poses", "keyframes", "figures"
 FUSED_FILE, MESH_FILE = "fused.ply", "mesh.ply"
@@ -97,6 +99,29 @@ class SurveyJob:
     _envelope_record: dict[str, Any] = field(default_factory=dict, init=False, repr=False)
     _recordings: dict[str, Recording] = field(default_factory=dict, init=False, repr=False)
     _poses: SurveyPoses | None = field(default=None, init=False, repr=False)
+    _time_record: dict[str, Any] = field(default_factory=dict, init=False, repr=False)
+
+    def depth_corrections(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Per arm the depth correction to apply (``corrections.depth`` on and the calibration has one), and
+        the record for results.json (``{}`` when the switch is off: paper mode)."""
+        if not self.settings.corrections.depth:
+            return {}, {}
+        where = self.calibration_path or "the calibration"
+        apply: dict[str, Any] = {}
+        record: dict[str, Any] = {"applied_at": "keyframe export (stored keyframe depth is corrected)", "arms": {}}
+        for arm in self.arms:
+            corr = self.calibration.arms[arm].depth_correction if arm in self.calibration.arms else None
+            if corr is None:
+                record["arms"][arm] = {"applied": False,
+                                       "reason": f"{where} has no depth_correction for {arm}: paper mode for it"}
+                continue
+            apply[arm] = corr
+            record["arms"][arm] = {"applied": True, **corr.to_dict()}
+        missing = [a for a in self.arms if a not in apply]
+        if missing:
+            record["warning"] = (f"corrections.depth is on but {where} has no depth_correction for "
+                                 f"{', '.join(missing)} (captures without depth?): not applied there")
+        return apply, record
 
     def report(self, stage: str, done: float, total: float | None) -> None:
         if self.progress is not None:
@@ -172,7 +197,98 @@ class SurveyJob:
             if self.truth_poses:
                 poses = with_truth_poses(poses, self.survey)
             self._poses = poses
+            if self.settings.corrections.time and not self.truth_poses:
+                offsets, self._time_record = self._time_offsets(poses)
+                if offsets:
+                    self._poses = recover_survey_poses(
+                        self.survey, self.calibration, calibration_path=self.calibration_path,
+                        open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)),
+                        time_offsets_s=offsets)
+                self._poses.time_alignment = self._time_record
         return self._poses
+
+    def _time_offsets(self, poses: SurveyPoses) -> tuple[dict[str, float], dict[str, Any]]:
+        """Per arm the camera's time offset: the calibration's ``time_offset_s`` when it has one, else
+        estimated from this survey's moving frames (:mod:`darp.reconstruction.time_align`)."""
+        from darp.reconstruction.time_align import accept, estimate_arm_offset, pooled_offset, reference_surface
+
+        offsets: dict[str, float] = {}
+        record: dict[str, Any] = {"arms": {}}
+        to_estimate = []
+        for arm in self.arms:
+            cal = self.calibration.arms[arm]
+            if cal.time_offset_s is not None:
+                offsets[arm] = float(cal.time_offset_s)
+                record["arms"][arm] = {"source": "calibration", "offset_s": cal.time_offset_s,
+                                       "std_s": cal.time_offset_std_s}
+            else:
+                to_estimate.append(arm)
+        if to_estimate:
+            region = self.crop()
+            depth = self.settings.fusion.depth
+            estimates = {}
+            for arm in to_estimate:
+                # the arm's own settled frames: the other arm's carry the base-to-base error, which a moving
+                # frame of this arm would also be pulled toward
+                frames = self._arm_frames(arm, poses)
+                reference = reference_surface([frames], region, TIME_ALIGN, depth)
+                if reference is None:
+                    record["arms"][arm] = {"source": "survey", "offset_s": None,
+                                           "reason": "no settled frame sees the support region"}
+                    continue
+                estimates[arm] = estimate_arm_offset(frames, reference, region, TIME_ALIGN, depth)
+            pooled = pooled_offset(list(estimates.values()), TIME_ALIGN) if len(estimates) > 1 else None
+            if pooled is not None:
+                record["pooled"] = {k: v for k, v in pooled.to_dict().items() if k not in ("grid_s", "cost_mm2")}
+            for arm, est in estimates.items():
+                entry = {"source": "survey", **est.to_dict()}
+                if accept(est, TIME_ALIGN):
+                    offsets[arm] = float(est.offset_s)  # type: ignore[arg-type]
+                elif pooled is not None and accept(pooled, TIME_ALIGN):
+                    offsets[arm] = float(pooled.offset_s)  # type: ignore[arg-type]
+                    entry["applied"] = f"pooled estimate (this camera's std above {TIME_ALIGN.max_std_s:g} s)"
+                else:
+                    entry["not_applied"] = (f"std above {TIME_ALIGN.max_std_s:g} s"
+                                            if est.offset_s is not None else est.reason)
+                record["arms"][arm] = entry
+        not_applied = [a for a in self.arms if a not in offsets]
+        if not_applied:
+            record["warning"] = (f"corrections.time is on but no time offset for {', '.join(not_applied)}: "
+                                 "paper mode (frame stamps as recorded) there")
+        record["applied_s"] = offsets
+        return offsets, record
+
+    def _arm_frames(self, arm: str, poses: SurveyPoses) -> Any:
+        """The time-offset estimator's view of one arm (joint log, eq. 1 inputs, depth decoder)."""
+        from darp.reconstruction.keyframe_io import frameset_at
+        from darp.reconstruction.keyframes import settled_mask
+        from darp.reconstruction.time_align import ArmFrames
+
+        traj = poses.trajectories[arm]
+        log = self.survey.arm_poses()
+        cal = self.calibration.arms[arm]
+        recording = self.recording(arm)
+        threshold = self.settings.keyframes.still_threshold(traj.speed_noise_rad_s)
+        speed = traj.poses.joint_speed_rad_s
+
+        def read_depth(index: int) -> np.ndarray:
+            frameset = frameset_at(recording, index)
+            assert frameset.depth is not None
+            return np.asarray(frameset.depth.data, np.uint16)
+
+        intr = recording.stream("depth").intrinsics
+        assert intr is not None
+        return ArmFrames(arm=arm, log_t_s=log.times(arm), log_q_rad=log.joints(arm), frame_t_s=traj.poses.t_s,
+                         T_world_cam=traj.poses.T_world_cam, joint_speed_rad_s=speed,
+                         still=settled_mask(traj.poses.t_s, speed, self.settings.keyframes, threshold),
+                         T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam,
+                         joint_offsets_rad=cal.joint_offsets_rad, intrinsics=intr,
+                         depth_scale=float(recording.depth_scale), read_depth=read_depth)
+
+    def time_alignment_record(self) -> dict[str, Any]:
+        """What the time alignment did ({} when ``corrections.time`` is off)."""
+        self.poses()
+        return self._time_record
 
 
 @dataclass(frozen=True)
@@ -247,9 +363,10 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
         job.report("keyframes", done, total)
 
     entries = []
+    depth_corr, depth_record = job.depth_corrections()
     for arm, selection in selections.items():
         entries += export_arm_keyframes(job.recording(arm), selection, poses.trajectories[arm], folder,
-                                        crop=crop, progress=tick)
+                                        crop=crop, progress=tick, depth_correction=depth_corr.get(arm))
     arms = {arm: {"serial": poses.trajectories[arm].serial, **sel.counts,
                   "still_threshold_rad_s": round(sel.still_threshold_rad_s, 6),
                   "speed_noise_rad_s": round(sel.speed_noise_rad_s, 6)} for arm, sel in selections.items()}
@@ -264,11 +381,15 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
                                                   "center_m": list(crop.center_m), "radius_m": crop.radius_m,
                                                   "height_m": crop.height_m, "table_z_m": crop.table_z_m,
                                                   "margin_m": crop.margin_m, "table_margin_m": crop.table_margin_m,
-                                                  "calibration_uncertainty_m": job.calibration_uncertainty()}})
+                                                  "calibration_uncertainty_m": job.calibration_uncertainty()},
+                                 **({"depth_correction": depth_record} if depth_record else {})})
     write_keyframe_index(index)
     n_held = sum(1 for e in entries if e.split != FUSE)
-    return {"arms": arms, "keyframes": len(entries), "fuse": len(entries) - n_held, "heldout": n_held,
-            "envelope": job.envelope_record()}
+    summary = {"arms": arms, "keyframes": len(entries), "fuse": len(entries) - n_held, "heldout": n_held,
+               "envelope": job.envelope_record()}
+    if depth_record:
+        summary["depth_correction"] = depth_record
+    return summary
 
 
 def no_keyframe_error(job: SurveyJob, selections: dict[str, Any]) -> ReconstructionError:
@@ -397,7 +518,7 @@ def staged_outputs(folder: Path, names: Sequence[str]) -> Any:
 
 RECONSTRUCTION_STAGES: tuple[Stage, ...] = (
     Stage("poses", stage_poses, (f"{POSES_DIR}/summary.json",), ("corrections",)),
-    Stage("keyframes", stage_keyframes, (f"{KEYFRAMES_DIR}/keyframes.json",), ("keyframes", "fusion")),
+    Stage("keyframes", stage_keyframes, (f"{KEYFRAMES_DIR}/keyframes.json",), ("keyframes", "fusion", "corrections")),
     Stage("fusion", stage_fusion, (FUSED_FILE,), ("fusion",)),
     Stage("mesh", stage_mesh, (MESH_FILE,), ("mesh",)),
 )

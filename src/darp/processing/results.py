@@ -118,7 +118,10 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
         # darp's improvements applied ("paper" = none: poses from calibration and kinematics, as the paper)
         "corrections": {"mode": job.settings.corrections.label, "applied": list(job.settings.corrections.applied),
                         **({"kinematics": summary["poses"]["kinematics"]}
-                           if "kinematics" in summary.get("poses", {}) else {})},
+                           if "kinematics" in summary.get("poses", {}) else {}),
+                        **({"depth": keyframes["depth_correction"]} if keyframes.get("depth_correction") else {}),
+                        **({"time": summary["poses"]["time_alignment"]}
+                           if (summary.get("poses") or {}).get("time_alignment") else {})},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),

@@ -102,6 +102,30 @@ class Region(Protocol):
 
 
 # -- metric depth and rays ------------------------------------------------------------------------
+CORRECTED_DEPTH_SCALE = 0.00025
+"""Metres per unit of depth written after a depth correction: a quarter millimetre keeps the corrected
+values' rounding (0.07 mm RMS) well below the sensor's noise, and 16 bits still reach 16.4 m."""
+
+
+class DepthCorrectionModel(Protocol):
+    """A per-camera depth correction (``darp.formats.calibration.DepthCorrection``)."""
+
+    def apply(self, depth_m: np.ndarray) -> np.ndarray: ...
+
+
+def correct_raw_depth(depth: np.ndarray, depth_scale: float, correction: DepthCorrectionModel
+                      ) -> tuple[np.ndarray, float]:
+    """Raw Z16 depth corrected by ``correction``: ``(uint16 depth, its depth scale)``.
+
+    The corrected metric depth is re-quantised to :data:`CORRECTED_DEPTH_SCALE` so every consumer of the
+    raw-depth contract (``metres = depth * depth_scale``) sees corrected depth; 0 stays 0 and a value
+    beyond the 16-bit range becomes 0 (no depth).
+    """
+    metres = correction.apply(np.asarray(depth, np.float64) * float(depth_scale))
+    units = np.rint(metres / CORRECTED_DEPTH_SCALE)
+    return np.where((units > 0) & (units <= 65535), units, 0).astype(np.uint16), CORRECTED_DEPTH_SCALE
+
+
 def depth_to_metres(depth: np.ndarray, depth_scale: float) -> np.ndarray:
     """Raw Z16 depth (or already-metric float depth with scale 1) to float32 metres; 0 stays 0."""
     if depth.ndim != 2:

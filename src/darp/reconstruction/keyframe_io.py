@@ -49,7 +49,7 @@ from darp.formats.atomic import atomic_open, write_json_atomic
 from darp.formats.realsense.recording import Recording
 from darp.formats.realsense.types import FrameSet, Intrinsics
 from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb
-from darp.reconstruction.backproject import PosedDepth, depth_to_metres
+from darp.reconstruction.backproject import DepthCorrectionModel, PosedDepth, correct_raw_depth, depth_to_metres
 from darp.reconstruction.crop import EnvelopeCrop, support_mask
 from darp.reconstruction.keyframes import FUSE, HELDOUT, ArmKeyframes
 
@@ -279,10 +279,18 @@ def frameset_at(recording: Recording, depth_index: int) -> FrameSet:
 
 
 def keyframe_from_frameset(frameset: FrameSet, recording: Recording, *, arm: str, serial: str, t_s: float,
-                           split: str, view: int, T_world_cam: np.ndarray, crop: EnvelopeCrop | None) -> Keyframe:
-    """Build a keyframe: colour aligned to depth, the support mask, pose and metadata."""
+                           split: str, view: int, T_world_cam: np.ndarray, crop: EnvelopeCrop | None,
+                           depth_correction: DepthCorrectionModel | None = None) -> Keyframe:
+    """Build a keyframe: colour aligned to depth, the support mask, pose and metadata.
+
+    With ``depth_correction`` the stored depth is the corrected one (:func:`correct_raw_depth`, its own
+    depth scale), so fusion, held-out evaluation and every export of the keyframe see the same depth.
+    """
     assert frameset.depth is not None
     depth = np.asarray(frameset.depth.data, np.uint16)
+    depth_scale = float(recording.depth_scale)
+    if depth_correction is not None:
+        depth, depth_scale = correct_raw_depth(depth, depth_scale, depth_correction)
     h, w = depth.shape
     d_intr = recording.stream("depth").intrinsics
     if d_intr is None:
@@ -294,7 +302,7 @@ def keyframe_from_frameset(frameset: FrameSet, recording: Recording, *, arm: str
         if profile.intrinsics is None:
             raise ReconstructionError("the colour stream has no intrinsics", recording.path)
         colour = colour_to_rgb(frameset.color.data, profile.format)
-        rgb = align_colour_to_depth(depth, recording.depth_scale, d_intr, colour, profile.intrinsics,
+        rgb = align_colour_to_depth(depth, depth_scale, d_intr, colour, profile.intrinsics,
                                     recording.extrinsics("depth", "color"))
         streams.append("color")
     ir = {}
@@ -306,11 +314,11 @@ def keyframe_from_frameset(frameset: FrameSet, recording: Recording, *, arm: str
             if ir[key].dtype != np.uint8:  # y16 infrared: keep the top 8 bits (the Y8 view)
                 ir[key] = (ir[key] >> 8).astype(np.uint8)
     mask = (np.zeros((h, w), bool) if crop is None
-            else support_mask(depth, d_intr, T_world_cam, crop, depth_scale=recording.depth_scale))
+            else support_mask(depth, d_intr, T_world_cam, crop, depth_scale=depth_scale))
     return Keyframe(arm=arm, serial=serial, frame_number=frameset.depth.info.frame_number,
                     timestamp_ms=frameset.depth.info.timestamp_ms, t_s=float(t_s), split=split, view=int(view),
                     rgb=rgb, depth=depth, ir_left=ir["ir1"], ir_right=ir["ir2"], support_mask=mask,
-                    intrinsics=d_intr, depth_scale=float(recording.depth_scale),
+                    intrinsics=d_intr, depth_scale=depth_scale,
                     T_world_cam=np.asarray(T_world_cam, np.float64), streams=tuple(streams))
 
 
@@ -332,7 +340,8 @@ def write_observation(path: str | Path, frameset: FrameSet, recording: Recording
 
 def export_arm_keyframes(recording: Recording, selection: ArmKeyframes, trajectory: Any, out_dir: str | Path, *,
                          crop: EnvelopeCrop | None,
-                         progress: Callable[[int], None] | None = None) -> list[KeyframeInfo]:
+                         progress: Callable[[int], None] | None = None,
+                         depth_correction: DepthCorrectionModel | None = None) -> list[KeyframeInfo]:
     """Export one arm's keyframes (``trajectory`` is its ``CameraTrajectory``); returns their index entries.
 
     Frames are decoded one keyframe at a time (a time window around each), so memory does not grow
@@ -347,7 +356,8 @@ def export_arm_keyframes(recording: Recording, selection: ArmKeyframes, trajecto
         frameset = frameset_at(recording, index)
         T = trajectory.poses.T_world_cam[index]
         kf = keyframe_from_frameset(frameset, recording, arm=arm, serial=serial, t_s=trajectory.poses.t_s[index],
-                                    split=HELDOUT if held else FUSE, view=view, T_world_cam=T, crop=crop)
+                                    split=HELDOUT if held else FUSE, view=view, T_world_cam=T, crop=crop,
+                                    depth_correction=depth_correction)
         rel = f"{arm}/{kf.frame_number:06d}.npz"
         write_keyframe(out / rel, kf)
         entries.append(kf.index_entry(rel))

@@ -10,7 +10,7 @@ atomically; the survey folder is never written to.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,10 +90,13 @@ class SurveyPoses:
     warnings: list[str] = field(default_factory=list)
     # the richer kinematic model per arm when corrections.kinematics is on (None: off, the paper's eq. 1)
     kinematics: dict[str, Any] | None = None
+    time_alignment: dict[str, Any] = field(default_factory=dict)  # what the time alignment did (issue 16)
 
     def summary(self) -> dict[str, Any]:
         extra = {} if self.kinematics is None else {"kinematics": self.kinematics}
-        return {**extra,
+        if self.time_alignment:
+            extra["time_alignment"] = self.time_alignment
+        return {
             "survey": str(self.survey_path),
             "calibration": {
                 "path": None if self.calibration_path is None else str(self.calibration_path),
@@ -105,6 +108,7 @@ class SurveyPoses:
             "clock_offset_s": self.clock_offset_s,
             "arms": {arm: traj.summary() for arm, traj in self.trajectories.items()},
             "warnings": list(self.warnings),
+            **extra,
         }
 
 
@@ -120,6 +124,7 @@ def recover_survey_poses(
     on_arm: Callable[[str], None] | None = None,
     open_recording: Callable[[str], AbstractContextManager[Recording]] | None = None,
     kinematics: bool = False,
+    time_offsets_s: Mapping[str, float] | None = None,
 ) -> SurveyPoses:
     """Eq. 1 at every ``stream`` frame of every camera of ``survey``.
 
@@ -130,6 +135,8 @@ def recover_survey_poses(
     ``kinematics``: use the calibration's richer kinematic model (``kinematics`` per arm: joint origins, axis
     tilts, compliance; :mod:`darp.kinematics.kinematic_model`) in eq. 1; an arm without one is posed with the
     paper's model and a warning naming the calibration file.
+    ``time_offsets_s``: per arm, the camera's frame-stamp latency (issue 16's time alignment): the log is
+    sampled at ``stamp - clock_offset_s - offset``; absent arms get none.
     """
     opener = open_recording if open_recording is not None else survey.open_recording
     log = survey.arm_poses()
@@ -181,7 +188,8 @@ def recover_survey_poses(
             log_t, log_q, timestamps_ms / 1000.0,
             T_world_base=T_world_base, T_wrist_cam=T_wrist_cam,
             joint_offsets_rad=joint_offsets, max_gap_s=max_gap_s,
-            clock_offset_s=clock_offset_s, wrist_frame=wrist_frame, fk_batch=fk,
+            clock_offset_s=clock_offset_s + float((time_offsets_s or {}).get(arm, 0.0)), wrist_frame=wrist_frame,
+            fk_batch=fk,
         )
         counts = poses.counts()
         if counts["frames"] and counts["posed"] == 0:
