@@ -127,3 +127,11 @@ def test_view_connect_and_save_together_is_one_error_line(tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
     assert run(["view", str(tmp_path), "--save", str(tmp_path / "x.rrd"), "--connect", "9876"]) == 2
     assert "--connect" in capsys.readouterr().err.splitlines()[0]
+
+
+def test_view_connect_without_a_viewer_is_one_error_line(survey_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("rerun")
+    assert run(["view", str(survey_path), "--connect", str(_free_port())]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("darp: error: no rerun viewer reachable at rerun+http://127.0.0.1:"), err

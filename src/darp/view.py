@@ -21,6 +21,7 @@ with eq. 1 poses (the calibration given, the twin's true one, or the rig's nomin
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,6 +58,8 @@ class ViewStats:
 
 
 def _rerun() -> Any:
+    # rerun's own log lines (gRPC retries ...) would repeat darp's one-line errors; RUST_LOG set by the user wins
+    os.environ.setdefault("RUST_LOG", "off")
     try:
         import rerun as rr
     except ImportError:
@@ -324,12 +327,12 @@ def rrd_entities(path: str | Path) -> dict[str, set[str]]:
     from rerun.chunk import RrdReader
 
     entities: dict[str, set[str]] = {}
-    reader = RrdReader(str(path))
-    try:
-        store: Any = reader.store()
-    except RuntimeError:  # a streamed recording (``rerun --save`` of what a viewer received) has no footer
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
+    with warnings.catch_warnings():  # a streamed recording (``rerun --save`` of what a viewer received)
+        warnings.filterwarnings("ignore", message="RRD file has no footer")  # has no footer: read it whole
+        reader = RrdReader(str(path))
+        try:
+            store: Any = reader.store()
+        except RuntimeError:
             store = reader.stream().collect()
     for column in store.schema():
         entity = getattr(column, "entity_path", None)
