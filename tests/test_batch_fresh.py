@@ -17,7 +17,8 @@ from darp.errors import DarpError, TwinError
 
 def _where(names: tuple[str, ...]) -> dict[str, object]:
     return {"pid": os.getpid(), "ppid": os.getppid(), "env": {n: os.environ.get(n) for n in names},
-            "open3d": "open3d" in sys.modules, "mujoco": "mujoco" in sys.modules}
+            "open3d": "open3d" in sys.modules, "mujoco": "mujoco" in sys.modules,
+            "main_file": getattr(sys.modules["__main__"], "__file__", None)}
 
 
 def _grow(marker: str) -> int:
@@ -49,6 +50,7 @@ def test_each_call_is_a_fresh_child_of_one_preloaded_forkserver() -> None:
     assert first["env"] == {n: os.environ.get(n) for n in names}  # the environment is inherited
     assert first["env"]["DARP_FRESH_TEST"] == "inherited"
     assert first["open3d"] and not first["mujoco"]  # processing preloaded; nothing of the twin's renderer
+    assert first["main_file"] is None  # this process's __main__ (pytest here, Ray's worker script) is not re-run
     assert call_in_fresh_process(_grow, ("abc",)) == 3
     assert not call_in_fresh_process(_has_marker)  # the previous call's state died with its process
 

@@ -18,10 +18,11 @@ it like a dead worker (``retry_exceptions``).
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import pickle
 import signal
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 from darp.errors import DarpError
@@ -87,13 +88,39 @@ def _child(conn: Any, payload: bytes) -> None:
     conn.close()
 
 
-def _dumps(fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
-    try:  # by reference for module-level functions; by value (Ray's cloudpickle) for closures, as Ray does
-        return pickle.dumps((fn, args))
-    except (pickle.PicklingError, AttributeError, TypeError):
-        from ray import cloudpickle
+@contextlib.contextmanager
+def _without_main() -> Iterator[None]:
+    """Start a child without re-running this process's ``__main__`` in it: multiprocessing would import the
+    main script again (``__mp_main__``; in a Ray worker, Ray's ``default_worker.py`` and all of Ray) in
+    every child, while ``fn`` travels by reference to its module or by value (cloudpickle) anyway."""
+    from multiprocessing import spawn
 
-        return bytes(cloudpickle.dumps((fn, args)))  # type: ignore[no-untyped-call]
+    original = spawn.get_preparation_data
+
+    def preparation(name: str) -> dict[str, Any]:
+        data = dict(original(name))
+        data.pop("init_main_from_path", None)
+        data.pop("init_main_from_name", None)
+        return data
+
+    spawn.get_preparation_data = preparation
+    try:
+        yield
+    finally:
+        spawn.get_preparation_data = original
+
+
+def _dumps(fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
+    """By reference for a module's function; by value (Ray's cloudpickle) for closures and ``__main__``'s
+    functions, which the child (that does not run ``__main__``) could not look up."""
+    if getattr(fn, "__module__", None) != "__main__":
+        try:
+            return pickle.dumps((fn, args))
+        except (pickle.PicklingError, AttributeError, TypeError):
+            pass
+    from ray import cloudpickle
+
+    return bytes(cloudpickle.dumps((fn, args)))  # type: ignore[no-untyped-call]
 
 
 def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *, what: str = "task") -> Any:
@@ -102,7 +129,8 @@ def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *,
     ctx = forkserver_context()
     receive, send = ctx.Pipe(duplex=False)
     child = ctx.Process(target=_child, args=(send, _dumps(fn, args)), name=f"darp-{what}")
-    child.start()
+    with _without_main():
+        child.start()
     send.close()
     try:
         data = receive.recv_bytes()
