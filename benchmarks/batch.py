@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
+os.environ.setdefault("RAY_worker_niceness", "0")  # as darp's own local Ray: workers at the loop's priority
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 _t0 = time.perf_counter()
