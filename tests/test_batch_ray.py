@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,7 @@ import pytest
 
 from darp.batch.executor import Executor, parse_executor, run_tasks
 from darp.batch.generate import plan_surveys
+from darp.batch.tasks import crashed_outcome
 from darp.cli._app import run
 from darp.errors import ConfigError, DarpError, TwinError
 
@@ -49,19 +51,23 @@ def test_the_draws_depend_on_the_seed_and_the_index_only(tmp_path: Path) -> None
 @pytest.fixture(scope="module")
 def local_ray() -> Iterator[Any]:
     ray = pytest.importorskip("ray")
+    os.environ["DARP_RAY_TEST_ENV"] = "inherited"  # the workers, their forkservers and the children see it
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
     yield ray
     ray.shutdown()
+    os.environ.pop("DARP_RAY_TEST_ENV", None)
 
 
 @pytest.mark.slow
 def test_ray_tasks_keep_order_retry_a_dead_worker_and_raise_darp_errors(local_ray: Any, tmp_path: Path) -> None:
-    def square(x: int) -> tuple[int, int]:
-        return x * x, os.getpid()
+    def square(x: int) -> tuple[int, int, int, str | None, str | None]:
+        return x * x, os.getpid(), os.getppid(), os.environ.get("DARP_RAY_TEST_ENV"), os.environ.get("MUJOCO_GL")
 
     out = run_tasks(square, [(k,) for k in range(4)], Executor("ray"))
-    assert [v for v, _ in out] == [0, 1, 4, 9]
-    assert len({pid for _, pid in out}) == 4  # max_calls=1: a fresh worker process per task
+    assert [v for v, *_ in out] == [0, 1, 4, 9]
+    assert len({pid for _, pid, *_ in out}) == 4  # a fresh process per task ...
+    assert len({ppid for _, _, ppid, *_ in out}) <= 2  # ... forked by the forkserver of one of the 2 reused workers
+    assert {(env, gl) for *_, env, gl in out} == {("inherited", os.environ.get("MUJOCO_GL"))}
     marker = tmp_path / "died-once"
 
     def dies_once(path: str) -> str:
@@ -80,6 +86,19 @@ def test_ray_tasks_keep_order_retry_a_dead_worker_and_raise_darp_errors(local_ra
 
     with pytest.raises(DarpError, match="survey 0 is broken"):
         run_tasks(bad_input, [(0,), (1,)], Executor("ray"))
+
+    tries = tmp_path / "tries.txt"
+
+    def segfault(folder: str, out: str) -> None:
+        with open(tries, "a") as f:
+            f.write("try\n")
+        os.kill(os.getpid(), signal.SIGSEGV)  # native code crashing in the survey's process
+
+    outcomes = run_tasks(segfault, [("surveys/s0", "out/s0")], Executor("ray"), max_retries=1, failure=crashed_outcome)
+    assert tries.read_text().count("try") == 2  # retried once on the crash
+    assert outcomes[0].status == "failed" and outcomes[0].stage == "worker" and outcomes[0].name == "s0"
+    assert "killed by signal SIGSEGV" in outcomes[0].message
+    assert run_tasks(square, [(3,)], Executor("ray"))[0][0] == 9  # the worker survived its child's crash
 
 
 @pytest.mark.slow

@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -47,3 +54,84 @@ def test_view_of_a_folder_without_a_survey_is_one_error_line(tmp_path: Path,
                                                              capsys: pytest.CaptureFixture[str]) -> None:
     assert run(["view", str(tmp_path), "--save", str(tmp_path / "x.rrd")]) == 2
     assert capsys.readouterr().err.startswith("darp: error:")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _rerun_command() -> list[str]:
+    exe = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+    if exe is None:
+        pytest.skip("the rerun command (rerun-sdk's viewer) is not installed")
+    return [exe]
+
+
+def test_view_connect_delivers_the_entities_to_a_live_viewer(processed_path: Path, tmp_path: Path) -> None:
+    """No --save: ``darp view --connect`` streams to a running rerun (headless here: the viewer's own gRPC
+    server, which writes what it receives with ``rerun --save``), as a viewer on a desktop receives it."""
+    pytest.importorskip("rerun")
+    from darp.view import rrd_entities
+
+    port, received = _free_port(), tmp_path / "received.rrd"
+    server = subprocess.Popen([*_rerun_command(), "--port", str(port), "--save", str(received)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                              env={**os.environ, "RERUN_ANALYTICS": "0"})
+    try:
+        deadline = time.monotonic() + 60
+        while True:  # the server is up when its port accepts connections
+            assert server.poll() is None, server.stderr.read() if server.stderr else ""
+            with socket.socket() as s:
+                if s.connect_ex(("127.0.0.1", port)) == 0:
+                    break
+            assert time.monotonic() < deadline, "rerun's gRPC server did not start"
+            time.sleep(0.2)
+        assert run(["view", str(processed_path), "--connect", f"127.0.0.1:{port}"]) == 0
+        deadline = time.monotonic() + 30
+        while True:  # the server writes the stream as it arrives: wait for the last static entity
+            entities = rrd_entities(received) if received.is_file() else {}
+            if "TextDocument" in entities.get("/summary", set()) or time.monotonic() > deadline:
+                break
+            time.sleep(0.5)
+    finally:
+        server.send_signal(signal.SIGINT)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            server.kill()
+            server.wait()
+    for arm in ("arm110", "arm111"):
+        for entity, archetype in ARM_ENTITIES.items():
+            assert archetype in entities.get(f"/world/{arm}/{entity}", set()), (arm, entity, sorted(entities))
+    for entity in ("clouds/fused", "heldout"):
+        assert "Points3D" in entities[f"/world/{entity}"], entity
+    assert "Mesh3D" in entities["/world/mesh"]
+
+
+def test_viewer_addresses() -> None:
+    from darp.errors import ConfigError
+    from darp.view import viewer_url
+
+    assert viewer_url("9876") == "rerun+http://127.0.0.1:9876/proxy"
+    assert viewer_url("10.0.0.5:9000") == "rerun+http://10.0.0.5:9000/proxy"
+    assert viewer_url("rerun+https://viewer.lab:443") == "rerun+https://viewer.lab:443/proxy"
+    assert viewer_url("rerun+http://h:1/proxy") == "rerun+http://h:1/proxy"
+    for bad in ("http://h:1/proxy", "viewer", "rerun+http://"):
+        with pytest.raises(ConfigError, match="viewer address"):
+            viewer_url(bad)
+
+
+def test_view_connect_and_save_together_is_one_error_line(tmp_path: Path,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    assert run(["view", str(tmp_path), "--save", str(tmp_path / "x.rrd"), "--connect", "9876"]) == 2
+    assert "--connect" in capsys.readouterr().err.splitlines()[0]
+
+
+def test_view_connect_without_a_viewer_is_one_error_line(survey_path: Path,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("rerun")
+    assert run(["view", str(survey_path), "--connect", str(_free_port())]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("darp: error: no rerun viewer reachable at rerun+http://127.0.0.1:"), err

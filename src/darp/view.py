@@ -21,6 +21,7 @@ with eq. 1 poses (the calibration given, the twin's true one, or the rig's nomin
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from darp.dataset import ProcessedSurvey, find_processed, keyframe_object_points
-from darp.errors import DarpError, FormatError
+from darp.errors import ConfigError, DarpError, FormatError
 from darp.formats.calibration import Calibration, read_calibration
 from darp.formats.survey import Survey, open_survey
 from darp.kinematics import z1
@@ -37,7 +38,7 @@ from darp.kinematics.collision_shapes import KINDS
 from darp.kinematics.rig import load_rig
 from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.cloud_io import read_ply
-from darp.reconstruction.keyframe_io import iter_keyframes
+from darp.reconstruction.keyframe_io import read_keyframe, read_keyframe_index
 
 ARM_RATE_HZ = 10.0  # joint states logged per second of the timeline
 HELDOUT_RANGE_M = 0.010  # the colour map's top (10 mm: the paper's coarser threshold)
@@ -57,6 +58,8 @@ class ViewStats:
 
 
 def _rerun() -> Any:
+    # rerun's own log lines (gRPC retries ...) would repeat darp's one-line errors; RUST_LOG set by the user wins
+    os.environ.setdefault("RUST_LOG", "off")
     try:
         import rerun as rr
     except ImportError:
@@ -71,8 +74,7 @@ def arm_columns(arm: str, q_states: np.ndarray, calibration: Calibration) -> dic
     cal = calibration.arms[arm]
     q_true = np.asarray(q_states, np.float64) + cal.joint_offsets_rad
     sets = [arm_primitives(q, cal.T_world_base) for q in q_true]
-    out: dict[str, Any] = {"origins": np.stack([(cal.T_world_base @ z1.link_transforms(q))[:, :3, 3]
-                                                 for q in q_true])}
+    out: dict[str, Any] = {"origins": (cal.T_world_base @ z1.link_transforms_batch(q_true))[:, :, :3, 3]}
     for kind in KINDS:
         sel = sets[0].kinds == KINDS.index(kind)
         out[kind] = {"k": int(sel.sum()), "R": np.concatenate([p.R[sel] for p in sets]),
@@ -148,11 +150,32 @@ def _turbo(values: np.ndarray) -> np.ndarray:
     return np.asarray(colormaps["turbo"](np.clip(values, 0.0, 1.0))[:, :3] * 255, np.uint8)
 
 
+def viewer_url(value: str) -> str:
+    """A rerun viewer's gRPC address: ``rerun+http://HOST:PORT/proxy`` (or ``rerun://``, ``rerun+https://``),
+    ``HOST:PORT`` or a port on this machine, as the ``rerun`` command's ``--connect`` takes it."""
+    value = value.strip()
+    if value.isdigit():
+        return f"rerun+http://127.0.0.1:{value}/proxy"
+    if "://" not in value:
+        host, _, port = value.rpartition(":")
+        if host and port.isdigit():
+            return f"rerun+http://{host}:{port}/proxy"
+        raise ConfigError(f"viewer address {value!r}: expected rerun+http://HOST:PORT/proxy, HOST:PORT or a port")
+    scheme, _, rest = value.partition("://")
+    if scheme not in ("rerun", "rerun+http", "rerun+https") or not rest.split("/", 1)[0]:
+        raise ConfigError(f"viewer address {value!r}: the scheme must be rerun://, rerun+http:// or rerun+https://")
+    return value if rest.endswith("/proxy") else f"{value.rstrip('/')}/proxy"
+
+
 def view(path: str | Path, save: str | Path | None = None, *, calibration_path: Path | None = None,
-         every_s: float = 0.5, spawn: bool = True) -> ViewStats:
+         every_s: float = 0.5, spawn: bool = True, connect: str | None = None) -> ViewStats:
     """Log a survey folder or a processed survey to rerun; ``save``: write an ``.rrd`` file and open no
-    window (``spawn`` False with no ``save``: log to a rerun viewer already listening)."""
+    window; ``connect``: send to the viewer (or ``rerun --serve-grpc`` proxy) at that address
+    (:func:`viewer_url`); otherwise spawn a viewer (``spawn`` False: the one listening on the default port)."""
     rr = _rerun()
+    if save is not None and connect is not None:
+        raise ConfigError("--save and --connect: give one (a file, or a viewer to send to)")
+    url = None if connect is None else viewer_url(connect)
     path = Path(path)
     processed = _processed_or_none(path)
     survey_path = processed.survey_path if processed is not None else path
@@ -163,11 +186,18 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
     if save is not None:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(save))
-    elif spawn:
-        rec.spawn()
+    elif url is not None or not spawn:
+        rec.connect_grpc(url)
     else:
-        rec.connect_grpc()
+        rec.spawn()
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    if url is not None:  # fail in seconds, before decoding anything, when no viewer listens there
+        try:
+            rec.flush(timeout_sec=15.0)
+        except RuntimeError as err:
+            rec.disconnect()
+            raise DarpError(f"no rerun viewer reachable at {url} (start one there with 'rerun' or "
+                            f"'rerun --serve-grpc'): {str(err).splitlines()[0]}") from None
     stats = ViewStats()
     survey = None
     if survey_path is not None:
@@ -178,8 +208,8 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
     elif survey is not None:
         stats.images = _log_raw_frames(rec, rr, survey, calibration, every_s)
     rec.flush()
-    if save is not None:
-        rec.disconnect()
+    if save is not None or url is not None:
+        rec.disconnect()  # everything sent (or written) before darp exits
     return stats
 
 
@@ -207,12 +237,18 @@ def _log_arms(rec: Any, rr: Any, survey: Survey, calibration: Calibration) -> in
 
 
 def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewStats) -> None:
-    for kf in iter_keyframes(processed.keyframes_dir):
+    index = read_keyframe_index(processed.keyframes_dir)
+    heldout = {info.file for info in index.select("heldout", None)}
+    parts = []  # held-out keyframes' object points, from the one read of each keyframe
+    for info in index.select(None, None):
+        kf = read_keyframe(index.folder / info.file)
         rec.set_time("time", timestamp=kf.t_s)
         i = kf.intrinsics
         log_camera(rec, rr, kf.arm, kf.T_world_cam, i.K, (i.width, i.height), kf.rgb, kf.depth,
                    1.0 / kf.depth_scale, kf.ir_left)
         stats.images += 1
+        if info.file in heldout:
+            parts.append(keyframe_object_points(kf))
     for name, colour in (("arm110", ARM_COLOURS["arm110"]), ("arm111", ARM_COLOURS["arm111"]),
                          ("fused", None)):
         file = processed.folder / f"{name}.ply"
@@ -232,7 +268,6 @@ def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewSta
         rec.log("world/mesh", rr.Mesh3D(vertex_positions=mesh.points, triangle_indices=mesh.triangles,
                                         albedo_factor=[0.8, 0.8, 0.8, 0.6]), static=True)
         stats.mesh_triangles = len(mesh.triangles)
-        parts = [keyframe_object_points(kf) for kf in iter_keyframes(processed.keyframes_dir, split="heldout")]
         points = np.concatenate(parts) if parts else np.empty((0, 3))
         if len(points):
             d = MeshDistance(mesh.points, mesh.triangles).distances(points)
@@ -287,10 +322,19 @@ def _log_raw_frames(rec: Any, rr: Any, survey: Survey, calibration: Calibration,
 def rrd_entities(path: str | Path) -> dict[str, set[str]]:
     """Entity path -> archetype names (``Points3D``, ...) of an ``.rrd`` file, read with rerun's own reader."""
     _rerun()
+    import warnings
+
     from rerun.chunk import RrdReader
 
     entities: dict[str, set[str]] = {}
-    for column in RrdReader(str(path)).store().schema():
+    with warnings.catch_warnings():  # a streamed recording (``rerun --save`` of what a viewer received)
+        warnings.filterwarnings("ignore", message="RRD file has no footer")  # has no footer: read it whole
+        reader = RrdReader(str(path))
+        try:
+            store: Any = reader.store()
+        except RuntimeError:
+            store = reader.stream().collect()
+    for column in store.schema():
         entity = getattr(column, "entity_path", None)
         archetype = getattr(column, "archetype", None)
         if entity is not None and archetype:
@@ -298,4 +342,4 @@ def rrd_entities(path: str | Path) -> dict[str, set[str]]:
     return entities
 
 
-__all__ = ["ViewStats", "arm_columns", "log_arm_states", "log_camera", "rrd_entities", "view"]
+__all__ = ["ViewStats", "arm_columns", "log_arm_states", "log_camera", "rrd_entities", "view", "viewer_url"]

@@ -2,7 +2,8 @@
 
 A task never raises for a survey that fails: it returns that survey's
 :class:`darp.processing.batch.SurveyOutcome` (failed, with its stage and reason), so a batch on Ray
-goes on past a failed survey exactly as the local loop does.
+goes on past a failed survey exactly as the local loop does. A task whose process crashed (a signal,
+native code) on every one of its tries becomes a failed outcome too, at the stage ``worker``.
 """
 
 from __future__ import annotations
@@ -12,9 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from darp.errors import DarpError
-from darp.formats.calibration import read_calibration
-from darp.processing.batch import DONE, SurveyOutcome, outcome_of_failure, process_survey_folder
-from darp.processing.imported import is_imported, process_imported
+from darp.processing.batch import DONE, FAILED, SurveyOutcome, outcome_of_failure, process_folder
 from darp.processing.settings import ProcessSettings, settings_from_dict
 
 RECOVERABLE = (DarpError, ValueError, RuntimeError, ArithmeticError, MemoryError, OSError)
@@ -27,14 +26,8 @@ def process_one(folder: str, out: str, calibration: str | None, truth_poses: boo
     ``settings_values`` is :meth:`ProcessSettings.to_dict` (plain data travels to a worker safely)."""
     survey_path, target = Path(folder), Path(out)
     try:
-        settings = settings_from_dict(settings_values)
-        if is_imported(survey_path):
-            results = process_imported(survey_path, target, settings.fusion, settings.mesh)
-        else:
-            cal_path = Path(calibration) if calibration is not None else survey_path / "truth" / "calibration.json"
-            results = process_survey_folder(survey_path, target, read_calibration(cal_path),
-                                            calibration_path=None if calibration is None else cal_path,
-                                            settings=settings, truth_poses=truth_poses, resume=resume)
+        results = process_folder(survey_path, target, calibration, settings=settings_from_dict(settings_values),
+                                 truth_poses=truth_poses, resume=resume)
     except RECOVERABLE as err:
         return outcome_of_failure(survey_path, target, err)
     return SurveyOutcome(survey_path.name, survey_path, target, DONE, warnings=list(results.get("warnings") or []))
@@ -47,7 +40,14 @@ def process_batch(folders: Sequence[Path], out: Path, calibration: Path | None, 
 
     calls = [(str(f), str(out / f.name), None if calibration is None else str(calibration), truth_poses,
               settings.to_dict(), resume) for f in folders]
-    return list(run_tasks(process_one, calls, executor, progress=progress))
+    return list(run_tasks(process_one, calls, executor, progress=progress, failure=crashed_outcome))
 
 
-__all__ = ["process_batch", "process_one"]
+def crashed_outcome(args: tuple[Any, ...], err: BaseException) -> SurveyOutcome:
+    """The failed outcome of a :func:`process_one` call whose process died on every try."""
+    survey_path, target = Path(args[0]), Path(args[1])
+    reason = err.message if isinstance(err, DarpError) else str(err)
+    return SurveyOutcome(survey_path.name, survey_path, target, FAILED, "worker", reason.splitlines()[0])
+
+
+__all__ = ["crashed_outcome", "process_batch", "process_one"]

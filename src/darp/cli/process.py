@@ -193,7 +193,7 @@ def process(
     if executor is not None:  # one task per survey on Ray (darp.batch), failures contained the same way
         outcomes = process_on_executor(folders, out, calibration, truth_poses, settings, resume, executor)
     else:
-        outcomes = _process_here(folders, out, calibration, truth_poses, settings, resume, imported)
+        outcomes = _process_here(folders, out, calibration, truth_poses, settings, resume)
     done = [o.out for o in outcomes if o.status != FAILED]
     failed = [o for o in outcomes if o.status == FAILED]
     for o in failed:  # after the progress display is gone: one clean line each
@@ -212,40 +212,24 @@ def process(
 
 
 def _process_here(folders: list[Path], out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
-                  resume: bool, imported: list[Path]) -> list[Any]:
-    """The batch in this process, one survey after another, with per-stage progress bars."""
-    from darp.errors import DarpError
-    from darp.processing.batch import process_batch, process_survey_folder
-    from darp.processing.imported import process_imported
-    from darp.processing.pipeline import StageFailure
+                  resume: bool) -> list[Any]:
+    """The batch in this process, one survey after another, with per-stage progress bars
+    (:func:`darp.processing.batch.process_folder` for each, as a Ray task runs it)."""
+    from darp.formats.calibration import read_calibration
+    from darp.processing.batch import process_batch, process_folder
 
     loaded: dict[str, Any] = {}
-
-    def calibration_for(folder: Path) -> Any:
-        if calibration is not None:
-            if "cal" not in loaded:
-                from darp.formats.calibration import read_calibration
-
-                loaded["cal"] = read_calibration(calibration)
-            return loaded["cal"]
-        from darp.twin.truth import read_truth
-
-        return read_truth(folder).calibration
 
     with _progress_bars() as progress:
         overall = progress.add_task("surveys", total=len(folders))
 
         def run_one(folder: Path, target: Path) -> dict[str, Any]:
-            if folder in imported:
-                return process_imported(folder, target, settings.fusion, settings.mesh)
-            try:
-                cal = calibration_for(folder)
-            except DarpError as err:
-                raise StageFailure(folder.name, "open", str(err), err.path) from err
-            return process_survey_folder(folder, target, cal, calibration_path=calibration, settings=settings,
-                                         truth_poses=truth_poses, resume=resume,
-                                         progress=_stage_callback(progress, folder.name),
-                                         on_note=lambda note: _warn(f"{folder.name}: {note}"))
+            if calibration is not None and "cal" not in loaded:  # read once for the batch (its error: one line)
+                loaded["cal"] = read_calibration(calibration)
+            return process_folder(folder, target, calibration, settings=settings, truth_poses=truth_poses,
+                                  resume=resume, calibration=loaded.get("cal"),
+                                  progress=_stage_callback(progress, folder.name),
+                                  on_note=lambda note: _warn(f"{folder.name}: {note}"))
 
         return process_batch(folders, out, run_one, on_outcome=lambda _: progress.advance(overall))
 

@@ -22,14 +22,27 @@ def view_command(
                            ] = None,
     every_s: Annotated[float, typer.Option("--every-s", min=0.0, help="A raw survey: seconds between the "
                                            "frames shown.")] = 0.5,
+    connect: Annotated[str | None, typer.Option("--connect", metavar="URL", help="Send to a rerun viewer already "
+                                                "running (e.g. on another machine): rerun+http://HOST:PORT/proxy, "
+                                                "HOST:PORT or a local port; default: open a new viewer.",
+                                                show_default=False)] = None,
 ) -> None:
     """Show both arms moving, camera frustums, RGB/depth/IR, clouds, mesh and held-out errors in rerun."""
     import time
 
-    from darp.view import view
+    from darp.errors import ConfigError
+    from darp.view import view, viewer_url
 
+    if connect is not None:
+        if save is not None:
+            raise typer.BadParameter("give --save or --connect, not both", param_hint="'--connect'")
+        try:
+            connect = viewer_url(connect)
+        except ConfigError as err:
+            raise typer.BadParameter(err.message, param_hint="'--connect'") from None
     started = time.monotonic()
-    stats = view(path, save, calibration_path=calibration, every_s=every_s)
+    stats = view(path, save, calibration_path=calibration, every_s=every_s, connect=connect)
     what = (f"{stats.arm_states} arm states, {stats.images} camera frames, {stats.clouds} clouds, "
             f"{stats.mesh_triangles} mesh triangles, {stats.heldout_points} held-out points")
-    typer.echo(f"{'wrote ' + str(save) if save else 'sent to rerun'}: {what} ({time.monotonic() - started:.1f} s)")
+    where = f"wrote {save}" if save else f"sent to {connect}" if connect else "sent to rerun"
+    typer.echo(f"{where}: {what} ({time.monotonic() - started:.1f} s)")

@@ -1,8 +1,10 @@
 """A batch of surveys: each processed on its own, a failure named and contained, the batch summary.
 
-:func:`process_survey_folder` is the one-survey unit (a runner such as a distributed executor calls it
-once per survey): it returns the survey's ``results.json`` document or raises a
-:class:`darp.errors.DarpError` whose one line names the survey, the stage and the reason.
+:func:`process_folder` is the one-survey unit that ``darp process`` (in this process) and a Ray task
+(:mod:`darp.batch.tasks`) both call: it decides between a folder written by ``darp import`` and a
+DARP survey, opens the calibration (the one given, or the twin's true one), and returns the survey's
+``results.json`` document or raises a :class:`darp.errors.DarpError` whose one line names the survey,
+the stage and the reason. :func:`process_survey_folder` is its DARP-survey half.
 :func:`process_batch` calls it for every survey, goes on past a failure, and returns one
 :class:`SurveyOutcome` per survey; ``darp process`` writes the summary (failed surveys listed) and exits
 2 when any failed.
@@ -15,9 +17,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from darp.errors import DarpError
-from darp.formats.calibration import Calibration
+from darp.errors import DarpError, FormatError
+from darp.formats.calibration import Calibration, read_calibration
 from darp.formats.survey import open_survey
+from darp.processing.imported import is_imported, process_imported
 from darp.processing.pipeline import ProgressFn, StageFailure, SurveyJob, process_survey
 from darp.processing.results import PROCESS_STAGES, read_results
 from darp.processing.settings import ProcessSettings
@@ -53,7 +56,8 @@ def open_job(survey_path: str | Path, out: str | Path, calibration: Calibration,
              calibration_path: Path | None = None, settings: ProcessSettings | None = None,
              truth_poses: bool = False, progress: ProgressFn | None = None) -> SurveyJob:
     """The processing job of one survey folder (its serials mapped with the calibration's)."""
-    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in calibration.arms.items()})
+    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in calibration.arms.items()},
+                         mapping_source=calibration_path)
     return SurveyJob(survey=survey, out=Path(out), calibration=calibration, calibration_path=calibration_path,
                      settings=settings or ProcessSettings(), truth_poses=truth_poses, progress=progress)
 
@@ -79,6 +83,38 @@ def process_survey_folder(survey_path: str | Path, out: str | Path, calibration:
             on_note(note)
     process_survey(job, PROCESS_STAGES, resume=resume)
     return read_results(job.out)
+
+
+def survey_calibration(survey_path: str | Path, calibration_path: str | Path | None) -> Calibration:
+    """The calibration a survey is processed with: ``calibration_path``, or the twin's true one
+    (``<survey>/truth/calibration.json``) when it is None."""
+    if calibration_path is not None:
+        return read_calibration(calibration_path)
+    truth = Path(survey_path) / "truth" / "calibration.json"
+    if not truth.is_file():
+        raise FormatError("no truth/calibration.json (only twin surveys have one): give a calibration",
+                        Path(survey_path))
+    return read_calibration(truth)
+
+
+def process_folder(survey_path: str | Path, out: str | Path, calibration_path: str | Path | None, *,
+                   settings: ProcessSettings | None = None, truth_poses: bool = False, resume: bool = False,
+                   calibration: Calibration | None = None, progress: ProgressFn | None = None,
+                   on_note: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Process any survey folder into ``out``: a ``darp import`` folder from its keyframes, a DARP survey
+    with ``calibration_path`` (the twin's true calibration when None; ``calibration``: that file already
+    read). Returns its ``results.json`` document; raises like :func:`process_survey_folder`."""
+    survey_path, settings = Path(survey_path), settings or ProcessSettings()
+    if is_imported(survey_path):
+        return process_imported(survey_path, Path(out), settings.fusion, settings.mesh)
+    cal_path = None if calibration_path is None else Path(calibration_path)
+    if calibration is None:
+        try:
+            calibration = survey_calibration(survey_path, cal_path)
+        except DarpError as err:
+            raise StageFailure(survey_path.name, "open", str(err), err.path) from err
+    return process_survey_folder(survey_path, out, calibration, calibration_path=cal_path, settings=settings,
+                                 truth_poses=truth_poses, resume=resume, progress=progress, on_note=on_note)
 
 
 def outcome_of_failure(survey_path: Path, out: Path, err: BaseException) -> SurveyOutcome:
@@ -111,5 +147,5 @@ def process_batch(folders: Sequence[Path], out: Path, run_one: Callable[[Path, P
     return outcomes
 
 
-__all__ = ["DONE", "FAILED", "SurveyOutcome", "open_job", "outcome_of_failure", "process_batch",
-           "process_survey_folder"]
+__all__ = ["DONE", "FAILED", "SurveyOutcome", "open_job", "outcome_of_failure", "process_batch", "process_folder",
+           "process_survey_folder", "survey_calibration"]

@@ -1,0 +1,166 @@
+"""A function call in a fresh process forked from a forkserver that has already imported darp's heavy modules.
+
+A Ray worker that runs surveys one after another would keep the native state of the last one (the twin's
+renderer, Open3D); a fresh worker per survey (``max_calls=1``) pays the import of darp's processing stack
+(numpy, OpenCV, Open3D with dash/plotly: 2-3 s on a free core) every time. Here the worker is reused and
+each call runs in a child forked from a :mod:`multiprocessing` forkserver instead: the forkserver is
+started once per worker (by fork + exec, so none of the Ray worker's threads come along), imports
+:data:`PRELOAD` once, and forks a child per call. Nothing native beyond importing (no EGL context, no
+Open3D geometry, no MuJoCo model) exists in the forkserver, so every call starts from the same clean,
+already-imported state; MuJoCo and the renderer are imported in the child, after the fork.
+
+The child inherits the worker's environment (``MUJOCO_GL``, ``OPENBLAS_CORETYPE``, ``PYTHONPATH`` ...), is
+killed if the forkserver goes away (the worker died or was cancelled), and sends back its result or
+its exception. A child that dies without an answer (a crash in native code, a signal, ``os._exit``)
+raises :class:`ChildCrashed`, which names the exit code or signal; the Ray executor retries a task on
+it like a dead worker (``retry_exceptions``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import pickle
+import signal
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+from darp.errors import DarpError
+
+# Imported once per worker by its forkserver: darp's processing stack (Open3D, OpenCV, scipy, the stages).
+PRELOAD: tuple[str, ...] = ("darp.batch.tasks", "darp.batch.generate")
+PR_SET_PDEATHSIG = 1
+
+
+class ChildCrashed(DarpError):
+    """The fresh process of a task died without returning (exit code or signal in the message)."""
+
+
+_context: Any = None
+
+
+def forkserver_context(preload: Sequence[str] = PRELOAD) -> Any:
+    """This process's forkserver context (its preload set on first use; the forkserver starts lazily)."""
+    global _context
+    if _context is None:
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(list(preload))
+        _context = ctx
+    return _context
+
+
+def exit_reason(exitcode: int | None) -> str:
+    """``exit code 3`` or ``killed by signal SIGSEGV`` for a child's ``exitcode``."""
+    if exitcode is None:
+        return "no exit code"
+    if exitcode < 0:
+        try:
+            return f"killed by signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exit code {exitcode}"
+
+
+def _die_with_parent() -> None:
+    """Ask Linux to kill this child when its parent (the forkserver) exits (best effort)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux
+        pass
+
+
+def _child(conn: Any, payload: bytes) -> None:
+    _die_with_parent()
+    try:
+        fn, args = pickle.loads(payload)
+        answer: tuple[str, Any] = ("ok", fn(*args))
+    except BaseException as err:  # everything goes back to the caller
+        answer = ("error", err)
+    try:
+        data = pickle.dumps(answer)
+    except Exception as err:  # an unpicklable result or exception
+        value = answer[1]
+        data = pickle.dumps(("error", DarpError(f"{type(value).__name__}: {value}" if answer[0] == "error"
+                                                else f"result not picklable: {err}")))
+    conn.send_bytes(data)
+    conn.close()
+
+
+@contextlib.contextmanager
+def _without_main() -> Iterator[None]:
+    """Start a child without re-running this process's ``__main__`` in it: multiprocessing would import the
+    main script again (``__mp_main__``; in a Ray worker, Ray's ``default_worker.py`` and all of Ray) in
+    every child, while ``fn`` travels by reference to its module or by value (cloudpickle) anyway."""
+    from multiprocessing import spawn
+
+    original = spawn.get_preparation_data
+
+    def preparation(name: str) -> dict[str, Any]:
+        data = dict(original(name))
+        data.pop("init_main_from_path", None)
+        data.pop("init_main_from_name", None)
+        return data
+
+    spawn.get_preparation_data = preparation
+    try:
+        yield
+    finally:
+        spawn.get_preparation_data = original
+
+
+def _dumps(fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
+    """By reference for a module's function; by value (Ray's cloudpickle) for closures and ``__main__``'s
+    functions, which the child (that does not run ``__main__``) could not look up."""
+    if getattr(fn, "__module__", None) != "__main__":
+        try:
+            return pickle.dumps((fn, args))
+        except (pickle.PicklingError, AttributeError, TypeError):
+            pass
+    from ray import cloudpickle
+
+    return bytes(cloudpickle.dumps((fn, args)))  # type: ignore[no-untyped-call]
+
+
+def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *, what: str = "task") -> Any:
+    """``fn(*args)`` in a fresh child of this process's forkserver: its result, or its exception raised
+    here; :class:`ChildCrashed` naming ``what`` and the exit code/signal if the child died."""
+    ctx = forkserver_context()
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_child, args=(send, _dumps(fn, args)), name=f"darp-{what}")
+    with _without_main():
+        child.start()
+    send.close()
+    try:
+        data = receive.recv_bytes()
+    except EOFError:
+        data = None
+    finally:
+        receive.close()
+    child.join()
+    if data is None:
+        raise ChildCrashed(f"{what}: its process (pid {child.pid}) died: {exit_reason(child.exitcode)}")
+    status, value = pickle.loads(data)
+    if status == "error":
+        raise value
+    return value
+
+
+def run_fresh(fn: Callable[..., Any], *args: Any) -> Any:
+    """What one Ray task runs: ``fn(*args)`` in a fresh forked process (see the module docstring)."""
+    return call_in_fresh_process(fn, args, what=getattr(fn, "__name__", "task"))
+
+
+def idle(sleep_s: float = 0.0) -> int:
+    """A task that only waits ``sleep_s``: its parent's process id (in a fresh process: the forkserver, so
+    one per worker). Used to start the workers' forkservers before a batch and to time the fixed cost."""
+    import os
+    import time
+
+    time.sleep(sleep_s)
+    return os.getppid()
+
+
+__all__ = ["PRELOAD", "ChildCrashed", "call_in_fresh_process", "exit_reason", "forkserver_context",
+           "idle", "run_fresh"]
