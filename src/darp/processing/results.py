@@ -116,7 +116,8 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
         "object": heldout.get("object") or job.survey.name,
         "pose_source": "truth" if job.truth_poses else "calibration",
         # darp's improvements applied ("paper" = none: poses from calibration and kinematics, as the paper)
-        "corrections": {"mode": job.settings.corrections.label, "applied": list(job.settings.corrections.applied)},
+        "corrections": {"mode": job.settings.corrections.label, "applied": list(job.settings.corrections.applied),
+                        **({"refine": keyframes["refine"]} if keyframes.get("refine") is not None else {})},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),
