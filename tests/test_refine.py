@@ -142,3 +142,21 @@ def test_the_switch_refines_the_pipelines_keyframes(survey_path: Path, tmp_path:
     applied = {row["key"]: row for row in record["views"]}
     for entry in index["keyframes"]:  # the index's poses are the refined ones, and within the bound
         assert applied[entry["file"]]["translation_mm"] <= record["bound"]["translation_mm"]
+
+
+def test_heldout_register_aligns_heldout_views_to_the_fuse_ones(scene_views: list) -> None:
+    truth = {v[0]: v[4] for v in scene_views}
+    offset = _rigid((0.0, 0.2, 0.0), (0.0, 2.5, 1.0))  # one held-out view only: no fuse view can see it
+    perturbed = dict(truth)
+    perturbed[f"arm111/{HELD}"] = offset @ truth[f"arm111/{HELD}"]
+    intr = small_intrinsics(320, 240, 192.0)
+    frames = [PosedDepth(arm, k, depth, SCALE, intr, perturbed[key]) for key, arm, k, _, _, depth in scene_views]
+    views = [RefineView(key, arm, k, split, perturbed[key]) for key, arm, k, split, _, _ in scene_views]
+    settings = RefineSettings(per_arm=False, per_view=False, heldout="register")
+    result = refine_poses(views, frames, CROP, 0.004, settings)
+    rows = {row["key"]: row for row in result.record["views"]}
+    assert rows[f"arm111/{HELD}"]["applied"] == "registered" and result.record["heldout"] == "register"
+    error = result.poses[f"arm111/{HELD}"] @ np.linalg.inv(truth[f"arm111/{HELD}"])
+    assert displacement_m(error, CENTRE) < 0.3 * displacement_m(offset, CENTRE)
+    arm_only = refine_poses(views, frames, CROP, 0.004, RefineSettings(per_arm=False, per_view=False))
+    np.testing.assert_array_equal(arm_only.poses[f"arm111/{HELD}"], perturbed[f"arm111/{HELD}"])

@@ -282,14 +282,16 @@ def refine_keyframes(job: SurveyJob, folder: Path, entries: list[Any],
                      crop: EnvelopeCrop) -> tuple[list[Any], dict[str, Any]]:
     """Survey-level refinement (:mod:`darp.reconstruction.refine`) of the exported keyframes: their
     ``.npz`` files are rewritten with the corrected poses; returns the new entries and the record.
-    Only ``fuse`` keyframes are read to compute corrections; held-out ones get their arm's correction."""
+    Only ``fuse`` keyframes are read to compute corrections; held-out ones get their arm's correction
+    (and with ``refinement.heldout: register`` are then each aligned alone to the refined fuse keyframes)."""
     import dataclasses as dc
 
     from darp.reconstruction.keyframe_io import read_keyframe, write_keyframe
     from darp.reconstruction.refine import RefineView, refine_poses
 
     views = [RefineView(e.file, e.arm, e.frame_number, e.split, e.T_world_cam) for e in entries]
-    frames = (read_keyframe(folder / e.file).posed_depth(colour=False) if e.split == FUSE else None
+    register = job.settings.refinement.heldout == "register"  # held-out frames are read only then
+    frames = (read_keyframe(folder / e.file).posed_depth(colour=False) if e.split == FUSE or register else None
               for e in entries)
     job.report("refine", 0, None)
     result = refine_poses(views, frames, crop, job.calibration_uncertainty(), job.settings.refinement,

@@ -76,6 +76,8 @@ class RefineSettings:
     lever_m: float = 0.35  # ... as a length at the envelope centre, and as an angle over this lever
     min_points: int = 300  # a keyframe with fewer registration points takes no part
     max_source_points: int = 1500  # a view's points in its own alignment: an even subsample of this many (speed)
+    heldout: str = "arm"  # held-out keyframes: "arm" (their arm's correction only) or "register" (also aligned,
+    # alone, to the refined fuse keyframes, same prior and bounds: optimistic, see docs/accuracy.md)
 
     def __post_init__(self) -> None:
         if not (1e-4 <= self.voxel_size_m <= 0.02 and self.region_margin_m >= 0 and self.table_depth_m >= 0):
@@ -86,6 +88,8 @@ class RefineSettings:
                 and self.prior_sigma > 0 and 0 <= self.min_overlap <= 1):
             raise ReconstructionError("refinement: max_sigma, lever_m, tukey_k_m, point_sigma_m and prior_sigma must "
                                       "be > 0, min_overlap in [0, 1]")
+        if self.heldout not in ("arm", "register"):
+            raise ReconstructionError(f"refinement: heldout must be 'arm' or 'register', got {self.heldout!r}")
         if self.rounds < 1 or self.iterations < 1 or self.min_points < 10 or self.max_source_points < 10:
             raise ReconstructionError("refinement: rounds and iterations >= 1, min_points >= 10")
 
@@ -320,8 +324,11 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
     fuse_idx: list[int] = []
     clouds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     skipped: dict[int, str] = {}
+    held_clouds: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     for i, (view, frame) in enumerate(zip(views, frames, strict=True)):
         if view.split != "fuse":
+            if settings.heldout == "register" and frame is not None:
+                held_clouds[i] = registration_cloud(frame, region, settings, depth)
             continue
         if frame is None:
             raise ReconstructionError(f"refinement: no depth frame given for fuse keyframe {view.key}")
@@ -424,9 +431,16 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
         poses[view.key] = C @ np.asarray(view.T_world_cam, np.float64)
         view_rows.append(row)
 
+    if settings.heldout == "register" and held_clouds and fuse_idx:
+        _register_heldout(views, held_clouds, fuse_idx, clouds, poses, view_rows, counts, centre, prior,
+                          (bound_m, bound_deg), settings)
+
+    held = ("held-out keyframes get their arm's correction only" if settings.heldout == "arm" else
+            "held-out keyframes are then each aligned alone to the refined fuse keyframes (same prior and bounds)")
     record = {
         "method": "regularised point-to-plane ICP: arm-to-arm (split in half), then each fuse keyframe against "
-                  "all others; gauge: mean correction = identity; held-out keyframes get their arm's correction only",
+                  f"all others; gauge: mean correction = identity; {held}",
+        "heldout": settings.heldout,
         "bound": {"translation_mm": round(bound_m * 1000, 3), "rotation_deg": round(bound_deg, 4),
                   "uncertainty_mm": round(uncertainty_m * 1000, 3), "source": source,
                   "max_sigma": settings.max_sigma, "lever_m": settings.lever_m,
@@ -435,6 +449,45 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
         "views": view_rows, "seconds": round(time.perf_counter() - start, 3),
     }
     return RefineResult(poses=poses, record=record)
+
+
+def _register_heldout(views: Sequence[RefineView], held_clouds: dict[int, tuple[np.ndarray, np.ndarray]],
+                      fuse_idx: list[int], clouds: dict[int, tuple[np.ndarray, np.ndarray]],
+                      poses: dict[str, np.ndarray], rows: list[dict[str, Any]], counts: dict[str, int],
+                      centre: np.ndarray, prior: tuple[float, float], bounds: tuple[float, float],
+                      settings: RefineSettings) -> None:
+    """``heldout: register``: each held-out keyframe aligned alone to the fuse keyframes at their refined
+    poses (which never saw it), starting from its arm's correction, with the same prior and bounds."""
+    from scipy.spatial import cKDTree
+
+    def correction(i: int) -> np.ndarray:
+        out: np.ndarray = poses[views[i].key] @ np.linalg.inv(np.asarray(views[i].T_world_cam, np.float64))
+        return out
+
+    world = np.concatenate([_moved(clouds[i][0], correction(i)) for i in fuse_idx])
+    world_n = np.concatenate([clouds[i][1] @ correction(i)[:3, :3].T for i in fuse_idx])
+    tree = cKDTree(world)
+    for i, (points, normals) in held_clouds.items():
+        row = rows[i]
+        if len(points) < settings.min_points:
+            row["note"] = f"{len(points)} registration points < {settings.min_points}: not registered"
+            continue
+        start = correction(i)
+        stride = max(1, len(points) // settings.max_source_points)
+        fit = regularised_icp(points[::stride], world, world_n, centre, prior, settings, init=start, tree=tree,
+                              source_normals=normals[::stride])
+        reason = _within(fit.T, centre, *bounds)
+        if fit.overlap < settings.min_overlap:
+            reason = f"overlap {fit.overlap:.3f} < {settings.min_overlap}"
+        row["registered_" + "translation_mm"] = _measure(fit.T, centre)["translation_mm"]
+        if reason is not None:
+            row["refused"] = reason
+            continue
+        counts["arm_only" if row["applied"] == "arm" else "unchanged"] -= 1
+        counts["accepted"] += 1
+        row["applied"] = "registered"
+        row.update(_measure(fit.T, centre))
+        poses[views[i].key] = fit.T @ np.asarray(views[i].T_world_cam, np.float64)
 
 
 __all__ = ["DEFAULT_UNCERTAINTY_M", "Alignment", "RefineResult", "RefineSettings", "RefineView", "displacement_m",
