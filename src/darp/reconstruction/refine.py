@@ -65,7 +65,8 @@ class RefineSettings:
     rounds: int = 2  # per-view rounds (each view against all others, then the gauge fixed)
     voxel_size_m: float = 0.0025  # registration clouds are voxel-downsampled to this
     region_margin_m: float = 0.015  # the registration region: envelope crop grown radially by this ...
-    table_depth_m: float = 0.015  # ... and reaching this far below the table plane (the table constrains z, tilt)
+    table_depth_m: float = 0.015  # ... and reaching this far below the table plane (the table constrains z, tilt;
+    # negative: starting this far above it, i.e. without the table)
     max_correspondence_m: tuple[float, ...] = (0.008, 0.004)  # ICP scales, coarse to fine
     iterations: int = 8  # Gauss-Newton iterations per scale
     tukey_k_m: float = 0.003  # robust kernel width at the finest scale (scaled with the correspondence distance)
@@ -80,7 +81,7 @@ class RefineSettings:
     # alone, to the refined fuse keyframes, same prior and bounds: optimistic, see docs/accuracy.md)
 
     def __post_init__(self) -> None:
-        if not (1e-4 <= self.voxel_size_m <= 0.02 and self.region_margin_m >= 0 and self.table_depth_m >= 0):
+        if not (1e-4 <= self.voxel_size_m <= 0.02 and self.region_margin_m >= 0 and self.table_depth_m >= -0.05):
             raise ReconstructionError("refinement: voxel_size_m must be within 0.1 mm .. 2 cm and margins >= 0")
         if not self.max_correspondence_m or any(not d > 0 for d in self.max_correspondence_m):
             raise ReconstructionError("refinement: max_correspondence_m must be a non-empty list of lengths > 0")
