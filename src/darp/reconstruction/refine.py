@@ -71,12 +71,13 @@ class RefineSettings:
     iterations: int = 8  # Gauss-Newton iterations per scale
     tukey_k_m: float = 0.003  # robust kernel width at the finest scale (scaled with the correspondence distance)
     point_sigma_m: float = 0.002  # a point-to-plane residual's standard deviation (depth noise, surface fit)
-    prior_sigma: float = 1.0  # the prior: this times the calibration's stated uncertainty (1 sigma, per axis)
+    prior_sigma: float = 0.4  # prior per axis: this times the calibration's stated p90 error (3-D p90 ~ 2.5 sigma)
     min_overlap: float = 0.2  # an alignment whose inlier fraction is below this is not used
     max_sigma: float = 2.0  # bound: this times the calibration's stated uncertainty ...
     lever_m: float = 0.35  # ... as a length at the envelope centre, and as an angle over this lever
     min_points: int = 300  # a keyframe with fewer registration points takes no part
     max_source_points: int = 1500  # a view's points in its own alignment: an even subsample of this many (speed)
+    min_normal_cos: float = 0.5  # a correspondence's normals (oriented toward their cameras) must agree this well
     heldout: str = "arm"  # held-out keyframes: "arm" (their arm's correction only) or "register" (also aligned,
     # alone, to the refined fuse keyframes, same prior and bounds: optimistic, see docs/accuracy.md)
 
@@ -260,6 +261,9 @@ def regularised_icp(source: np.ndarray, target: np.ndarray, target_normals: np.n
                 idx = safe[rows, first]
             else:
                 ok = np.isfinite(dist)
+            if source_normals is not None:  # the two sides of a thin wall face opposite ways: not a match
+                turned = source_normals @ T[:3, :3].T
+                ok &= np.einsum("ij,ij->i", turned, target_normals[np.where(ok, idx, 0)]) >= settings.min_normal_cos
             if ok.sum() < 10:
                 return Alignment(T, 0.0, math.inf, int(ok.sum()))
             p, q, n = moved[ok], target[idx[ok]], target_normals[idx[ok]]
