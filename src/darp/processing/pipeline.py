@@ -372,6 +372,9 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
                   "speed_noise_rad_s": round(sel.speed_noise_rad_s, 6)} for arm, sel in selections.items()}
     if not entries:
         raise no_keyframe_error(job, selections)
+    refine_record = None
+    if job.settings.corrections.refine:  # issue 16 item 4; nothing at all happens in paper mode
+        entries, refine_record = refine_keyframes(job, folder, entries, crop)
     index = KeyframeIndex(folder=folder, survey=job.survey.name,
                           object_name=envelope.object_name,
                           pose_source="truth" if job.truth_poses else "calibration",
@@ -383,13 +386,46 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
                                                   "margin_m": crop.margin_m, "table_margin_m": crop.table_margin_m,
                                                   "calibration_uncertainty_m": job.calibration_uncertainty()},
                                  **({"depth_correction": depth_record} if depth_record else {})})
+    if refine_record is not None:  # the poses in this folder are refined: say so, and how
+        index.extra["refinement"] = refine_record
     write_keyframe_index(index)
     n_held = sum(1 for e in entries if e.split != FUSE)
     summary = {"arms": arms, "keyframes": len(entries), "fuse": len(entries) - n_held, "heldout": n_held,
                "envelope": job.envelope_record()}
     if depth_record:
         summary["depth_correction"] = depth_record
+    if refine_record is not None:
+        summary["refine"] = refine_record
     return summary
+
+
+def refine_keyframes(job: SurveyJob, folder: Path, entries: list[Any],
+                     crop: EnvelopeCrop) -> tuple[list[Any], dict[str, Any]]:
+    """Survey-level refinement (:mod:`darp.reconstruction.refine`) of the exported keyframes: their
+    ``.npz`` files are rewritten with the corrected poses; returns the new entries and the record.
+    Only ``fuse`` keyframes are read to compute corrections; held-out ones get their arm's correction
+    (and with ``refinement.heldout: register`` are then each aligned alone to the refined fuse keyframes)."""
+    import dataclasses as dc
+
+    from darp.reconstruction.keyframe_io import read_keyframe, write_keyframe
+    from darp.reconstruction.refine import RefineView, refine_poses
+
+    views = [RefineView(e.file, e.arm, e.frame_number, e.split, e.T_world_cam) for e in entries]
+    register = job.settings.refinement.heldout == "register"  # held-out frames are read only then
+    frames = (read_keyframe(folder / e.file).posed_depth(colour=False) if e.split == FUSE or register else None
+              for e in entries)
+    job.report("refine", 0, None)
+    result = refine_poses(views, frames, crop, job.calibration_uncertainty(), job.settings.refinement,
+                          job.settings.fusion.depth)
+    new_entries = []
+    for entry in entries:
+        T = result.poses[entry.file]
+        if not np.array_equal(T, entry.T_world_cam):
+            keyframe = read_keyframe(folder / entry.file)
+            write_keyframe(folder / entry.file, dc.replace(keyframe, T_world_cam=T))
+        new_entries.append(dc.replace(entry, T_world_cam=T))
+    job.report("refine", 1, 1)
+    return new_entries, result.record
 
 
 def no_keyframe_error(job: SurveyJob, selections: dict[str, Any]) -> ReconstructionError:
@@ -518,7 +554,8 @@ def staged_outputs(folder: Path, names: Sequence[str]) -> Any:
 
 RECONSTRUCTION_STAGES: tuple[Stage, ...] = (
     Stage("poses", stage_poses, (f"{POSES_DIR}/summary.json",), ("corrections",)),
-    Stage("keyframes", stage_keyframes, (f"{KEYFRAMES_DIR}/keyframes.json",), ("keyframes", "fusion", "corrections")),
+    Stage("keyframes", stage_keyframes, (f"{KEYFRAMES_DIR}/keyframes.json",),
+          ("keyframes", "fusion", "corrections", "refinement")),
     Stage("fusion", stage_fusion, (FUSED_FILE,), ("fusion",)),
     Stage("mesh", stage_mesh, (MESH_FILE,), ("mesh",)),
 )

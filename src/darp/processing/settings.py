@@ -7,6 +7,7 @@ A settings file (YAML or JSON) gives any subset; everything not given keeps its 
     mesh: {radius_factors: [2, 4, 8]}
     evaluation: {truth_sample_spacing_m: 0.001, figures: true}
     corrections: {kinematics: true, depth: true, time: true, refine: true}
+    refinement: {max_sigma: 2.0, per_view: true}   # parameters of corrections.refine
 
 ``corrections`` switches darp's improvements over the paper's method (docs/accuracy.md); all off is
 "paper mode": camera poses from the calibration and the kinematics alone, as the paper computed them.
@@ -30,6 +31,7 @@ from darp.reconstruction.backproject import DepthFilterSettings
 from darp.reconstruction.fusion import FusionSettings
 from darp.reconstruction.keyframes import KeyframeSettings
 from darp.reconstruction.mesh import MeshSettings
+from darp.reconstruction.refine import RefineSettings
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,7 @@ class ProcessSettings:
     mesh: MeshSettings = field(default_factory=MeshSettings)
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
     corrections: CorrectionSettings = field(default_factory=CorrectionSettings)
+    refinement: RefineSettings = field(default_factory=RefineSettings)  # parameters of corrections.refine
 
     def to_dict(self) -> dict[str, Any]:
         plain: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(self)))
@@ -124,6 +127,8 @@ def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None
     for name, sub in (nested or {}).items():
         if name in kwargs:
             kwargs[name] = _build(sub, kwargs[name], f"{where}.{name}")
+    if cls is RefineSettings and "max_correspondence_m" in kwargs:
+        kwargs["max_correspondence_m"] = tuple(float(f) for f in kwargs["max_correspondence_m"])
     if cls is MeshSettings and "radius_factors" in kwargs:
         kwargs["radius_factors"] = tuple(float(f) for f in kwargs["radius_factors"])
     try:
@@ -136,7 +141,7 @@ def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None
 
 def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
     """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
-    groups = {"keyframes", "fusion", "mesh", "evaluation", "corrections"}
+    groups = {"keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement"}
     unknown = sorted(map(str, set(values) - groups))
     if unknown:
         raise ConfigError(f"unknown settings group(s) {', '.join(unknown)} (groups: {', '.join(sorted(groups))})")
@@ -146,6 +151,7 @@ def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
         mesh=_build(MeshSettings, values.get("mesh"), "mesh"),
         evaluation=_build(EvaluationSettings, values.get("evaluation"), "evaluation"),
         corrections=_build(CorrectionSettings, values.get("corrections"), "corrections"),
+        refinement=_build(RefineSettings, values.get("refinement"), "refinement"),
     )
 
 
