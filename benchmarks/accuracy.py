@@ -85,10 +85,18 @@ def mode_model(mode: str, supported: bool) -> str | None:
     return KINEMATIC_MODEL if mode in NEEDS_MODEL and supported else None
 
 
-def heldout_of(calibration: Path) -> dict[str, float | None]:
+def heldout_of(calibration: Path, model: str | None = None) -> dict[str, float | None]:
+    """Per arm, the calibration's held-out median 3-D corner error (mm): the richer model's own when
+    ``model`` is given and the file holds it (``arms.<arm>.kinematics.heldout``), else the paper model's."""
     data = json.loads(calibration.read_text())
-    return {arm: ((a.get("residuals") or {}).get("heldout") or {}).get("corner_3d_mm", {}).get("median")
-            for arm, a in (data.get("arms") or {}).items()}
+
+    def median(arm: dict[str, Any]) -> float | None:
+        held = (arm.get("kinematics") or {}).get("heldout") if model is not None else None
+        held = held or (arm.get("residuals") or {}).get("heldout") or {}
+        value = (held.get("corner_3d_mm") or {}).get("median")
+        return None if value is None else float(value)
+
+    return {name: median(arm) for name, arm in (data.get("arms") or {}).items()}
 
 
 def summarise_processed(processed: Path, surveys: list[str]) -> dict[str, Any]:
@@ -220,7 +228,7 @@ def run_seed(seed: int, objects: list[str], modes: list[str], args: argparse.Nam
         code = darp(["process", *map(str, accepted), "--calibration", str(cal), "-o", str(processed),
                      "--corrections", corrections_spec(mode), "--resume"], log) if accepted else 1
         row = {"seed": seed, "mode": mode, "model": model, "calibration": str(cal),
-               "handeye_heldout_mm": heldout_of(cal), "process_exit": code,
+               "handeye_heldout_mm": heldout_of(cal, model), "process_exit": code,
                "process_error": last_error(log) if code != 0 else "",
                "process_s": round(time.monotonic() - t0, 1), "timing": timing,
                **summarise_processed(processed, [f.name for f in accepted])}
