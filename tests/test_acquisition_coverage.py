@@ -119,6 +119,15 @@ def test_samples_get_several_close_sightings_and_the_band_is_supported_in_both_a
     assert np.mean(total >= s.support_views) >= 0.9
     both = (count["arm110"] >= 2) & (count["arm111"] >= 2)
     assert np.mean(both) >= 0.1
+    # the prediction reports that band (sightings counted as planned), below the any-sighting co-observed share
+    planned = {a: sum(centred.view_visibility(a, v).astype(int) for v in plan.views)
+               for a, plan in centred.plans.items()}
+    supported = (planned["arm110"] >= 2) & (planned["arm111"] >= 2)
+    union = (planned["arm110"] > 0) | (planned["arm111"] > 0)
+    p = centred.prediction
+    assert p.co_supported == pytest.approx(np.sum(supported) / np.sum(union))
+    assert p.co_supported is not None and p.co_supported_sides is not None
+    assert p.co_supported_sides < p.co_supported < p.co_observed
     # both arms' clouds keep the band on the top (on the +-y sides each arm's few feasible views reach
     # give one close sighting at most: IK and clearances rule out the rest)
     assert np.mean(both[centred.samples.face_mask("top")]) >= 0.3

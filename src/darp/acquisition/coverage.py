@@ -167,10 +167,19 @@ class CoveragePrediction:
     reachable_per_face: dict[str, float]
     per_arm: dict[str, float]
     warnings: list[str] = field(default_factory=list)
+    # share of covered samples that each arm sees at least twice (each arm's own cloud keeps such a surface:
+    # what cross-arm consistency can measure), overall and on the sides only (an open container's top is
+    # its opening: the arms see opposite faces of its wall there); None without sighting counts
+    co_supported: float | None = None
+    co_supported_sides: float | None = None
 
     def to_record(self) -> dict[str, Any]:
+        def r(v: float | None) -> float | None:
+            return None if v is None else round(v, 4)
+
         return {"coverage": round(self.coverage, 4), "reachable": round(self.reachable, 4),
-                "co_observed": round(self.co_observed, 4),
+                "co_observed": round(self.co_observed, 4), "co_supported": r(self.co_supported),
+                "co_supported_sides": r(self.co_supported_sides),
                 "per_face": {k: round(v, 4) for k, v in self.per_face.items()},
                 "reachable_per_face": {k: round(v, 4) for k, v in self.reachable_per_face.items()},
                 "per_arm": {k: round(v, 4) for k, v in self.per_arm.items()}, "warnings": list(self.warnings)}
@@ -186,8 +195,10 @@ def _face_shares(samples: SurfaceSamples, seen: BoolArray) -> dict[str, float]:
 
 
 def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachable: BoolArray,
-            warn_below: float = 0.8, by: str = "the planned views") -> CoveragePrediction:
-    """Summarise per-arm visibility (each a (N,) mask) against the reachable mask."""
+            warn_below: float = 0.8, by: str = "the planned views",
+            counts_by_arm: dict[str, NDArray[np.int_]] | None = None) -> CoveragePrediction:
+    """Summarise per-arm visibility (each a (N,) mask) against the reachable mask; with per-arm sighting
+    counts also the co-observed share supported in both arms (at least two sightings each)."""
     arms = list(seen_by_arm)
     union = np.zeros(len(samples), dtype=bool)
     for m in seen_by_arm.values():
@@ -203,11 +214,18 @@ def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachabl
                             f"{100 * (1 - reach_face[face]):.0f} % of it")
         elif face in per_face and per_face[face] < warn_below:
             warnings.append(f"{FACE_NAMES[face]} is only {100 * per_face[face]:.0f} % covered by {by}")
+    co_sup = co_sides = None
+    if counts_by_arm is not None and len(arms) > 1:
+        supported = np.logical_and.reduce([np.asarray(c) >= 2 for c in counts_by_arm.values()])
+        sides = samples.faces != "top"
+        co_sup = float(np.sum(supported) / max(1, np.sum(union)))
+        co_sides = float(np.sum(supported & sides) / max(1, np.sum(union & sides)))
     return CoveragePrediction(
         coverage=float(np.mean(union)), reachable=float(np.mean(reachable)),
         co_observed=float(np.sum(both) / max(1, np.sum(union))) if len(arms) > 1 else 0.0,
         per_face=per_face, reachable_per_face=reach_face,
-        per_arm={a: float(np.mean(m)) for a, m in seen_by_arm.items()}, warnings=warnings)
+        per_arm={a: float(np.mean(m)) for a, m in seen_by_arm.items()}, warnings=warnings,
+        co_supported=co_sup, co_supported_sides=co_sides)
 
 
 @dataclass
@@ -392,6 +410,7 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
             break
     plans: dict[str, ViewPlan] = {}
     final_seen: dict[str, BoolArray] = {}
+    final_count: dict[str, NDArray[np.int_]] = {}
     for a, planner in planners.items():
         views = tours[a]
         rec = {"strategy": "coverage", "candidates": len(all_cands[a]), "feasible": len(pools[a]),
@@ -400,11 +419,11 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
         plan = ViewPlan(a, shape, views, all_cands[a], [rec])
         plan.travel_rad = tour_cost(planner.q_park, plan.q_views, planner.q_park)
         plans[a] = plan
-        m = np.zeros(n, dtype=bool)
+        k = np.zeros(n, dtype=np.int_)
         for c in views:
-            m |= vis[a][pools[a].index(c)]
-        final_seen[a] = m
-    prediction = predict(samples, final_seen, reachable, s.warn_below)
+            k += vis[a][pools[a].index(c)]
+        final_seen[a], final_count[a] = k > 0, k
+    prediction = predict(samples, final_seen, reachable, s.warn_below, counts_by_arm=final_count)
     return CoveragePlan(plans, samples, pools, vis, prediction, s)
 
 
@@ -444,7 +463,9 @@ def coverage_of_plans(planners: dict[str, ViewpointPlanner], plans: dict[str, Vi
                if pools[a] else np.zeros((0, n), dtype=bool)) for a in plans}
     seen: dict[str, BoolArray] = {a: np.asarray(v.any(axis=0), dtype=bool) for a, v in vis.items()}
     reachable = np.logical_or.reduce(list(seen.values()))
-    return CoveragePlan(dict(plans), samples, pools, vis, predict(samples, seen, reachable, s.warn_below), s)
+    counts = {a: np.asarray(v.sum(axis=0), dtype=np.int_) for a, v in vis.items()}
+    return CoveragePlan(dict(plans), samples, pools, vis,
+                        predict(samples, seen, reachable, s.warn_below, counts_by_arm=counts), s)
 
 
 def _counts(cands: list[Candidate]) -> dict[str, int]:
@@ -540,6 +561,7 @@ class CoverageTracker:
         self.plan = plan
         n = len(plan.samples)
         self.observed = {a: np.zeros(n, dtype=bool) for a in plan.plans}
+        self.observed_count = {a: np.zeros(n, dtype=np.int_) for a in plan.plans}
         self.extra: dict[str, list[Candidate]] = {a: [] for a in plan.plans}
         self.cut: dict[str, Any] = {"inside": 0, "outside": 0, "by_face": dict.fromkeys(FACES, 0)}
 
@@ -551,6 +573,7 @@ class CoverageTracker:
         seen = observed_samples(self.plan.samples, depth_m, intrinsics, T_world_cam, expect,
                                 self.plan.settings.depth_tolerance_m)
         self.observed[arm_id] |= seen
+        self.observed_count[arm_id] += seen
         cut = envelope_cut(self.plan.samples, depth_m, intrinsics, T_world_cam)
         self.cut["inside"] += cut["inside"]
         self.cut["outside"] += cut["outside"]
@@ -609,7 +632,7 @@ class CoverageTracker:
         for v in self.plan.pool_vis.values():
             reachable |= v.any(axis=0)
         return predict(self.plan.samples, self.observed, reachable, self.plan.settings.warn_below,
-                       by="the recorded depth")
+                       by="the recorded depth", counts_by_arm=self.observed_count)
 
 
 __all__ = ["FACES", "CoveragePlan", "CoveragePrediction", "CoverageSettings", "CoverageTracker", "SurfaceSamples",
