@@ -19,7 +19,9 @@ is at most 60 deg, the point projects inside the 640x480 D435 depth image and it
 candidate sees: the coverage planner's grid (both arms, with its nearer/further retries) and the orbit's
 candidates that passed the checks (``--all-relaxations``: every orbit relaxation's too); coverage is
 reported as a share of it (and of the whole mesh). The co-observed share is the share of covered points
-that both arms see.
+that both arms see. **Supported** coverage counts a point only when views from at least 2 of fusion's
+viewing-direction bins saw it (fusion's ``min_view_bins``); the supported co-observed share asks that of
+each arm (what the per-arm clouds can share).
 
 **Time** is the rig time of the tour: for every move its largest joint change over the twin's default
 joint speed (0.6 rad/s) times 1.875 (a quintic's mean-to-peak speed ratio) plus the 0.5 s settling
@@ -27,7 +29,7 @@ interval; views are counted in visiting order, the time to a coverage level is t
 that reached it. Planning time (host seconds) is printed apart.
 
     .venv/bin/python benchmarks/viewpoints.py [--objects mug,cup] [--placements 3] [--seed 0]
-        [--samples 6000] [--json viewpoints.json]
+        [--samples 6000] [--json viewpoints.json] [--support-views N] [--max-views N]
 """
 
 from __future__ import annotations
