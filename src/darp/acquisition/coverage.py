@@ -70,6 +70,7 @@ class CoverageSettings:
     good_incidence_deg: float = 35.0  # and as well seen (low depth noise) up to this one
     half_fov_deg: float = 28.0  # the smaller half field of view of the D435 depth stream (58 deg / 2)
     max_depth_m: float = 1.2
+    orbit_candidates: bool = True  # the paper orbit's feasible views are candidates too
     min_views: int = 8
     max_views: int = 12
     target_coverage: float = 0.98  # of what the feasible candidates can see
@@ -379,6 +380,9 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
     n = len(samples)
     all_cands = {arm_id: candidate_grid(planner, shape, s) for arm_id, planner in planners.items()}
     pools = {arm_id: _check_pool(planner, all_cands[arm_id], s.standoff_step_m) for arm_id, planner in planners.items()}
+    if s.orbit_candidates:  # the orbit's views (with its relaxations) join the pool: coverage can pick them too
+        for arm_id, planner in planners.items():
+            pools[arm_id] = pools[arm_id] + list(planner.plan().views)
     for arm_id, planner in planners.items():
         cams = np.array([c.camera_m for c in pools[arm_id]]).reshape(-1, 3)
         md = planner.settings.min_depth_m
