@@ -19,7 +19,9 @@ is at most 60 deg, the point projects inside the 640x480 D435 depth image and it
 candidate sees: the coverage planner's grid (both arms, with its nearer/further retries) and the orbit's
 candidates that passed the checks (``--all-relaxations``: every orbit relaxation's too); coverage is
 reported as a share of it (and of the whole mesh). The co-observed share is the share of covered points
-that both arms see.
+that both arms see. **Supported** coverage counts a point only when views from at least 2 of fusion's
+viewing-direction bins saw it (fusion's ``min_view_bins``); the supported co-observed share asks that of
+each arm (what the per-arm clouds can share).
 
 **Time** is the rig time of the tour: for every move its largest joint change over the twin's default
 joint speed (0.6 rad/s) times 1.875 (a quintic's mean-to-peak speed ratio) plus the 0.5 s settling
@@ -27,7 +29,7 @@ interval; views are counted in visiting order, the time to a coverage level is t
 that reached it. Planning time (host seconds) is printed apart.
 
     .venv/bin/python benchmarks/viewpoints.py [--objects mug,cup] [--placements 3] [--seed 0]
-        [--samples 6000] [--json viewpoints.json]
+        [--samples 6000] [--json viewpoints.json] [--support-views N] [--max-views N]
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from darp.acquisition.coverage import plan_coverage
+from darp.acquisition.coverage import CoverageSettings, plan_coverage
 from darp.acquisition.motion_check import ArmCollisionModel, envelope_obstacle
 from darp.acquisition.viewpoints import RELAXATIONS, Candidate, ViewpointPlanner, orbit_shape
 from darp.kinematics.rig import Rig, load_rig
@@ -138,28 +140,42 @@ def tour_times(q_park: dict[str, np.ndarray], tour: list[tuple[str, np.ndarray]]
 
 def evaluate(truth: Truth, seeable: np.ndarray, models: dict[str, ArmCollisionModel],
              q_park: dict[str, np.ndarray], tour: list[tuple[str, np.ndarray]]) -> dict[str, Any]:
+    from darp.reconstruction.voxel_stats import popcount64, view_bins
+
     cum = np.zeros(len(truth.points), dtype=bool)
     by_arm = {a: np.zeros(len(truth.points), dtype=bool) for a in models}
-    curve = []
+    bins = {a: np.zeros(len(truth.points), dtype=np.uint64) for a in models}
+    curve, curve2 = [], []
     for arm, q in tour:
-        s = truth.seen(models[arm].T_world_cam(q))
+        T = models[arm].T_world_cam(q)
+        s = truth.seen(T)
         cum |= s
         by_arm[arm] |= s
+        bins[arm][s] |= np.left_shift(np.uint64(1), view_bins(T[:3, 3] - truth.points[s]).astype(np.uint64))
         curve.append(float(np.sum(cum & seeable) / max(1, np.sum(seeable))))
+        supported = popcount64(np.bitwise_or.reduce(list(bins.values()))) >= 2
+        curve2.append(float(np.sum(supported & seeable) / max(1, np.sum(seeable))))
     times = tour_times(q_park, tour)
     res: dict[str, Any] = {"views": len(tour), "coverage_of_seeable": curve[-1] if curve else 0.0,
                            "coverage_of_mesh": float(np.mean(cum)), "time_s": times[-1] if times else 0.0}
     both = np.logical_and.reduce(list(by_arm.values()))
     res["co_observed"] = float(np.sum(both) / max(1, np.sum(cum)))
+    # fusion keeps a voxel seen from at least 2 direction bins (~25 deg apart): "supported" coverage, and the
+    # co-observed share of the per-arm clouds (each arm's own support)
+    res["supported_of_seeable"] = curve2[-1] if curve2 else 0.0
+    own = [popcount64(b) >= 2 for b in bins.values()]
+    res["co_observed_supported"] = float(np.sum(np.logical_and.reduce(own)) / max(1, np.sum(np.logical_or.reduce(own))))
     for level in LEVELS:
         k = next((i for i, c in enumerate(curve) if c >= level), None)
         res[f"views_{int(level * 100)}"] = None if k is None else k + 1
         res[f"time_{int(level * 100)}_s"] = None if k is None else round(times[k], 2)
+        k2 = next((i for i, c in enumerate(curve2) if c >= level), None)
+        res[f"supported_views_{int(level * 100)}"] = None if k2 is None else k2 + 1
     return res
 
 
 def run_one(rig: Rig, obj: Any, placement: tuple[float, float, float], samples: int, seed: int,
-            relaxations: bool = False) -> dict[str, Any]:
+            relaxations: bool = False, settings: CoverageSettings | None = None) -> dict[str, Any]:
     x, y, _ = placement
     centre = np.array([x, y, rig.table.height_m + 0.5 * obj.height_m])
     obstacle = envelope_obstacle(centre, obj.radius_m, obj.height_m, rig.table.height_m)
@@ -171,7 +187,7 @@ def run_one(rig: Rig, obj: Any, placement: tuple[float, float, float], samples: 
 
     truth = Truth(obj.mesh, placement, samples, seed)
     t0 = time.perf_counter()
-    cov = plan_coverage(planners())
+    cov = plan_coverage(planners(), settings)
     t_cov = time.perf_counter() - t0
     t0 = time.perf_counter()
     orbit_planners = planners()
@@ -225,15 +241,20 @@ def main() -> None:
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--all-relaxations", action="store_true",
                    help="also count every orbit relaxation's feasible views as seeable (slower)")
+    p.add_argument("--support-views", type=int, default=None,
+                   help="the planner's sightings wanted per surface sample (default: CoverageSettings')")
+    p.add_argument("--max-views", type=int, default=None, help="the planner's views per arm at most")
     a = p.parse_args()
+    kw = {k: v for k, v in (("support_views", a.support_views), ("max_views", a.max_views)) if v is not None}
+    settings = CoverageSettings(**kw)
     rig = load_rig()
     rng = np.random.default_rng(a.seed)
     results: dict[str, list[dict[str, Any]]] = {}
     print("object         strategy  views  80%   90%   95%  (views, median)  t80 s  t90 s  t95 s  "
-          "cov/seeable  co-obs  time s")
+          "cov/seeable  co-obs  time s  sup/seeable  co-obs sup")
     for name in a.objects.split(","):
         obj = make_object(name)
-        runs = [run_one(rig, obj, pl, a.samples, a.seed + k, a.all_relaxations)
+        runs = [run_one(rig, obj, pl, a.samples, a.seed + k, a.all_relaxations, settings)
                 for k, pl in enumerate(placements(rig, obj.radius_m, a.placements, rng))]
         results[name] = runs
         for strat in ("darp", "orbit", "random"):
@@ -244,7 +265,9 @@ def main() -> None:
                   f"{_median([x['time_80_s'] for x in r]):>6s} {_median([x['time_90_s'] for x in r]):>6s} "
                   f"{_median([x['time_95_s'] for x in r]):>6s}  "
                   f"{np.median([x['coverage_of_seeable'] for x in r]) * 100:10.1f}  "
-                  f"{np.median([x['co_observed'] for x in r]) * 100:5.1f}  {np.median([x['time_s'] for x in r]):6.1f}")
+                  f"{np.median([x['co_observed'] for x in r]) * 100:5.1f}  {np.median([x['time_s'] for x in r]):6.1f}"
+                  f"  {np.median([x['supported_of_seeable'] for x in r]) * 100:10.1f}"
+                  f"  {np.median([x['co_observed_supported'] for x in r]) * 100:9.1f}")
         sys.stdout.flush()
     if a.json is not None:
         a.json.write_text(json.dumps(results, indent=1))

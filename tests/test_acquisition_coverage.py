@@ -4,6 +4,8 @@ for a side no view reaches, achieved coverage from depth, and next best views fo
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -36,6 +38,12 @@ def planners(x: float, y: float, radius: float = RADIUS, height: float = HEIGHT)
 @pytest.fixture(scope="module")
 def centred():  # type: ignore[no-untyped-def]
     return plan_coverage(planners(0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def sparse():  # type: ignore[no-untyped-def]
+    """One sighting per sample asked (the first planner's cover): fewer views, unused candidates left."""
+    return plan_coverage(planners(0.0, 0.0), CoverageSettings(support_views=1, min_views=6))
 
 
 def test_envelope_samples_cover_the_side_and_top_evenly() -> None:
@@ -97,6 +105,40 @@ def test_a_co_observed_band_between_the_arms(centred) -> None:  # type: ignore[n
         assert np.any(both & centred.samples.face_mask(face)), face
 
 
+def test_samples_get_several_close_sightings_and_the_band_is_supported_in_both_arms(centred, sparse) -> None:  # type: ignore[no-untyped-def]
+    """Fusion keeps a voxel only when several frames from distinct directions saw it: the plan gives most
+    samples ``support_views`` sightings within ``support_incidence_deg``, and the co-observed band at least
+    two per arm (so each arm's own cloud keeps it and cross-arm consistency has data)."""
+    s = centred.settings
+    close = replace(s, max_incidence_deg=s.support_incidence_deg)
+    count = {}
+    for a, plan in centred.plans.items():
+        cams = np.array([v.camera_m for v in plan.views])
+        count[a] = visibility(centred.samples, cams, close, min_depth_m=0.17).sum(axis=0)
+    total = count["arm110"] + count["arm111"]
+    assert np.mean(total >= s.support_views) >= 0.9
+    both = (count["arm110"] >= 2) & (count["arm111"] >= 2)
+    assert np.mean(both) >= 0.1
+    # the prediction reports that band (sightings counted as planned), below the any-sighting co-observed share
+    planned = {a: sum(centred.view_visibility(a, v).astype(int) for v in plan.views)
+               for a, plan in centred.plans.items()}
+    supported = (planned["arm110"] >= 2) & (planned["arm111"] >= 2)
+    union = (planned["arm110"] > 0) | (planned["arm111"] > 0)
+    p = centred.prediction
+    assert p.co_supported == pytest.approx(np.sum(supported) / np.sum(union))
+    assert p.co_supported is not None and p.co_supported_sides is not None
+    assert p.co_supported_sides < p.co_supported < p.co_observed
+    # both arms' clouds keep the band on the top (on the +-y sides each arm's few feasible views reach
+    # give one close sighting at most: IK and clearances rule out the rest)
+    assert np.mean(both[centred.samples.face_mask("top")]) >= 0.3
+    # a single sighting per sample is what the one-view cover asked: fewer views, far less support
+    once = sparse
+    once_count = sum(visibility(once.samples, np.array([v.camera_m for v in p.views]), close, min_depth_m=0.17)
+                     .sum(axis=0) for p in once.plans.values())
+    assert sum(len(p.views) for p in once.plans.values()) < sum(len(p.views) for p in centred.plans.values())
+    assert np.mean(once_count >= s.support_views) < np.mean(total >= s.support_views) - 0.1
+
+
 def test_a_side_no_view_reaches_is_warned_about_by_name() -> None:
     plan = plan_coverage(planners(0.15, -0.22, radius=0.07, height=0.12))
     assert plan.prediction.reachable_per_face["-y"] < 0.8
@@ -119,29 +161,29 @@ def test_observed_coverage_from_depth_matches_the_prediction(centred) -> None:  
     assert np.mean(observed_samples(centred.samples, inner, INTRINSICS, T, expected)[expected]) > 0.5
 
 
-def test_next_best_views_target_an_occluded_side(centred) -> None:  # type: ignore[no-untyped-def]
+def test_next_best_views_target_an_occluded_side(sparse) -> None:  # type: ignore[no-untyped-def]
     """The views of arm110 that look at the -y side come back without depth there (something stood in the way);
     the next best views are unused candidates of arm110 that see what is still unobserved."""
-    tracker = CoverageTracker(centred)
+    tracker = CoverageTracker(sparse)
     arm = "arm110"
     model = ArmCollisionModel(RIG, arm)
-    blocked = [v for v in centred.plans[arm].views if v.azimuth_deg > 185.0]
+    blocked = [v for v in sparse.plans[arm].views if v.azimuth_deg > 185.0]
     assert blocked  # the plan looks at the -y side from arm110's side
-    for view in centred.plans[arm].views:
+    for view in sparse.plans[arm].views:
         T = model.T_world_cam(view.joints_rad)
         objects = [] if view in blocked else [Cylinder(0.0, 0.0, RADIUS, HEIGHT)]
         tracker.observe(arm, render_depth(T, INTRINSICS, objects, RIG), INTRINSICS, T)
-    minus_y = centred.samples.face_mask("-y")
+    minus_y = sparse.samples.face_mask("-y")
     unseen = minus_y & ~tracker.union()
     assert unseen.sum() > 0.1 * minus_y.sum()
-    extra = tracker.next_views(arm, centred.plans[arm].views, remaining_arms=[])
-    assert extra and all(v not in centred.plans[arm].views for v in extra)
+    extra = tracker.next_views(arm, sparse.plans[arm].views, remaining_arms=[])
+    assert extra and all(v not in sparse.plans[arm].views for v in extra)
     assert all(v.azimuth_deg > 180.0 for v in extra)  # towards the -y side
-    assert np.sum(centred.view_visibility(arm, extra[0]) & unseen) >= 0.02 * len(centred.samples)
+    assert np.sum(sparse.view_visibility(arm, extra[0]) & unseen) >= 0.02 * len(sparse.samples)
     # nothing is added when everything was observed
-    full = CoverageTracker(centred)
+    full = CoverageTracker(sparse)
     full.observed[arm][:] = True
-    assert full.next_views(arm, centred.plans[arm].views, remaining_arms=[]) == []
+    assert full.next_views(arm, sparse.plans[arm].views, remaining_arms=[]) == []
 
 
 def test_an_envelope_off_the_object_is_caught_by_the_recorded_depth(centred) -> None:  # type: ignore[no-untyped-def]

@@ -54,6 +54,31 @@ def test_accepted_survey_writes_the_darp_folder(accepted: tuple) -> None:
     assert set(loc["arms"]) == {"arm110", "arm111"}
 
 
+def test_the_envelope_records_the_feasible_camera_poses(accepted: tuple) -> None:
+    """For "completeness of the seeable surface": the coverage grid's feasible poses and the planned views,
+    per arm, as T_world_cam's top rows (the planned views' poses among them)."""
+    from darp.acquisition.motion_check import ArmCollisionModel
+
+    rig, outcome, _ = accepted
+    env = read_envelope(outcome.folder / "manip_envelope.json")
+    poses = env.extra["coverage"]["feasible_poses"]
+    assert set(poses) == {"arm110", "arm111"}
+    for arm, rows in poses.items():
+        T = np.array(rows).reshape(-1, 3, 4)
+        assert len(T) > len(outcome.plans[arm].views) >= 4  # the grid adds poses to the orbit's views
+        np.testing.assert_allclose(np.einsum("nij,nkj->nik", T[:, :, :3], T[:, :, :3]),
+                                   np.broadcast_to(np.eye(3), (len(T), 3, 3)), atol=1e-5)
+        # every camera looks at the object (its optical axis passes within the envelope's radius of the centre)
+        to_centre = np.array(env.center_m) - T[:, :, 3]
+        along = np.einsum("ni,ni->n", to_centre, T[:, :, 2])
+        miss = np.linalg.norm(to_centre - along[:, None] * T[:, :, 2], axis=1)
+        assert np.all(along > 0.15) and np.median(miss) < env.radius_m
+        model = ArmCollisionModel(rig.rig, arm)
+        for view in outcome.plans[arm].views:
+            planned = model.T_world_cam(view.joints_rad)[:3].reshape(-1)
+            assert np.min(np.max(np.abs(T.reshape(len(T), -1) - planned), axis=1)) < 1e-5
+
+
 def test_one_arm_moves_at_a_time_and_the_log_spans_the_cameras(accepted: tuple) -> None:
     rig, outcome, _ = accepted
     log = read_arm_poses(outcome.folder / "arm_poses.csv")

@@ -95,3 +95,34 @@ def test_visibility_from_depth_frames() -> None:
     both = visible_in_frames(samples, [frame, side], normals=normals, tolerance_m=0.002)
     plus_x = normals[:, 0] > 0.5
     assert both[plus_x].mean() > 0.95 and not both[normals[:, 0] < -0.5].any()
+
+
+def test_seeable_surface_is_what_some_pose_sees_first_facing_and_in_range() -> None:
+    """The surface any feasible camera pose can see, on a box standing on the table: a camera on +x sees
+    the +x face only (the others are at 90 deg or face away), one above sees the top, the union both; a
+    second box in front hides what it covers, and a pose beyond the depth range sees nothing."""
+    from darp.evaluation.truth_metrics import seeable_from_poses
+
+    obj = trimesh.creation.box(extents=EXTENTS)
+    obj.apply_translation([0.0, 0.0, EXTENTS[2] / 2])  # standing on the table (z = 0)
+    pts, normals = sample_surface(obj.vertices, obj.faces, np.random.default_rng(3), spacing_m=0.002)
+    centre = [0.0, 0.0, EXTENTS[2] / 2]
+    side, above = look_at([0.40, 0.0, EXTENTS[2] / 2], centre), look_at([0.0, 0.0, 0.45], centre, up=(1.0, 0.0, 0.0))
+    plus_x = normals[:, 0] > 0.99
+    top = normals[:, 2] > 0.99
+
+    def seeable(mesh: trimesh.Trimesh, poses: list[np.ndarray]) -> np.ndarray:
+        return seeable_from_poses(pts, normals, mesh.vertices, mesh.faces, poses, table_z_m=0.0)
+
+    np.testing.assert_array_equal(seeable(obj, [side]), plus_x)
+    np.testing.assert_array_equal(seeable(obj, [above[:3]]), top)  # a 3x4 pose is enough
+    np.testing.assert_array_equal(seeable(obj, [side, above]), plus_x | top)
+    # a thin box between the camera and the lower half of the +x face hides that half
+    wall = trimesh.creation.box(extents=[0.005, 0.2, EXTENTS[2] / 2])
+    wall.apply_translation([0.2, 0.0, EXTENTS[2] / 4])
+    both = trimesh.util.concatenate([obj, wall])
+    hidden = seeable(both, [side])
+    assert hidden[plus_x & (pts[:, 2] > 0.7 * EXTENTS[2])].all()
+    assert not hidden[plus_x & (pts[:, 2] < 0.25 * EXTENTS[2])].any()
+    # beyond the depth range (1.2 m) nothing counts
+    assert not seeable(obj, [look_at([1.5, 0.0, EXTENTS[2] / 2], centre)]).any()

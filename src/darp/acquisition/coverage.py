@@ -70,10 +70,16 @@ class CoverageSettings:
     good_incidence_deg: float = 35.0  # and as well seen (low depth noise) up to this one
     half_fov_deg: float = 28.0  # the smaller half field of view of the D435 depth stream (58 deg / 2)
     max_depth_m: float = 1.2
-    min_views: int = 6
+    orbit_candidates: bool = True  # the paper orbit's feasible views are candidates too
+    min_views: int = 8
     max_views: int = 12
     target_coverage: float = 0.98  # of what the feasible candidates can see
     target_co_observed: float = 0.25  # predicted share of covered samples that both arms see
+    support_views: int = 3  # close sightings wanted per sample (fusion keeps voxels several frames and
+    # direction bins saw; at high incidence the depth is noisy and the surface often lost)
+    support_incidence_deg: float = 60.0  # a sighting supports a sample up to this incidence angle
+    support_weight: float = 0.6  # gain of a further supporting sighting (up to support_views) against a first one
+    target_support: float = 0.9  # of the samples support_views feasible candidates can support
     co_weight: float = 0.5
     min_gain: float = 0.01  # a pick must add this share of the surface (after the co-observed target)
     warn_below: float = 0.8  # a face covered less than this (predicted or reachable) is warned about
@@ -162,10 +168,19 @@ class CoveragePrediction:
     reachable_per_face: dict[str, float]
     per_arm: dict[str, float]
     warnings: list[str] = field(default_factory=list)
+    # share of covered samples that each arm sees at least twice (each arm's own cloud keeps such a surface:
+    # what cross-arm consistency can measure), overall and on the sides only (an open container's top is
+    # its opening: the arms see opposite faces of its wall there); None without sighting counts
+    co_supported: float | None = None
+    co_supported_sides: float | None = None
 
     def to_record(self) -> dict[str, Any]:
+        def r(v: float | None) -> float | None:
+            return None if v is None else round(v, 4)
+
         return {"coverage": round(self.coverage, 4), "reachable": round(self.reachable, 4),
-                "co_observed": round(self.co_observed, 4),
+                "co_observed": round(self.co_observed, 4), "co_supported": r(self.co_supported),
+                "co_supported_sides": r(self.co_supported_sides),
                 "per_face": {k: round(v, 4) for k, v in self.per_face.items()},
                 "reachable_per_face": {k: round(v, 4) for k, v in self.reachable_per_face.items()},
                 "per_arm": {k: round(v, 4) for k, v in self.per_arm.items()}, "warnings": list(self.warnings)}
@@ -181,8 +196,10 @@ def _face_shares(samples: SurfaceSamples, seen: BoolArray) -> dict[str, float]:
 
 
 def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachable: BoolArray,
-            warn_below: float = 0.8, by: str = "the planned views") -> CoveragePrediction:
-    """Summarise per-arm visibility (each a (N,) mask) against the reachable mask."""
+            warn_below: float = 0.8, by: str = "the planned views",
+            counts_by_arm: dict[str, NDArray[np.int_]] | None = None) -> CoveragePrediction:
+    """Summarise per-arm visibility (each a (N,) mask) against the reachable mask; with per-arm sighting
+    counts also the co-observed share supported in both arms (at least two sightings each)."""
     arms = list(seen_by_arm)
     union = np.zeros(len(samples), dtype=bool)
     for m in seen_by_arm.values():
@@ -198,11 +215,18 @@ def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachabl
                             f"{100 * (1 - reach_face[face]):.0f} % of it")
         elif face in per_face and per_face[face] < warn_below:
             warnings.append(f"{FACE_NAMES[face]} is only {100 * per_face[face]:.0f} % covered by {by}")
+    co_sup = co_sides = None
+    if counts_by_arm is not None and len(arms) > 1:
+        supported = np.logical_and.reduce([np.asarray(c) >= 2 for c in counts_by_arm.values()])
+        sides = samples.faces != "top"
+        co_sup = float(np.sum(supported) / max(1, np.sum(union)))
+        co_sides = float(np.sum(supported & sides) / max(1, np.sum(union & sides)))
     return CoveragePrediction(
         coverage=float(np.mean(union)), reachable=float(np.mean(reachable)),
         co_observed=float(np.sum(both) / max(1, np.sum(union))) if len(arms) > 1 else 0.0,
         per_face=per_face, reachable_per_face=reach_face,
-        per_arm={a: float(np.mean(m)) for a, m in seen_by_arm.items()}, warnings=warnings)
+        per_arm={a: float(np.mean(m)) for a, m in seen_by_arm.items()}, warnings=warnings,
+        co_supported=co_sup, co_supported_sides=co_sides)
 
 
 @dataclass
@@ -281,44 +305,59 @@ def _check_pool(planner: ViewpointPlanner, cands: list[Candidate], step_m: float
     return [c for c in cands if c.ok]
 
 
-def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], reachable: BoolArray, s: CoverageSettings,
-            banned: dict[str, set[int]], min_views: dict[str, int]) -> dict[str, list[int]]:
-    """Pick pool indices per arm: coverage, then good-incidence coverage, plus the co-observed band."""
+def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], sup: dict[str, BoolArray], reachable: BoolArray,
+            s: CoverageSettings, banned: dict[str, set[int]], min_views: dict[str, int]) -> dict[str, list[int]]:
+    """Pick pool indices per arm (see the module docstring): first sightings (``vis``), then supporting
+    sightings (``sup``: at most ``support_incidence_deg``) up to ``support_views`` per sample (fusion keeps a
+    voxel only when several frames from distinct directions saw it), good-incidence sightings (``good``)
+    and, until the co-observed target is met, the co-observed band (samples the other arm sees, up to
+    ``support_views`` supporting sightings by this arm, so both arms' own clouds keep them)."""
     arms = list(vis)
     n = reachable.size
+    k = max(1, s.support_views)
     picked: dict[str, list[int]] = {a: [] for a in arms}
-    seen = {a: np.zeros(n, dtype=bool) for a in arms}
+    count = {a: np.zeros(n, dtype=np.int32) for a in arms}  # first sightings (any incidence)
+    support = {a: np.zeros(n, dtype=np.int32) for a in arms}  # supporting sightings
     seen_good = np.zeros(n, dtype=bool)
+    vis_f = {a: vis[a].astype(np.float64) for a in arms}
+    sup_f = {a: sup[a].astype(np.float64) for a in arms}
+    reach_k = np.sum([v.sum(axis=0) for v in sup_f.values()], axis=0) >= k
     target = s.target_coverage * max(1, int(np.sum(reachable)))
+    target_k = s.target_support * max(1, int(np.sum(reach_k)))
     while True:
-        union = np.logical_or.reduce([seen[a] for a in arms])
-        both = np.logical_and.reduce([seen[a] for a in arms]) if len(arms) > 1 else np.zeros(n, bool)
+        union = np.logical_or.reduce([count[a] > 0 for a in arms])
+        total_sup = np.sum([support[a] for a in arms], axis=0)
+        both = np.logical_and.reduce([count[a] > 0 for a in arms]) if len(arms) > 1 else np.zeros(n, bool)
         co_share = float(np.sum(both) / max(1, np.sum(union))) if len(arms) > 1 else 1.0
-        done = np.sum(union) >= target and co_share >= s.target_co_observed
+        done = (np.sum(union) >= target and np.sum(total_sup >= k) >= target_k and co_share >= s.target_co_observed)
         short = [a for a in arms if len(picked[a]) < min_views[a]]
+        first = (~union).astype(np.float64)
+        more = (total_sup < k).astype(np.float64) * s.support_weight
+        new_good = (~seen_good).astype(np.float64) * 0.5
         best: tuple[float, str, int] | None = None
         for a in arms:
-            if len(picked[a]) >= s.max_views:
+            if len(picked[a]) >= s.max_views or (done and a not in short):
                 continue
-            others = np.logical_or.reduce([seen[b] for b in arms if b != a]) if len(arms) > 1 else np.zeros(n, bool)
-            co_needed = 0.0 if co_share >= s.target_co_observed else s.co_weight
-            for i in range(len(vis[a])):
-                if i in picked[a] or i in banned[a]:
+            others = (np.logical_or.reduce([count[b] > 0 for b in arms if b != a]) if len(arms) > 1
+                      else np.zeros(n, bool))
+            co = (others & (support[a] < k)).astype(np.float64) * (0.0 if co_share >= s.target_co_observed
+                                                                   else s.co_weight)
+            own = (count[a] == 0).astype(np.float64) * 1e-3
+            scores = vis_f[a] @ (first + own) + sup_f[a] @ (more + co) + good[a].astype(np.float64) @ new_good
+            for i in np.argsort(-scores, kind="stable"):
+                if int(i) in banned[a] or int(i) in picked[a]:
                     continue
-                v = vis[a][i]
-                score = (float(np.sum(v & ~union)) + 0.5 * float(np.sum(good[a][i] & ~seen_good))
-                         + co_needed * float(np.sum(v & others & ~seen[a])) + 1e-3 * float(np.sum(v & ~seen[a])))
-                if done and a not in short:
-                    continue
-                if best is None or score > best[0] + 1e-9:
-                    best = (score, a, i)
+                if best is None or scores[i] > best[0] + 1e-9:
+                    best = (float(scores[i]), a, int(i))
+                break
         if best is None:
             break
         score, a, i = best
         if not short and (done or score < s.min_gain * n):
             break
         picked[a].append(i)
-        seen[a] |= vis[a][i]
+        count[a] += vis[a][i]
+        support[a] += sup[a][i]
         seen_good |= good[a][i]
     return picked
 
@@ -334,25 +373,28 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
     shape = orbit_shape(first.radius, first.height)
     good_s = CoverageSettings(max_incidence_deg=s.good_incidence_deg, half_fov_deg=s.half_fov_deg,
                               max_depth_m=s.max_depth_m)
-    pools: dict[str, list[Candidate]] = {}
+    sup_s = replace(good_s, max_incidence_deg=s.support_incidence_deg)
+    sup: dict[str, BoolArray] = {}
     vis: dict[str, BoolArray] = {}
     good: dict[str, BoolArray] = {}
-    all_cands: dict[str, list[Candidate]] = {}
     n = len(samples)
+    all_cands = {arm_id: candidate_grid(planner, shape, s) for arm_id, planner in planners.items()}
+    pools = {arm_id: _check_pool(planner, all_cands[arm_id], s.standoff_step_m) for arm_id, planner in planners.items()}
+    if s.orbit_candidates:  # the orbit's views (with its relaxations) join the pool: coverage can pick them too
+        for arm_id, planner in planners.items():
+            pools[arm_id] = pools[arm_id] + list(planner.plan().views)
     for arm_id, planner in planners.items():
-        cands = candidate_grid(planner, shape, s)
-        all_cands[arm_id] = cands
-        pools[arm_id] = _check_pool(planner, cands, s.standoff_step_m)
         cams = np.array([c.camera_m for c in pools[arm_id]]).reshape(-1, 3)
         md = planner.settings.min_depth_m
         vis[arm_id] = visibility(samples, cams, s, md) if len(cams) else np.zeros((0, n), dtype=bool)
         good[arm_id] = visibility(samples, cams, good_s, md) if len(cams) else np.zeros((0, n), dtype=bool)
+        sup[arm_id] = visibility(samples, cams, sup_s, md) if len(cams) else np.zeros((0, n), dtype=bool)
     reachable = np.logical_or.reduce([v.any(axis=0) for v in vis.values()])
     banned: dict[str, set[int]] = {a: set() for a in arms}
     min_views = {a: min(s.min_views, len(pools[a])) for a in arms}
     tours: dict[str, list[Candidate]] = {}
     for _ in range(10):  # views the tour drops (joint motion, paths) are banned and the cover redone
-        picked = _greedy(vis, good, reachable, s, banned, min_views)
+        picked = _greedy(vis, good, sup, reachable, s, banned, min_views)
         dropped = False
         for a, planner in planners.items():
             chosen = [pools[a][i] for i in picked[a]]
@@ -372,6 +414,7 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
             break
     plans: dict[str, ViewPlan] = {}
     final_seen: dict[str, BoolArray] = {}
+    final_count: dict[str, NDArray[np.int_]] = {}
     for a, planner in planners.items():
         views = tours[a]
         rec = {"strategy": "coverage", "candidates": len(all_cands[a]), "feasible": len(pools[a]),
@@ -380,12 +423,35 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
         plan = ViewPlan(a, shape, views, all_cands[a], [rec])
         plan.travel_rad = tour_cost(planner.q_park, plan.q_views, planner.q_park)
         plans[a] = plan
-        m = np.zeros(n, dtype=bool)
+        k = np.zeros(n, dtype=np.int_)
         for c in views:
-            m |= vis[a][pools[a].index(c)]
-        final_seen[a] = m
-    prediction = predict(samples, final_seen, reachable, s.warn_below)
+            k += vis[a][pools[a].index(c)]
+        final_seen[a], final_count[a] = k > 0, k
+    prediction = predict(samples, final_seen, reachable, s.warn_below, counts_by_arm=final_count)
     return CoveragePlan(plans, samples, pools, vis, prediction, s)
+
+
+def feasible_pool(planners: dict[str, ViewpointPlanner], settings: CoverageSettings | None = None
+                  ) -> dict[str, list[Candidate]]:
+    """Every arm's feasible candidates of the coverage grid (the pool :func:`plan_coverage` picks from)."""
+    from darp.acquisition.viewpoints import orbit_shape
+
+    s = settings if settings is not None else CoverageSettings()
+    first = next(iter(planners.values()))
+    shape = orbit_shape(first.radius, first.height)
+    return {a: _check_pool(p, candidate_grid(p, shape, s), s.standoff_step_m) for a, p in planners.items()}
+
+
+def feasible_poses_record(planners: dict[str, ViewpointPlanner], pools: dict[str, list[Candidate]]
+                          ) -> dict[str, list[list[float]]]:
+    """Per arm, the camera poses (``T_world_cam``'s top three rows, row-major, 12 numbers) of the feasible
+    candidates: with the true mesh, evaluation computes the surface any feasible camera pose can see."""
+    out: dict[str, list[list[float]]] = {}
+    for a, pool in pools.items():
+        model = planners[a].model
+        out[a] = [[round(float(v), 6) for v in np.asarray(model.T_world_cam(c.joints_rad))[:3].reshape(-1)]
+                  for c in pool]
+    return out
 
 
 def coverage_of_plans(planners: dict[str, ViewpointPlanner], plans: dict[str, ViewPlan],
@@ -401,7 +467,9 @@ def coverage_of_plans(planners: dict[str, ViewpointPlanner], plans: dict[str, Vi
                if pools[a] else np.zeros((0, n), dtype=bool)) for a in plans}
     seen: dict[str, BoolArray] = {a: np.asarray(v.any(axis=0), dtype=bool) for a, v in vis.items()}
     reachable = np.logical_or.reduce(list(seen.values()))
-    return CoveragePlan(dict(plans), samples, pools, vis, predict(samples, seen, reachable, s.warn_below), s)
+    counts = {a: np.asarray(v.sum(axis=0), dtype=np.int_) for a, v in vis.items()}
+    return CoveragePlan(dict(plans), samples, pools, vis,
+                        predict(samples, seen, reachable, s.warn_below, counts_by_arm=counts), s)
 
 
 def _counts(cands: list[Candidate]) -> dict[str, int]:
@@ -497,6 +565,7 @@ class CoverageTracker:
         self.plan = plan
         n = len(plan.samples)
         self.observed = {a: np.zeros(n, dtype=bool) for a in plan.plans}
+        self.observed_count = {a: np.zeros(n, dtype=np.int_) for a in plan.plans}
         self.extra: dict[str, list[Candidate]] = {a: [] for a in plan.plans}
         self.cut: dict[str, Any] = {"inside": 0, "outside": 0, "by_face": dict.fromkeys(FACES, 0)}
 
@@ -508,6 +577,7 @@ class CoverageTracker:
         seen = observed_samples(self.plan.samples, depth_m, intrinsics, T_world_cam, expect,
                                 self.plan.settings.depth_tolerance_m)
         self.observed[arm_id] |= seen
+        self.observed_count[arm_id] += seen
         cut = envelope_cut(self.plan.samples, depth_m, intrinsics, T_world_cam)
         self.cut["inside"] += cut["inside"]
         self.cut["outside"] += cut["outside"]
@@ -566,9 +636,9 @@ class CoverageTracker:
         for v in self.plan.pool_vis.values():
             reachable |= v.any(axis=0)
         return predict(self.plan.samples, self.observed, reachable, self.plan.settings.warn_below,
-                       by="the recorded depth")
+                       by="the recorded depth", counts_by_arm=self.observed_count)
 
 
 __all__ = ["FACES", "CoveragePlan", "CoveragePrediction", "CoverageSettings", "CoverageTracker", "SurfaceSamples",
-           "coverage_of_plans", "envelope_cut",
+           "coverage_of_plans", "envelope_cut", "feasible_pool", "feasible_poses_record",
            "candidate_grid", "envelope_surface", "observed_samples", "plan_coverage", "predict", "visibility"]

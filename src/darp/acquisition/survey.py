@@ -49,6 +49,8 @@ from darp.acquisition.coverage import (
     CoverageSettings,
     CoverageTracker,
     coverage_of_plans,
+    feasible_pool,
+    feasible_poses_record,
     plan_coverage,
 )
 from darp.acquisition.episode import Episode
@@ -66,6 +68,7 @@ from darp.acquisition.motion_check import (
 )
 from darp.acquisition.verify import VerificationReport, VerifySettings, verify_survey
 from darp.acquisition.viewpoints import (
+    Candidate,
     ViewPlan,
     ViewpointPlanner,
     ViewpointSettings,
@@ -92,6 +95,7 @@ class SurveySettings:
     viewpoints: ViewpointSettings = field(default_factory=ViewpointSettings)
     coverage: CoverageSettings = field(default_factory=CoverageSettings)
     viewpoint_strategy: str = "orbit"  # the paper's fixed orbit per arm; or "coverage" (see docs/acquisition.md)
+    record_feasible_poses: bool = True  # the coverage grid's feasible camera poses in manip_envelope.json
     confirm_from_calibration: bool = True  # confirmation thresholds from the calibration's stated uncertainty
     motion: MotionSettings = field(default_factory=MotionSettings)
     verify: VerifySettings = field(default_factory=VerifySettings)
@@ -157,6 +161,7 @@ class SurveyRunner:
         self.timings: dict[str, float] = {}
         self.estimate: ObjectEstimate | None = None
         self.coverage_plan: CoveragePlan | None = None
+        self.feasible_poses: dict[str, list[list[float]]] | None = None
         self.tracker: CoverageTracker | None = None
         if self.s.viewpoint_strategy not in ("coverage", "orbit"):
             raise AcquisitionError(f"viewpoint strategy must be coverage or orbit, got {self.s.viewpoint_strategy!r}")
@@ -256,6 +261,8 @@ class SurveyRunner:
             plans = {arm_id: planner.plan() for arm_id, planner in planners.items()}
             self.coverage_plan = coverage_of_plans(planners, plans, self.s.coverage)  # achieved coverage only
             self.tracker = CoverageTracker(self.coverage_plan)
+        if self.s.record_feasible_poses:
+            self.feasible_poses = self._feasible_poses(planners, plans)
         for plan in plans.values():
             self.events("view_plan", **plan.to_record(),
                         views=[c.to_record() for c in plan.views],
@@ -268,6 +275,23 @@ class SurveyRunner:
             raise _Terminated("too_few_views", f"too few feasible views ({what}; at least "
                               f"{self.s.min_required_views} needed) even after relaxing the orbit")
         return plans
+
+    def _feasible_poses(self, planners: dict[str, ViewpointPlanner], plans: dict[str, ViewPlan]
+                        ) -> dict[str, list[list[float]]]:
+        """The same feasible camera poses whatever the strategy: the coverage grid's feasible candidates, the
+        orbit's views and the views planned (checked after planning: no planner state the plans use moves)."""
+        coverage = self.s.viewpoint_strategy == "coverage" and self.coverage_plan is not None
+        grid = dict(self.coverage_plan.pools) if coverage and self.coverage_plan else feasible_pool(planners,
+                                                                                                    self.s.coverage)
+        orbit = {a: p.plan().views for a, p in planners.items()} if coverage else {}
+        pools: dict[str, list[Candidate]] = {}
+        for a, plan in plans.items():
+            pool = list(grid.get(a, []))
+            for v in [*orbit.get(a, []), *plan.views]:
+                if all(v is not c for c in pool):
+                    pool.append(v)
+            pools[a] = pool
+        return feasible_poses_record(planners, pools)
 
     def _observe(self, arm_id: str, model: Any) -> None:
         """Add the arm's live depth at its present pose to the achieved coverage."""
@@ -354,6 +378,8 @@ class SurveyRunner:
         coverage = self.coverage_record()
         if coverage is not None:
             extra["coverage"] = coverage
+            if self.feasible_poses is not None:  # for "completeness of seeable" (evaluation, with the true mesh)
+                extra["coverage"]["feasible_poses"] = self.feasible_poses
         center: tuple[float, float, float] | None = None
         if est is not None:
             x, y, z = (float(v) for v in est.centre_m)

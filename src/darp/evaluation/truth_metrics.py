@@ -91,6 +91,62 @@ def visible_in_frames(samples: np.ndarray, frames: Iterable[PosedDepth], *, tole
     return seen
 
 
+SEEABLE_MAX_INCIDENCE_DEG = 60.0  # beyond this a D4 depth pixel is too noisy to count as seen
+SEEABLE_DEPTH_RANGE_M = (0.17, 1.2)  # the D435's usable depth range at the survey standoffs
+
+
+def seeable_from_poses(samples: np.ndarray, normals: np.ndarray, vertices: np.ndarray, triangles: np.ndarray,
+                       poses: Iterable[np.ndarray], *, width: int = 640, height: int = 480, fx: float = 383.0,
+                       fy: float = 383.0, ppx: float | None = None, ppy: float | None = None,
+                       table_z_m: float | None = 0.0,
+                       max_incidence_deg: float = SEEABLE_MAX_INCIDENCE_DEG,
+                       depth_range_m: tuple[float, float] = SEEABLE_DEPTH_RANGE_M,
+                       tolerance_m: float = 0.002) -> np.ndarray:
+    """Boolean (N,): true-surface samples that at least one camera pose (``T_world_cam``, 4x4 or its top
+    3x4 rows, optical axis +z) can see: the sample is the first surface its ray meets (Open3D ray casting
+    against the true mesh and, with ``table_z_m``, the table plane; within ``tolerance_m``), it faces the
+    camera within
+    ``max_incidence_deg``, projects inside the ``width`` x ``height`` image (pinhole ``fx``, ``fy``, centred
+    principal point unless given) and its depth is within ``depth_range_m``. With the feasible camera poses of a
+    survey's planner this is "the surface any feasible camera pose can see"."""
+    import open3d as o3d
+
+    pts = np.asarray(samples, np.float64)
+    nrm = np.asarray(normals, np.float64)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),  # type: ignore[call-overload]
+                        o3d.core.Tensor(np.asarray(triangles, np.uint32)))  # type: ignore[call-overload]
+    if table_z_m is not None:
+        c = pts.mean(axis=0) if len(pts) else np.zeros(3)
+        quad = np.array([[c[0] - 2, c[1] - 2, table_z_m], [c[0] + 2, c[1] - 2, table_z_m],
+                         [c[0] + 2, c[1] + 2, table_z_m], [c[0] - 2, c[1] + 2, table_z_m]], np.float32)
+        quad_t = np.array([[0, 1, 2], [0, 2, 3]], np.uint32)
+        scene.add_triangles(o3d.core.Tensor(quad), o3d.core.Tensor(quad_t))  # type: ignore[call-overload]
+    cos_max = math.cos(math.radians(max_incidence_deg))
+    seen = np.zeros(len(pts), bool)
+    for pose in poses:
+        T = np.eye(4)
+        T[:3] = np.asarray(pose, np.float64).reshape(-1, 4)[:3]
+        T = check_pose(T)
+        c = T[:3, 3]
+        d = pts - c
+        dist = np.linalg.norm(d, axis=1)
+        u = d / np.maximum(dist, 1e-12)[:, None]
+        pc = d @ T[:3, :3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            px = fx * pc[:, 0] / z + (width / 2 if ppx is None else ppx)
+            py = fy * pc[:, 1] / z + (height / 2 if ppy is None else ppy)
+        ok = ((-np.einsum("ij,ij->i", u, nrm) >= cos_max) & (z >= depth_range_m[0]) & (z <= depth_range_m[1])
+              & (px >= 0) & (px < width) & (py >= 0) & (py < height) & ~seen)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            rays = np.hstack([np.tile(c, (idx.size, 1)), u[idx]]).astype(np.float32)
+            hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()  # type: ignore[call-overload]
+            seen[idx[np.abs(hit - dist[idx]) < tolerance_m]] = True
+    return seen
+
+
 @dataclass(frozen=True)
 class SurfaceScores:
     """Accuracy (reconstruction -> truth), completeness (seen truth -> reconstruction) and F-score."""
@@ -166,5 +222,5 @@ def truth_metrics(points: np.ndarray, truth_vertices: np.ndarray, truth_triangle
                         n_seen=int(seen_mask.sum()))
 
 
-__all__ = ["TRUTH_THRESHOLDS_M", "SurfaceScores", "TruthMetrics", "sample_surface", "truth_metrics",
-           "visible_in_frames"]
+__all__ = ["SEEABLE_DEPTH_RANGE_M", "SEEABLE_MAX_INCIDENCE_DEG", "TRUTH_THRESHOLDS_M", "SurfaceScores", "TruthMetrics",
+           "sample_surface", "seeable_from_poses", "truth_metrics", "visible_in_frames"]

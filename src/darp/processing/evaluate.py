@@ -17,7 +17,13 @@ from darp.evaluation.composition import survey_composition
 from darp.evaluation.cross_arm import cross_arm_consistency
 from darp.evaluation.heldout import evaluate_heldout
 from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
-from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M, sample_surface, truth_metrics, visible_in_frames
+from darp.evaluation.truth_metrics import (
+    TRUTH_THRESHOLDS_M,
+    sample_surface,
+    seeable_from_poses,
+    truth_metrics,
+    visible_in_frames,
+)
 from darp.formats.atomic import atomic_path
 from darp.processing.pipeline import FIGURES_DIR, FUSED_FILE, MESH_FILE, SurveyJob
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
@@ -144,6 +150,9 @@ def _truth(job: SurveyJob, fused: np.ndarray,
     completeness = cKDTree(fused).query(seen_samples, k=1)[0].astype(np.float32) if seen_samples.size else np.empty(0)
     pairs = keyframe_pose_pairs(job)
     summary = {**metrics.to_dict(), "pose_error": pose_errors_vs_truth(pairs)}
+    seeable = seeable_completeness(job, fused, samples, normals, truth_v, truth_t, seen)
+    if seeable is not None:
+        summary["seeable"] = seeable
     gauge = world_gauge(pairs)
     if gauge is not None:
         aligned = fused @ gauge[:3, :3].T + gauge[:3, 3]
@@ -155,6 +164,34 @@ def _truth(job: SurveyJob, fused: np.ndarray,
             "T_truthworld_world": gauge.tolist(),
             "accuracy_aligned": distance_stats(truth_distance.distances(aligned), TRUTH_THRESHOLDS_M).to_dict()}
     return summary, {"accuracy": accuracy, "completeness": completeness}
+
+
+def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray, normals: np.ndarray,
+                         truth_v: np.ndarray, truth_t: np.ndarray, seen: np.ndarray) -> dict[str, Any] | None:
+    """Completeness against the surface any feasible camera pose can see: the true samples that some feasible
+    candidate pose of the survey's planner (``manip_envelope.json`` ``coverage.feasible_poses``) sees
+    (:func:`~darp.evaluation.truth_metrics.seeable_from_poses`, with the keyframes' depth image size), and the
+    share of them within each threshold of the fused cloud. None when the survey recorded no feasible poses."""
+    from scipy.spatial import cKDTree
+
+    env = job.survey.envelope()
+    record = (env.extra.get("coverage") or {}) if env is not None else {}
+    by_arm = record.get("feasible_poses") if isinstance(record, dict) else None
+    if not isinstance(by_arm, dict) or not by_arm:
+        return None
+    poses = [np.asarray(p, np.float64).reshape(3, 4) for arm_poses in by_arm.values() for p in arm_poses]
+    first = next(iter_keyframes(job.keyframes_dir, FUSE), None)
+    if first is None or not poses:
+        return None
+    intr = first.posed_depth().intrinsics
+    mask = seeable_from_poses(samples, normals, truth_v, truth_t, poses, width=intr.width, height=intr.height,
+                              fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
+                              table_z_m=float(np.min(truth_v[:, 2])))
+    distance = cKDTree(fused).query(samples[mask], k=1)[0] if mask.any() else np.empty(0)
+    return {"poses": len(poses), "samples": int(mask.sum()), "of_mesh_pct": round(100.0 * float(mask.mean()), 4),
+            "seen_by_keyframes_pct": round(100.0 * float(np.mean(seen[mask])), 4) if mask.any() else None,
+            "completeness_pct": {f"{t * 1000:g}mm": (round(100.0 * float(np.mean(distance <= t)), 4)
+                                                     if distance.size else None) for t in TRUTH_THRESHOLDS_M}}
 
 
 def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:

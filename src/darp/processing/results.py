@@ -10,8 +10,10 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
     clouds          {arm110, arm111, fused}: points per cloud;  mesh {vertices, triangles, area_m2, radii_m}
     heldout         {object, keyframes, aggregate, arms}: count, median/mean/rmse/p90/max in mm, % within 5/10 mm
     cross_arm       {cell_mm, directions: [{source, target, points, co_observed, point_to_point, point_to_plane}]}
-    truth           null, or {samples, seen, cloud, mesh, pose_error}: accuracy and completeness statistics
-                    (mm, % within 2/5/10 mm), F-score % at 2/5/10 mm, keyframe pose error vs the true poses
+    truth           null, or {samples, seen, cloud, mesh, pose_error[, seeable]}: accuracy and completeness
+                    statistics (mm, % within 2/5/10 mm), F-score % at 2/5/10 mm, keyframe pose error vs the true
+                    poses; seeable (surveys that recorded feasible poses): {poses, samples, of_mesh_pct,
+                    seen_by_keyframes_pct, completeness_pct} against the surface any feasible pose can see
     figures         {kind: path relative to the survey folder}
     stages          {stage: seconds}
     status          "ok", or "implausible" when ``warnings`` is not empty
