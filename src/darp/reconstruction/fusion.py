@@ -67,7 +67,7 @@ class FusionSettings:
     envelope_margin_m: float = 0.01  # envelope crop: radial and top margin (at least; see calibration_margin_factor)
     calibration_margin_factor: float = 2.0  # ... and at least this times the calibration's held-out p90 error
     table_margin_m: float = 0.003  # envelope crop: kept only above table + this (at least; see next)
-    table_calibration_factor: float = 1.0  # ... and at least this times the calibration's held-out p90 error
+    table_calibration_factor: float = 1.5  # ... and at least this times the calibration's held-out p90 error
     sor_neighbours: int = 20  # statistical outlier removal: neighbours per point (0 = off)
     sor_std_ratio: float = 2.0  # ... and the tolerated excess of the mean neighbour distance, in std
     surface_fit_radius_voxels: float = 1.5  # local plane fit along the normal (0 = off), in voxels
