@@ -24,8 +24,9 @@ with the paper's real-rig values as lines.
         [--json robustness.json] [--plot robustness.png]
     .venv/bin/python benchmarks/robustness.py --from-json x1.json x4.json --plot robustness.png
 
-The full sweep (4 scales x 4 objects x several seeds) takes hours on 2 cores; ``--scales 1,4 --seeds 0``
-is the reduced run whose numbers docs/twin.md reports.
+The full sweep (4 scales x 4 objects x several seeds) takes hours on 2 cores; docs/twin.md reports
+``--scales 4,1,2,0.5 --seeds 0 --resolution 424x240`` (6 fps), the reduced run made on a shared machine.
+Processed surveys that processing flags as implausible are counted in ``flagged`` and listed with the reason.
 """
 
 from __future__ import annotations
