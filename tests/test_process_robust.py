@@ -318,6 +318,27 @@ def test_crop_margin_grows_with_the_calibrations_heldout_error() -> None:
     assert settings.crop_margin(0.009) == pytest.approx(0.018)
 
 
+def test_table_margin_grows_with_the_calibrations_heldout_error() -> None:
+    """A calibration good to 6 mm (p90; the paper profile's) puts the real table up to about 8 mm above its
+    world's table plane: those table points must not enter the crop, as they did with the fixed 3 mm."""
+    from darp.formats.envelope import Envelope
+    from darp.reconstruction.fusion import FusionSettings
+
+    settings = FusionSettings()
+    assert settings.crop_table_margin(None) == settings.table_margin_m == 0.003
+    assert settings.crop_table_margin(0.0002) == 0.003  # the realistic profile's calibration: unchanged
+    assert settings.crop_table_margin(0.006) == pytest.approx(1.5 * 0.006)
+    envelope = Envelope(center_m=(0.0, 0.0, 0.05), radius_m=0.06, height_m=0.1)
+    table = np.array([[0.03, 0.0, 0.0045], [0.0, 0.04, 0.0065], [-0.02, 0.02, 0.0081]])  # raised table, in the cylinder
+    wall = np.array([[0.06, 0.0, 0.03], [0.0, -0.06, 0.07]])
+    good = settings.crop(envelope, calibration_uncertainty_m=0.0002)
+    assert good.contains(table).all() and good.contains(wall).all()
+    worse = settings.crop(envelope, calibration_uncertainty_m=0.006)
+    assert not worse.contains(table).any() and worse.contains(wall).all()
+    with pytest.raises(Exception, match="table_calibration_factor"):
+        FusionSettings(table_calibration_factor=-1.0)
+
+
 # -- partial surveys ------------------------------------------------------------------------------------------
 def test_inspect_warns_about_a_partial_survey(survey_path: Path, tmp_path: Path, capsys) -> None:
     copy = linked_copy(survey_path, tmp_path / "cube")

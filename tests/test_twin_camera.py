@@ -574,3 +574,37 @@ def test_imu_linear_acceleration_and_lever_arm() -> None:
     )
     f = lever.accel(np.array([0.25]), spin, 250)[0]
     assert np.allclose(f, [-w * w * 0.05, 0.0, 0.0], atol=1e-4)
+
+
+# -- the paper profile's per-frame disparity field ------------------------------------------------------
+def test_frame_disparity_field_moves_depth_smoothly_per_frame_and_leaves_colour_alone(floor_scene) -> None:
+    """The same seeded camera with and without the field (both with unit errors): colour is byte-identical and
+    depth is the field-free depth moved by the frame's own field in the disparity domain, z / (1 + z e / (fx B)),
+    with e regenerated from its documented stream (seed, frame, FIELD_STREAM)."""
+    from darp.twin.camera.sensor import FIELD_STREAM, UnitErrors
+
+    model, data = floor_scene
+    spec = make_camera_spec()
+    fb = spec.depth.fx * spec.baseline_m
+    base = TwinCameraSettings.from_profile("realistic", render_ir=False, segmentation=False)
+    plain = replace(base, errors=UnitErrors(noise_dn=1.0))
+    errors = UnitErrors(noise_dn=1.0, field_disparity_px=0.2, focal_baseline_px_m=fb)
+    fields, moved = [], {}
+    field = replace(base, errors=errors)
+    with TwinCamera(model, spec, plain, seed=4) as a, TwinCamera(model, spec, field, seed=4) as b:
+        for k, distance_m in enumerate((0.30, 0.60)):
+            fa, fb_ = a.capture(data, looking_down(distance_m)), b.capture(data, looking_down(distance_m))
+            assert np.array_equal(fa["color"], fb_["color"])
+            z = fa["depth_m"].astype(np.float64)
+            e = errors.disparity_field(z.shape, np.random.default_rng([4, k, FIELD_STREAM]))
+            expected = np.where(z > 0, z / (1.0 + z * e / fb), 0.0)
+            assert np.allclose(fb_["depth_m"], expected, atol=2e-6)
+            fields.append(e)
+            valid = z > 0
+            moved[distance_m] = float(np.std((fb_["depth_m"] - fa["depth_m"])[valid] / z[valid] ** 2))
+    assert np.std(fields[0] - fields[1]) > 0.1  # a new field every frame (px)
+    for e in fields:  # smooth: neighbouring pixels move together
+        assert 0.08 < float(np.std(e)) < 0.3 and float(np.abs(np.diff(e, axis=1)).max()) < 0.01
+    # depth error / z^2 is the same at both distances (disparity domain), about e / (fx B)
+    for distance_m, e in zip((0.30, 0.60), fields, strict=True):
+        assert moved[distance_m] == pytest.approx(float(np.std(e)) / fb, rel=0.15)

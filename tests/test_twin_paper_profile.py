@@ -345,3 +345,21 @@ def test_a_paper_profile_survey_is_byte_identical_for_a_seed(tmp_path: Path) -> 
     assert a == b and "truth/settings.yaml" in a
     settings = TwinSettings.load(tmp_path / "a" / "cube" / "truth" / "settings.yaml")
     assert settings.profile == "paper" and settings.arm_errors == TwinSettings.from_profile("paper").arm_errors
+
+
+def test_frame_disparity_field_is_seeded_zero_draws_nothing_and_is_in_the_paper_profile() -> None:
+    z = np.full((48, 64), 0.4, np.float32)
+    z[0, 0] = 0.0
+    rng = np.random.default_rng(3)
+    assert UnitErrors(focal_baseline_px_m=19.0).depth(z, 1.0, rng) is z  # zero: nothing drawn, same array
+    assert rng.random() == np.random.default_rng(3).random()
+    e = UnitErrors(field_disparity_px=0.2, focal_baseline_px_m=19.0)
+    a, b = e.depth(z, 1.0, np.random.default_rng(7)), e.depth(z, 1.0, np.random.default_rng(7))
+    assert np.array_equal(a, b) and a[0, 0] == 0.0
+    assert not np.array_equal(a, e.depth(z, 1.0, np.random.default_rng(8)))
+    assert 0.1e-3 < float(np.std(a[z > 0] - 0.4)) < 3e-3
+    paper = TwinSettings.from_profile("paper")
+    assert paper.depth_errors.frame_field_px > 0
+    assert paper.scaled(2.0).depth_errors.frame_field_px == pytest.approx(2 * paper.depth_errors.frame_field_px)
+    for name in ("ideal", "realistic"):
+        assert TwinSettings.from_profile(name).depth_errors.frame_field_px == 0.0

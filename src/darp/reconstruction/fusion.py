@@ -66,7 +66,8 @@ class FusionSettings:
     min_view_bins: int = 2  # distinct viewing-direction bins that must see a voxel
     envelope_margin_m: float = 0.01  # envelope crop: radial and top margin (at least; see calibration_margin_factor)
     calibration_margin_factor: float = 2.0  # ... and at least this times the calibration's held-out p90 error
-    table_margin_m: float = 0.003  # envelope crop: kept only above table + this
+    table_margin_m: float = 0.003  # envelope crop: kept only above table + this (at least; see next)
+    table_calibration_factor: float = 1.5  # ... and at least this times the calibration's held-out p90 error
     sor_neighbours: int = 20  # statistical outlier removal: neighbours per point (0 = off)
     sor_std_ratio: float = 2.0  # ... and the tolerated excess of the mean neighbour distance, in std
     surface_fit_radius_voxels: float = 1.5  # local plane fit along the normal (0 = off), in voxels
@@ -89,8 +90,10 @@ class FusionSettings:
             raise ReconstructionError("surface_fit_radius_voxels must be >= 0 and surface_fit_neighbours >= 2")
         if self.merge_rows < 1:
             raise ReconstructionError("merge_rows must be >= 1")
-        if not (self.calibration_margin_factor >= 0 and self.envelope_margin_m >= 0):
-            raise ReconstructionError("envelope_margin_m and calibration_margin_factor must be >= 0")
+        if not (self.calibration_margin_factor >= 0 and self.envelope_margin_m >= 0 and self.table_margin_m >= 0
+                and self.table_calibration_factor >= 0):
+            raise ReconstructionError("envelope_margin_m, table_margin_m, calibration_margin_factor and "
+                                      "table_calibration_factor must be >= 0")
         if not (self.min_frames_floor >= 1 and 0 < self.support_fraction <= 1 and self.visibility_tolerance_m > 0
                 and self.visibility_stride_px >= 1):
             raise ReconstructionError("min_frames_floor and visibility_stride_px must be >= 1, support_fraction "
@@ -98,11 +101,21 @@ class FusionSettings:
 
     def crop(self, envelope: Envelope, table_z_m: float | None = None,
              calibration_uncertainty_m: float | None = None) -> EnvelopeCrop:
-        """The envelope crop with this fusion's margins: the radial and top margin grow with the
+        """The envelope crop with this fusion's margins: the radial, top and table margins grow with the
         calibration's stated uncertainty (:func:`calibration_uncertainty_m`) when it is given."""
         return EnvelopeCrop.from_envelope(envelope, table_z_m=table_z_m,
                                           margin_m=self.crop_margin(calibration_uncertainty_m),
-                                          table_margin_m=self.table_margin_m)
+                                          table_margin_m=self.crop_table_margin(calibration_uncertainty_m))
+
+    def crop_table_margin(self, calibration_uncertainty_m: float | None = None) -> float:
+        """``table_margin_m``, or ``table_calibration_factor`` x the calibration's uncertainty if larger.
+
+        The table plane of the crop is the calibrated world's z = table height; a calibration off by a few
+        millimetres puts the real table that far above it in some views, and those table points would be
+        fused and held out as object surface (the paper profile's heavy held-out tail)."""
+        if calibration_uncertainty_m is None or not math.isfinite(calibration_uncertainty_m):
+            return self.table_margin_m
+        return max(self.table_margin_m, self.table_calibration_factor * float(calibration_uncertainty_m))
 
     def crop_margin(self, calibration_uncertainty_m: float | None = None) -> float:
         """``envelope_margin_m``, or ``calibration_margin_factor`` x the calibration's uncertainty if larger."""

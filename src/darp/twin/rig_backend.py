@@ -296,6 +296,8 @@ def camera_unit_errors(settings: TwinSettings, serial: str, spec: CameraSpec,
         blur_sigma_px=im.blur_sigma_px,
         shading=im.shading_pct / 100.0,
         noise_dn=im.noise_dn,
+        field_disparity_px=d.frame_field_px,
+        focal_baseline_px_m=spec.depth.fx * spec.baseline_m,
     )
     factory = None
     if d.focal_std_pct > 0 or d.centre_std_px > 0:

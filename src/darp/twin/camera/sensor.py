@@ -41,6 +41,10 @@ from darp.twin.camera.spec import CameraSpec
 from darp.twin.camera.stereo import StereoMatcher, StereoSettings
 
 PROFILES = ("ideal", "realistic")
+FIELD_GRID = (3, 4)
+"""Rows x columns of the per-frame disparity error field's nodes: it varies over about a third of the image."""
+FIELD_STREAM = 0xF1E1D
+"""Third seed word of the per-frame disparity field's generator (``(seed, frame, FIELD_STREAM)``)."""
 CAPTURE_STAGES = ("render", "ir", "depth_noise", "colour", "z16")
 DEPTH_MODES = ("model", "sgbm")
 
@@ -51,8 +55,12 @@ class UnitErrors:
 
     Valid depth becomes ``z * (1 + scale + drift(t)) + offset_m + bias_per_m * z^2`` with ``drift(t) =
     thermal_drift * (1 - exp(-(t - session_start_s) / thermal_tau_s))`` for the frame's timestamp ``t``;
-    the colour image is blurred (``blur_sigma_px``), lit unevenly (a gradient in a random direction per
-    frame plus vignetting, each up to ``shading`` of the brightness) and gets ``noise_dn`` more noise.
+    with ``field_disparity_px`` > 0 each frame also gets its own smooth disparity error field ``e(u, v)``
+    (node values ``N(0, field_disparity_px)`` on a coarse :data:`FIELD_GRID` grid, bicubically
+    interpolated), applied in the disparity domain: ``z -> z / (1 + z e / focal_baseline_px_m)``, so its
+    depth effect grows as ``z^2``, as a stereo matcher's error does; the colour image is blurred
+    (``blur_sigma_px``), lit unevenly (a gradient in a random direction per frame plus vignetting, each up
+    to ``shading`` of the brightness) and gets ``noise_dn`` more noise.
     """
 
     depth_scale: float = 0.0
@@ -64,14 +72,32 @@ class UnitErrors:
     blur_sigma_px: float = 0.0
     shading: float = 0.0
     noise_dn: float = 0.0
+    field_disparity_px: float = 0.0
+    focal_baseline_px_m: float = 0.0  # the unit's fx * baseline (px m): disparity = focal_baseline / z
 
-    def depth(self, depth_m: np.ndarray, timestamp_s: float | None) -> np.ndarray:
-        """The measured depth (float32 metres, 0 stays invalid) for the model's output ``depth_m``."""
+    def disparity_field(self, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+        """One frame's smooth disparity error field (px, float64, ``shape``) drawn from ``rng``."""
+        nodes = rng.normal(0.0, self.field_disparity_px, FIELD_GRID).astype(np.float32)
+        h, w = shape
+        return cv2.resize(nodes, (w, h), interpolation=cv2.INTER_CUBIC).astype(np.float64)
+
+    def depth(self, depth_m: np.ndarray, timestamp_s: float | None,
+              rng: np.random.Generator | None = None) -> np.ndarray:
+        """The measured depth (float32 metres, 0 stays invalid) for the model's output ``depth_m``.
+
+        ``rng`` (the frame's generator) draws the per-frame disparity field; without it, or with
+        ``field_disparity_px`` = 0, nothing is drawn.
+        """
         t = 0.0 if timestamp_s is None else max(0.0, timestamp_s - self.session_start_s)
         scale = 1.0 + self.depth_scale + self.thermal_drift * (1.0 - np.exp(-t / self.thermal_tau_s))
-        if scale == 1.0 and self.depth_offset_m == 0.0 and self.depth_bias_per_m == 0.0:
+        field = self.field_disparity_px > 0 and self.focal_baseline_px_m > 0 and rng is not None
+        if scale == 1.0 and self.depth_offset_m == 0.0 and self.depth_bias_per_m == 0.0 and not field:
             return depth_m
         z = np.asarray(depth_m, dtype=np.float64)
+        if field:
+            assert rng is not None
+            e = self.disparity_field(z.shape, rng)
+            z = z / np.maximum(1.0 + z * e / self.focal_baseline_px_m, 0.5)
         out = z * scale + self.depth_offset_m + self.depth_bias_per_m * z * z
         return np.where(z > 0, np.maximum(out, 0.0), 0.0).astype(np.float32)
 
@@ -335,7 +361,10 @@ class TwinCamera:
                 dropout_prob=dropout,
             )
         if s.errors is not None:
-            depth_m = s.errors.depth(depth_m, timestamp_s)
+            # the field has its own stream: colour noise (and so board detection) stays as without it
+            field_rng = (np.random.default_rng([self.seed, self.frame_index - 1, FIELD_STREAM])
+                         if s.errors.field_disparity_px > 0 else None)
+            depth_m = s.errors.depth(depth_m, timestamp_s, field_rng)
         t3 = cpu()
         stage["depth_noise"] += t3 - t2
 
