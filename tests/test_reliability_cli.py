@@ -190,3 +190,23 @@ def test_a_killed_recording_stays_marked_partial(tmp_path: Path) -> None:
     child.wait()
     assert not out.exists()
     assert (partial / "PARTIAL.txt").is_file()  # the first file written, never removed
+
+
+def test_an_interrupt_is_held_until_a_deferred_block_ends() -> None:
+    """A child process's start is not cut in half: the interrupt comes at the block's end, once."""
+    from darp.errors import Interrupted, interrupts_deferred, raise_interrupted
+
+    steps = []
+    with pytest.raises(Interrupted) as caught, interrupts_deferred():
+        raise_interrupted(signal.SIGTERM)
+        steps.append("after the signal")
+        with interrupts_deferred():  # nested: still held
+            raise_interrupted(signal.SIGHUP)
+            steps.append("nested")
+        steps.append("outer end")
+    assert steps == ["after the signal", "nested", "outer end"]
+    assert caught.value.signum == signal.SIGTERM  # the first signal wins
+    with pytest.raises(Interrupted):  # outside a block: at once
+        raise_interrupted(signal.SIGTERM)
+    with interrupts_deferred():  # nothing pending: nothing raised
+        pass

@@ -8,6 +8,8 @@ as ``darp: warning: <file>: <message>``.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -71,6 +73,35 @@ class Interrupted(KeyboardInterrupt):
     def __init__(self, signum: int) -> None:
         self.signum = int(signum)
         super().__init__(f"signal {self.signum}")
+
+
+_deferral: dict[str, int | None] = {"depth": 0, "pending": None}
+
+
+def raise_interrupted(signum: int) -> None:
+    """Raise :class:`Interrupted` now, or, inside :func:`interrupts_deferred`, when that block ends."""
+    if (_deferral["depth"] or 0) > 0:
+        if _deferral["pending"] is None:
+            _deferral["pending"] = int(signum)
+        return
+    raise Interrupted(signum)
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold the command line's SIGTERM/SIGHUP interrupt until the block ends, then raise it.
+
+    For steps that must not be cut in half: a spawned child process whose start is interrupted reads a
+    truncated pickle from its parent and prints a traceback of its own."""
+    _deferral["depth"] = (_deferral["depth"] or 0) + 1
+    try:
+        yield
+    finally:
+        _deferral["depth"] = (_deferral["depth"] or 1) - 1
+        pending = _deferral["pending"]
+        if not _deferral["depth"] and pending is not None:
+            _deferral["pending"] = None
+            raise Interrupted(pending)
 
 
 class DarpWarning(UserWarning):

@@ -20,7 +20,7 @@ from typing import Any, Protocol, cast
 
 import typer
 
-from darp.errors import DarpError, DarpWarning, Interrupted
+from darp.errors import DarpError, DarpWarning, Interrupted, raise_interrupted
 
 
 class _ClickError(Protocol):
@@ -96,11 +96,12 @@ def _raise_interrupted(signum: int, frame: object) -> None:
     ignore repeats during the cleanup, except the watchdog's one re-delivery."""
     if _state["redeliver"]:
         _state["redeliver"] = False
-        raise Interrupted(_received[0] if _received else signum)
+        raise_interrupted(_received[0] if _received else signum)
+        return
     _received.append(signum)
     if len(_received) == 1:
         threading.Thread(target=_watchdog, args=(signum,), name="darp-signal-watchdog", daemon=True).start()
-        raise Interrupted(signum)
+        raise_interrupted(signum)  # held while a child process starts (darp.errors.interrupts_deferred)
 
 
 def _watchdog(signum: int) -> None:

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import RecordingError, TwinError
+from darp.errors import RecordingError, TwinError, interrupts_deferred
 
 READY_TIMEOUT_S = 120.0
 REPLY_TIMEOUT_S = 120.0  # a worker silent for this long (alive, but stuck) is given up on
@@ -142,9 +142,17 @@ class CameraWorker:
                                  daemon=True, name=f"darp-camera-{spec.serial}")
         # The worker ignores SIGINT from its first instruction (inherited through exec): Ctrl-C reaches the
         # whole process group, and the parent alone handles it (and stops the worker).
+        # SIGTERM/SIGHUP meanwhile are held until the start is complete (an interrupted start leaves the child
+        # a truncated pickle, which it reports with a traceback); the caller's cleanup then stops the worker.
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
-            self._proc.start()
+            with interrupts_deferred():
+                self._proc.start()
+        except KeyboardInterrupt:  # held during the start, raised now: nobody will stop this worker but us
+            if self._proc.pid is not None:
+                self._proc.kill()
+                self._proc.join(5.0)
+            raise
         finally:
             signal.signal(signal.SIGINT, previous)
         child.close()
