@@ -26,7 +26,7 @@ main figures per mode with the issue's targets.
     .venv/bin/python benchmarks/accuracy.py --from-json accuracy.json --plot accuracy.png
 
 ``--reuse DIR`` takes one seed's captures, calibration and surveys from ``DIR`` (``captures/``,
-``calibration.json``, ``surveys/<object>``, as /work/data16/paper-s0 is laid out) instead of making them;
+``calibration.json``, ``surveys/<object>``, as a seed folder of this script is laid out) instead of making them;
 only processing (and a kinematic solve, when a mode needs one) runs, into ``--work``.
 """
 
