@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from robustness import ROOT, darp, fmt, last_error, placements  # the shared helpers
+from robustness import ROOT, darp, fmt, last_error, placements, print_aligned  # the shared helpers
 
 MODES = ("paper", "kinematics", "time", "depth", "refine", "all")
 KINEMATIC_MODEL = "kinematic+compliance"
@@ -261,12 +261,7 @@ def table_lines(rows: list[dict[str, Any]]) -> list[list[str]]:
 
 
 def print_table(rows: list[dict[str, Any]]) -> None:
-    lines = table_lines(rows)
-    widths = [max(len(line[i]) for line in lines) for i in range(len(HEADER))]
-    for k, line in enumerate(lines):
-        print("  ".join(cell.rjust(w) for cell, w in zip(line, widths, strict=True)))
-        if k == 0:
-            print("  ".join("-" * w for w in widths))
+    print_aligned(table_lines(rows))
     for r in rows:
         if r.get("error") or r.get("process_error"):
             print(f"seed {r['seed']} {r['mode']}: {r.get('error') or r.get('process_error')}")

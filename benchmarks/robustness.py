@@ -156,6 +156,15 @@ def fmt(value: Any, digits: int = 2) -> str:
     return "--" if value is None else f"{float(value):.{digits}f}"
 
 
+def print_aligned(lines: list[list[str]]) -> None:
+    """Print rows of cells right-aligned in columns, the first row (the header) underlined."""
+    widths = [max(len(line[i]) for line in lines) for i in range(len(lines[0]))]
+    for k, line in enumerate(lines):
+        print("  ".join(cell.rjust(w) for cell, w in zip(line, widths, strict=True)))
+        if k == 0:
+            print("  ".join("-" * w for w in widths))
+
+
 def print_table(rows: list[dict[str, Any]]) -> None:
     header = ["scale", "seed", "hand-eye held-out mm", "accepted", "processed", "flagged", "exit",
               "held-out med mm", "<=10mm %", "truth acc. med mm", "s"]
@@ -168,11 +177,7 @@ def print_table(rows: list[dict[str, Any]]) -> None:
                       fmt(r.get("heldout_median_mm")), fmt(r.get("within_10mm_pct")),
                       fmt(r.get("truth_accuracy_median_mm"), 3), fmt(r.get("seconds"), 0)])
     lines.append(["paper", "-", "3.58 / 3.93", "-", "-", "-", "-", "2.13", "96.56", "-", "-"])
-    widths = [max(len(line[i]) for line in lines) for i in range(len(header))]
-    for k, line in enumerate(lines):
-        print("  ".join(cell.rjust(w) for cell, w in zip(line, widths, strict=True)))
-        if k == 0:
-            print("  ".join("-" * w for w in widths))
+    print_aligned(lines)
     for r in rows:
         if r.get("calibration_error"):
             print(f"{r['scale']:g}x seed {r['seed']}: calibration failed: {r['calibration_error']}")
