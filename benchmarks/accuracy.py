@@ -153,7 +153,8 @@ COMPARED = ("heldout_median_mm", "heldout_rmse_mm", "heldout_count", "truth_accu
 
 def mark_effects(rows: list[dict[str, Any]]) -> None:
     """Per row: ``effect`` = "baseline" (paper), "no effect" (same numbers as paper and nothing recorded:
-    the switch does nothing on this branch), or "applied"."""
+    the switch does nothing on this branch), "ran, nothing applied" (same numbers, but the step recorded
+    what it decided, e.g. a time offset refused as too uncertain), or "applied"."""
     by_seed = {r["seed"]: r for r in rows if r["mode"] == "paper"}
     for r in rows:
         base = by_seed.get(r["seed"])
@@ -165,6 +166,8 @@ def mark_effects(rows: list[dict[str, Any]]) -> None:
         same = base is not None and all(r.get(k) == base.get(k) for k in COMPARED) and r.get("model") is None
         if same and not recorded:
             r["effect"] = "no effect (switch does nothing on this branch)"
+        elif same and r["mode"] != "all":  # the step ran and recorded why it changed nothing (e.g. time refused)
+            r["effect"] = "ran, nothing applied"
         else:
             missing = [w for w in wanted if w not in recorded and w != "kinematics"]
             r["effect"] = "applied" + (f" (nothing recorded for {', '.join(missing)})" if missing else "")

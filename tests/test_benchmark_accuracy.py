@@ -55,6 +55,8 @@ def test_summary_marks_a_switch_that_does_nothing(accuracy: ModuleType, tmp_path
     rows = []
     for mode, corrections, median in (("paper", {"mode": "paper", "applied": []}, 1.4),
                                       ("depth", {"mode": "depth", "applied": ["depth"]}, 1.4),
+                                      ("time", {"mode": "time", "applied": ["time"],  # estimated, refused
+                                                "time": {"applied_s": [], "warning": "no time offset"}}, 1.4),
                                       ("refine", {"mode": "refine", "applied": ["refine"],
                                                   "refine": {"seconds": 3.0, "counts": {"accepted": 5}}}, 1.2)):
         folder = tmp_path / mode
@@ -66,10 +68,11 @@ def test_summary_marks_a_switch_that_does_nothing(accuracy: ModuleType, tmp_path
                      "process_s": 60.0, **accuracy.summarise_processed(folder, ["mug"])})
     assert rows[0]["heldout_median_mm"] == 1.4 and rows[0]["truth_completeness_5mm_pct"] == 77.0
     assert rows[0]["pose_error_median_mm"] == 3.0
-    assert rows[2]["records"] == ["refine"] and rows[2]["stage_seconds"]["refine"] == 3.0
+    assert rows[3]["records"] == ["refine"] and rows[3]["stage_seconds"]["refine"] == 3.0
     accuracy.mark_effects(rows)
-    assert [r["effect"] for r in rows] == ["baseline", "no effect (switch does nothing on this branch)", "applied"]
+    assert [r["effect"] for r in rows] == ["baseline", "no effect (switch does nothing on this branch)",
+                                           "ran, nothing applied", "applied"]
     lines = accuracy.table_lines(rows)
-    assert lines[0] == accuracy.HEADER and len(lines) == 1 + 3 + 2
-    assert lines[2][2] == "no effect" and lines[3][4] == "1.20"
+    assert lines[0] == accuracy.HEADER and len(lines) == 1 + 4 + 2
+    assert lines[2][2] == "no effect" and lines[3][2] == "ran, nothing applied" and lines[4][4] == "1.20"
     assert all(len(line) == len(accuracy.HEADER) for line in lines)
