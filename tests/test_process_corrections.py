@@ -50,3 +50,31 @@ def test_a_bad_flag_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixt
     assert code == 2
     err = capsys.readouterr().err
     assert err.startswith("darp: error: Invalid value for '--corrections'") and "magic" in err
+
+
+def test_time_shifted_poses_keep_the_kinematic_model(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """With kinematics and time both on, the second (time-shifted) eq. 1 still uses the richer model."""
+    import types
+
+    import numpy as np
+
+    from darp.formats.calibration import ArmCalibration, Calibration
+    from darp.processing import pipeline
+
+    calls: list[dict[str, object]] = []
+
+    def fake_recover(*args: object, **kwargs: object) -> types.SimpleNamespace:
+        calls.append(kwargs)
+        return types.SimpleNamespace(time_alignment={})
+
+    monkeypatch.setattr(pipeline, "recover_survey_poses", fake_recover)
+    arm = ArmCalibration(serial="1", T_world_base=np.eye(4), T_wrist_cam=np.eye(4))
+    arm.time_offset_s = 0.004  # from the calibration: no estimate from frames needed
+    cal = Calibration(epoch="e", date="2026-12-02", arms={"arm110": arm})
+    job = pipeline.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",)), out=tmp_path, calibration=cal,
+                             calibration_path=None,
+                             settings=ProcessSettings(corrections=CorrectionSettings.parse("kinematics,time")))
+    job.poses()
+    assert len(calls) == 2
+    assert all(c["kinematics"] is True for c in calls)
+    assert calls[0]["time_offsets_s"] is None and calls[1]["time_offsets_s"] == {"arm110": 0.004}

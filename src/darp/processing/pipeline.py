@@ -190,22 +190,23 @@ class SurveyJob:
     def poses(self) -> SurveyPoses:
         """Eq. 1 (or true) poses of every depth frame, computed once per run."""
         if self._poses is None:
-            poses = recover_survey_poses(  # with this run's open recordings
-                self.survey, self.calibration, calibration_path=self.calibration_path,
-                open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)),
-                kinematics=self.settings.corrections.kinematics)
+            poses = self._recover_poses()
             if self.truth_poses:
                 poses = with_truth_poses(poses, self.survey)
             self._poses = poses
             if self.settings.corrections.time and not self.truth_poses:
                 offsets, self._time_record = self._time_offsets(poses)
                 if offsets:
-                    self._poses = recover_survey_poses(
-                        self.survey, self.calibration, calibration_path=self.calibration_path,
-                        open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)),
-                        time_offsets_s=offsets)
+                    self._poses = self._recover_poses(offsets)
                 self._poses.time_alignment = self._time_record
         return self._poses
+
+    def _recover_poses(self, time_offsets_s: dict[str, float] | None = None) -> SurveyPoses:
+        """Eq. 1 with this run's open recordings and corrections (the kinematic model, the time offsets)."""
+        return recover_survey_poses(
+            self.survey, self.calibration, calibration_path=self.calibration_path,
+            open_recording=lambda arm: contextlib.nullcontext(self.recording(arm)),
+            kinematics=self.settings.corrections.kinematics, time_offsets_s=time_offsets_s)
 
     def _time_offsets(self, poses: SurveyPoses) -> tuple[dict[str, float], dict[str, Any]]:
         """Per arm the camera's time offset: the calibration's ``time_offset_s`` when it has one, else
