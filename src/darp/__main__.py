@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 
@@ -24,7 +25,11 @@ def main() -> None:
         signum = err.signum if isinstance(err, Interrupted) else int(signal.SIGINT)
         sys.stderr.write("darp: interrupted\n" if signum == signal.SIGINT
                          else f"darp: stopped by {signal.Signals(signum).name}\n")
-        sys.exit(128 + signum)
+        sys.stderr.flush()
+        # Not sys.exit: an interrupt that landed inside a native extension's own evaluation of Python code
+        # (pybind11 runs some at import) leaves CPython marked "unhandled KeyboardInterrupt", and the interpreter
+        # would then end by SIGINT (-2) instead of exit 130. Nothing needs cleaning up this early.
+        os._exit(128 + signum)
     cli_main()
 
 
