@@ -78,3 +78,38 @@ def test_time_shifted_poses_keep_the_kinematic_model(monkeypatch: pytest.MonkeyP
     assert len(calls) == 2
     assert all(c["kinematics"] is True for c in calls)
     assert calls[0]["time_offsets_s"] is None and calls[1]["time_offsets_s"] == {"arm110": 0.004}
+
+
+def test_time_estimator_uses_the_kinematic_model(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """With kinematics on, the time-offset estimator's eq. 1 (``_arm_frames``) uses the richer model's own
+    transforms and forward kinematics, not the paper model's; with it off, the paper model's."""
+    import types
+
+    import numpy as np
+
+    from darp.formats.calibration import ArmCalibration, Calibration
+    from darp.processing import pipeline
+
+    base_kin = np.eye(4)
+    base_kin[:3, 3] = [0.7, 0.0, -0.001]
+    kin = {"model": "kinematic", "T_world_base": base_kin.tolist(), "T_wrist_cam": np.eye(4).tolist(),
+           "joint_offsets_rad": [0.001] * 6, "joint_origin_offsets_m": np.zeros((6, 3)).tolist(),
+           "joint_axis_tilts_rad": np.zeros((6, 3)).tolist(), "compliance_rad_per_nm": [0, 0.001, 0, 0, 0, 0]}
+    arm = ArmCalibration(serial="1", T_world_base=np.eye(4), T_wrist_cam=np.eye(4))
+    arm.kinematics = kin
+    cal = Calibration(epoch="e", date="2026-12-02", arms={"arm110": arm})
+    n = 3
+    traj = types.SimpleNamespace(speed_noise_rad_s=0.0, poses=types.SimpleNamespace(
+        t_s=np.arange(n, dtype=float), T_world_cam=np.tile(np.eye(4), (n, 1, 1)), joint_speed_rad_s=np.zeros(n)))
+    poses = types.SimpleNamespace(trajectories={"arm110": traj})
+    log = types.SimpleNamespace(times=lambda a: np.arange(n, dtype=float), joints=lambda a: np.zeros((n, 6)))
+    recording = types.SimpleNamespace(stream=lambda k: types.SimpleNamespace(intrinsics=object()), depth_scale=0.001)
+    for spec, expect_kin in (("kinematics,time", True), ("time", False)):
+        job = pipeline.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",), arm_poses=lambda: log),
+                                 out=tmp_path, calibration=cal, calibration_path=None,
+                                 settings=ProcessSettings(corrections=CorrectionSettings.parse(spec)))
+        monkeypatch.setattr(job, "recording", lambda a: recording)
+        frames = job._arm_frames("arm110", poses)
+        assert np.allclose(frames.T_world_base, base_kin if expect_kin else np.eye(4))
+        assert (frames.fk_batch is not None) == expect_kin
+        assert np.allclose(frames.joint_offsets_rad, 0.001 if expect_kin else 0.0)

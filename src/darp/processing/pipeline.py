@@ -263,11 +263,15 @@ class SurveyJob:
         """The time-offset estimator's view of one arm (joint log, eq. 1 inputs, depth decoder)."""
         from darp.reconstruction.keyframe_io import frameset_at
         from darp.reconstruction.keyframes import settled_mask
+        from darp.reconstruction.poses import eq1_model
         from darp.reconstruction.time_align import ArmFrames
 
         traj = poses.trajectories[arm]
         log = self.survey.arm_poses()
         cal = self.calibration.arms[arm]
+        # the same eq. 1 as the poses (the richer model's transforms and kinematics when that switch is on)
+        T_world_base, T_wrist_cam, joint_offsets, fk, _ = eq1_model(
+            cal, arm, calibration_path=self.calibration_path, kinematics=self.settings.corrections.kinematics)
         recording = self.recording(arm)
         threshold = self.settings.keyframes.still_threshold(traj.speed_noise_rad_s)
         speed = traj.poses.joint_speed_rad_s
@@ -282,9 +286,9 @@ class SurveyJob:
         return ArmFrames(arm=arm, log_t_s=log.times(arm), log_q_rad=log.joints(arm), frame_t_s=traj.poses.t_s,
                          T_world_cam=traj.poses.T_world_cam, joint_speed_rad_s=speed,
                          still=settled_mask(traj.poses.t_s, speed, self.settings.keyframes, threshold),
-                         T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam,
-                         joint_offsets_rad=cal.joint_offsets_rad, intrinsics=intr,
-                         depth_scale=float(recording.depth_scale), read_depth=read_depth)
+                         T_world_base=T_world_base, T_wrist_cam=T_wrist_cam,
+                         joint_offsets_rad=joint_offsets, intrinsics=intr,
+                         depth_scale=float(recording.depth_scale), read_depth=read_depth, fk_batch=fk)
 
     def time_alignment_record(self) -> dict[str, Any]:
         """What the time alignment did ({} when ``corrections.time`` is off)."""

@@ -177,13 +177,11 @@ def recover_survey_poses(
                 f"{arm}: {stream} timestamps are in the {', '.join(foreign)} domain, not host time; "
                 "poses assume camera time = host time + clock offset")
         log_t, log_q = log.times(arm), log.joints(arm)
-        fk = None
-        T_world_base, T_wrist_cam, joint_offsets = cal.T_world_base, cal.T_wrist_cam, cal.joint_offsets_rad
+        T_world_base, T_wrist_cam, joint_offsets, fk, info = eq1_model(
+            cal, arm, calibration_path=calibration_path, kinematics=result.kinematics is not None,
+            wrist_frame=wrist_frame, warnings=result.warnings)
         if result.kinematics is not None:
-            fk, result.kinematics[arm] = _kinematic_fk(cal, arm, calibration_path, wrist_frame, result.warnings)
-            if fk is not None and cal.kinematics is not None:  # the richer model's own eq. 1 transforms
-                T_world_base, T_wrist_cam, joint_offsets = _kinematic_transforms(cal.kinematics, arm,
-                                                                                 calibration_path, cal)
+            result.kinematics[arm] = info
         poses = camera_poses(
             log_t, log_q, timestamps_ms / 1000.0,
             T_world_base=T_world_base, T_wrist_cam=T_wrist_cam,
@@ -203,6 +201,21 @@ def recover_survey_poses(
             speed_noise_rad_s=joint_speed_noise(log_t, log_q),
         )
     return result
+
+
+def eq1_model(cal: ArmCalibration, arm: str, *, calibration_path: Path | None = None, kinematics: bool = False,
+              wrist_frame: str = "flange", warnings: list[str] | None = None,
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Callable[[np.ndarray], np.ndarray] | None, dict[str, Any]]:
+    """Eq. 1's inputs for one arm: ``T_world_base``, ``T_wrist_cam``, joint zeros, forward kinematics (None:
+    the nominal Z1's) and what was applied. With ``kinematics`` and a calibration that has the richer model,
+    its own transforms and forward kinematics; else the paper model's (a warning appended when asked for)."""
+    if not kinematics:
+        return cal.T_world_base, cal.T_wrist_cam, cal.joint_offsets_rad, None, {}
+    fk, info = _kinematic_fk(cal, arm, calibration_path, wrist_frame, [] if warnings is None else warnings)
+    if fk is None or cal.kinematics is None:
+        return cal.T_world_base, cal.T_wrist_cam, cal.joint_offsets_rad, None, info
+    T_world_base, T_wrist_cam, joint_offsets = _kinematic_transforms(cal.kinematics, arm, calibration_path, cal)
+    return T_world_base, T_wrist_cam, joint_offsets, fk, info
 
 
 def _kinematic_fk(cal: ArmCalibration, arm: str, calibration_path: Path | None, wrist_frame: str,

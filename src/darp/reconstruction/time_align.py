@@ -96,6 +96,8 @@ class ArmFrames:
     intrinsics: Intrinsics
     depth_scale: float
     read_depth: Callable[[int], np.ndarray]  # frame index -> raw uint16 depth
+    # forward kinematics of eq. 1 (None: the nominal Z1's; the richer model's with corrections.kinematics)
+    fk_batch: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def _spread(indices: np.ndarray, k: int) -> np.ndarray:
@@ -174,7 +176,8 @@ def estimate_arm_offset(arm: ArmFrames, reference: tuple[cKDTree, np.ndarray, in
         if len(P) > s.points_per_frame:
             P = P[rng.choice(len(P), s.points_per_frame, replace=False)]
         poses = camera_poses(arm.log_t_s, arm.log_q_rad, arm.frame_t_s[i] - grid, T_world_base=arm.T_world_base,
-                             T_wrist_cam=arm.T_wrist_cam, joint_offsets_rad=arm.joint_offsets_rad)
+                             T_wrist_cam=arm.T_wrist_cam, joint_offsets_rad=arm.joint_offsets_rad,
+                             fk_batch=arm.fk_batch)
         if not np.all(poses.posed):
             continue
         row = np.empty(grid.size)
