@@ -160,3 +160,52 @@ def test_heldout_register_aligns_heldout_views_to_the_fuse_ones(scene_views: lis
     assert displacement_m(error, CENTRE) < 0.3 * displacement_m(offset, CENTRE)
     arm_only = refine_poses(views, frames, CROP, 0.004, RefineSettings(per_arm=False, per_view=False))
     np.testing.assert_array_equal(arm_only.poses[f"arm111/{HELD}"], perturbed[f"arm111/{HELD}"])
+
+
+@pytest.fixture(scope="module")
+def many_views() -> list[tuple[str, str, int, str, np.ndarray, np.ndarray]]:
+    """Eight noisy views per arm (the sixth held out), enough for the gate's validation views."""
+    scene = Scene([table(), box((0.06, 0.04, 0.08), (-0.03, -0.02, 0.0)), sphere(0.025, (0.0, 0.05, 0.025))])
+    intr = small_intrinsics(320, 240, 192.0)
+    rng = np.random.default_rng(2)
+    views = []
+    for arm, azimuths in (("arm110", (110, 130, 150, 170, 190, 210, 230, 250)),
+                          ("arm111", (-70, -50, -30, -10, 10, 30, 50, 70))):
+        for k, T in enumerate(orbit_poses(CENTRE, 0.35, (45,), azimuths)):
+            depth, _ = scene.render(T, intr)
+            views.append((f"{arm}/{k}", arm, k, "heldout" if k == 5 else "fuse", T,
+                          to_z16(add_depth_noise(depth, rng), SCALE)))
+    return views
+
+
+def test_gate_applies_a_correction_that_validates(many_views: list) -> None:
+    """An arm offset: the validation views (fuse keyframes left out of the fit) agree better with the
+    corrected fit views, so the correction is applied; the gate is recorded."""
+    truth = {v[0]: v[4] for v in many_views}
+    offset = _rigid((0.0, 0.3, 0.2), (2.5, -1.5, 1.0))
+    perturbed = {key: (offset @ T if key.startswith("arm111") else T) for key, T in truth.items()}
+    before = _consistency_mm({k: perturbed[k] @ np.linalg.inv(T) for k, T in truth.items()})
+    poses, record = _run(many_views, perturbed, 0.004)
+    gate = record["gate"]
+    assert gate["used"] and gate["applied"] in ("arm", "view"), gate
+    assert len(gate["validation_views"]) == 4 and not any(k.endswith("/5") for k in gate["validation_views"])
+    assert gate["costs"][gate["applied"]]["cost_mm"] < 0.9 * gate["costs"]["none"]["cost_mm"]
+    after = _consistency_mm({k: poses[k] @ np.linalg.inv(T) for k, T in truth.items()})
+    assert np.median(list(after.values())) < 0.5 * np.median(list(before.values())), (before, after)
+    rows = {row["key"]: row for row in record["views"]}
+    assert all(rows[k]["applied"] == "arm" and "validation" in rows[k]["note"] for k in gate["validation_views"])
+
+
+def test_gate_refuses_what_does_not_validate(many_views: list) -> None:
+    """True poses: whatever the fit finds in the noise does not make the validation views agree better by the
+    minimum gain, so nothing is applied and the refusal is recorded."""
+    truth = {v[0]: v[4] for v in many_views}
+    poses, record = _run(many_views, truth, 0.004, RefineSettings(gate_min_gain=0.05))
+    gate = record["gate"]
+    assert gate["used"] and gate["applied"] == "none", gate
+    assert all(not arm["accepted"] and "validation" in arm["refused"] for arm in record["arms"].values())
+    for key, T in truth.items():
+        np.testing.assert_array_equal(poses[key], T)
+    # and without the gate (validate_every 0) the same fit is applied
+    _, plain = _run(many_views, truth, 0.004, RefineSettings(validate_every=0, per_view=False))
+    assert plain["gate"] == {"used": False, "note": "off (validate_every 0)"}

@@ -417,16 +417,22 @@ def refine_keyframes(job: SurveyJob, folder: Path, entries: list[Any],
 
     views = [RefineView(e.file, e.arm, e.frame_number, e.split, e.T_world_cam) for e in entries]
     register = job.settings.refinement.heldout == "register"  # held-out frames are read only then
-    frames = (read_keyframe(folder / e.file).posed_depth(colour=False) if e.split == FUSE or register else None
-              for e in entries)
+    read: dict[str, Any] = {}  # each keyframe file is read once: for the refinement, then to rewrite its pose
+
+    def frame(e: Any) -> Any:
+        if e.split != FUSE and not register:
+            return None
+        read[e.file] = read_keyframe(folder / e.file)
+        return read[e.file].posed_depth(colour=False)
+
     job.report("refine", 0, None)
-    result = refine_poses(views, frames, crop, job.calibration_uncertainty(), job.settings.refinement,
-                          job.settings.fusion.depth)
+    result = refine_poses(views, (frame(e) for e in entries), crop, job.calibration_uncertainty(),
+                          job.settings.refinement, job.settings.fusion.depth)
     new_entries = []
     for entry in entries:
         T = result.poses[entry.file]
         if not np.array_equal(T, entry.T_world_cam):
-            keyframe = read_keyframe(folder / entry.file)
+            keyframe = read.pop(entry.file, None) or read_keyframe(folder / entry.file)
             write_keyframe(folder / entry.file, dc.replace(keyframe, T_world_cam=T))
         new_entries.append(dc.replace(entry, T_world_cam=T))
     job.report("refine", 1, 1)

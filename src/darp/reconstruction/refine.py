@@ -28,6 +28,13 @@ rotation angle (deg). It is accepted only within ``max_sigma`` x the calibration
 when the calibration states none) and that length over ``lever_m`` as an angle; a larger one is refused:
 an arm refused keeps its calibrated poses, a view refused keeps its arm's correction.
 
+**The gate.** Every ``validate_every``-th fuse keyframe of each arm is left out of the fit (a validation
+view; never one of the held-out split). After the fit, three levels are scored by how well the validation
+views (at their arm's correction) lie on the fit views' surface (mean truncated point-to-plane distance):
+no correction, the arms' corrections, and the arms' plus the views' own. The lowest is applied if it beats
+no correction by ``gate_min_gain``; else nothing is. The costs and the decision go to the record (``gate``).
+An arm with fewer than ``gate_min_views`` fuse keyframes: no gate (the record says so).
+
 **Held-out keyframes** are never used to compute a correction. They receive their arm's correction (a
 property of the arm's calibration, estimated from the ``fuse`` keyframes only) and no per-view correction,
 so the held-out evaluation measures the refinement on views it did not see.
@@ -80,6 +87,13 @@ class RefineSettings:
     min_normal_cos: float = 0.5  # a correspondence's normals (oriented toward their cameras) must agree this well
     heldout: str = "arm"  # held-out keyframes: "arm" (their arm's correction only) or "register" (also aligned,
     # alone, to the refined fuse keyframes, same prior and bounds: optimistic, see docs/accuracy.md)
+    validate_every: int = 4  # the gate: every this-many-th fuse keyframe of an arm is left out of the fit and
+    # checks it (0: no gate; never the held-out split)
+    gate_min_views: int = 6  # ... only when every arm has at least this many fuse keyframes
+    gate_min_gain: float = 0.02  # a level (arm, arm + view) is applied only if it lowers the validation cost
+    # (mean truncated point-to-plane distance of the validation views to the fit views) by this fraction
+    gate_truncate_m: float = 0.005  # the validation cost's truncation (an unmatched point costs this)
+    gate_match_m: float = 0.01  # ... and its nearest-neighbour search radius
 
     def __post_init__(self) -> None:
         if not (1e-4 <= self.voxel_size_m <= 0.02 and self.region_margin_m >= 0 and self.table_depth_m >= -0.05):
@@ -94,6 +108,10 @@ class RefineSettings:
             raise ReconstructionError(f"refinement: heldout must be 'arm' or 'register', got {self.heldout!r}")
         if self.rounds < 1 or self.iterations < 1 or self.min_points < 10 or self.max_source_points < 10:
             raise ReconstructionError("refinement: rounds and iterations >= 1, min_points >= 10")
+        if not (self.validate_every >= 0 and self.validate_every != 1 and self.gate_min_views >= 3
+                and 0 <= self.gate_min_gain < 1 and self.gate_truncate_m > 0 and self.gate_match_m > 0):
+            raise ReconstructionError("refinement: validate_every 0 or >= 2, gate_min_views >= 3, gate_min_gain in "
+                                      "[0, 1), gate_truncate_m and gate_match_m > 0")
 
 
 @dataclass(frozen=True)
@@ -304,6 +322,43 @@ def _moved(points: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
+def validation_split(views: Sequence[RefineView], fuse_idx: Sequence[int],
+                     settings: RefineSettings) -> tuple[list[int], str]:
+    """The gate's validation views (indices into ``views``): per arm every ``validate_every``-th of its fuse
+    keyframes, starting half a period in; none (and why) when the gate is off or an arm has too few."""
+    if settings.validate_every == 0:
+        return [], "off (validate_every 0)"
+    per_arm: dict[str, list[int]] = {}
+    for i in fuse_idx:
+        per_arm.setdefault(views[i].arm, []).append(i)
+    short = sorted(arm for arm, idx in per_arm.items() if len(idx) < settings.gate_min_views)
+    if short or not per_arm:
+        return [], (f"not used: {', '.join(short) or 'no arm'} has fewer than {settings.gate_min_views} "
+                    "usable fuse keyframes")
+    k = settings.validate_every
+    return sorted(i for idx in per_arm.values() for i in idx[k // 2::k]), ""
+
+
+def validation_cost(sources: Sequence[tuple[np.ndarray, np.ndarray]], targets: Sequence[tuple[np.ndarray, np.ndarray]],
+                    settings: RefineSettings) -> dict[str, float]:
+    """How well the validation views' points (``sources``, world) lie on the fit views' surface
+    (``targets``: points and normals, world): the mean point-to-plane distance truncated at
+    ``gate_truncate_m`` (a point without a neighbour within ``gate_match_m`` costs the truncation), the median
+    matched distance and the matched fraction (mm, mm, fraction)."""
+    from scipy.spatial import cKDTree
+
+    tgt = np.concatenate([t[0] for t in targets])
+    tgt_n = np.concatenate([t[1] for t in targets])
+    src = np.concatenate([p for p, _ in sources])
+    dist, idx = cKDTree(tgt).query(src, distance_upper_bound=settings.gate_match_m)
+    ok = np.isfinite(dist)
+    r = np.abs(np.einsum("ij,ij->i", src[ok] - tgt[idx[ok]], tgt_n[idx[ok]]))
+    trunc = settings.gate_truncate_m
+    cost = (float(np.sum(np.minimum(r, trunc))) + trunc * float((~ok).sum())) / max(len(src), 1)
+    return {"cost_mm": round(cost * 1000, 4), "median_mm": round(float(np.median(r)) * 1000, 4) if r.size else math.nan,
+            "matched": round(float(ok.mean()), 4) if len(src) else 0.0}
+
+
 def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None], crop: EnvelopeCrop,
                  uncertainty_m: float | None, settings: RefineSettings | None = None,
                  depth: DepthFilterSettings | None = None) -> RefineResult:
@@ -343,6 +398,9 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
             continue
         fuse_idx.append(i)
         clouds[i] = (points, normals)
+    # the gate: some fuse keyframes are left out of the fit and decide whether its corrections are applied
+    valid_idx, gate_note = validation_split(views, fuse_idx, settings)
+    all_fuse, fuse_idx = fuse_idx, [i for i in fuse_idx if i not in set(valid_idx)]
     arms = sorted({views[i].arm for i in fuse_idx})
 
     # 1. per arm: the arms' merged clouds aligned to each other, split in half
@@ -401,6 +459,16 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
         if reason is not None:
             total_arm[arm] = np.eye(4)
 
+    # the gate: which level (none, arm, arm + view) makes the validation views agree best with the fit views
+    level, gate = _gate(views, clouds, fuse_idx, valid_idx, corr, total_arm, arm_record, centre,
+                        (bound_m, bound_deg), settings)
+    gate = {**gate, "note": gate_note} if gate_note else gate
+    if level == "none":
+        for arm in arms:
+            if arm_record[arm]["accepted"]:
+                arm_record[arm].update(accepted=False, refused="validation: no level improved the validation views")
+            total_arm[arm] = np.eye(4)
+
     poses: dict[str, np.ndarray] = {}
     view_rows = []
     counts = {"accepted": 0, "refused": 0, "arm_only": 0, "unchanged": 0}
@@ -414,6 +482,8 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
             row["applied"] = "arm" if arm_ok else "none"
             if i in skipped:
                 row["note"] = skipped[i]
+            elif i in valid_idx:
+                row["note"] = "validation view: left out of the fit, its arm's correction only"
             counts["arm_only" if arm_ok else "unchanged"] += 1
         elif not arm_ok:
             C = np.eye(4)
@@ -423,6 +493,8 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
         else:
             C = corr[i]
             reason = _within(C, centre, bound_m, bound_deg)
+            if reason is None and level != "view":
+                reason = "validation: the per-view corrections did not improve the validation views"
             row.update({"view_" + k: v for k, v in _measure(C @ np.linalg.inv(T_arm), centre).items()})
             if reason is None:
                 row["applied"] = "view"
@@ -436,8 +508,8 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
         poses[view.key] = C @ np.asarray(view.T_world_cam, np.float64)
         view_rows.append(row)
 
-    if settings.heldout == "register" and held_clouds and fuse_idx:
-        _register_heldout(views, held_clouds, fuse_idx, clouds, poses, view_rows, counts, centre, prior,
+    if settings.heldout == "register" and held_clouds and all_fuse:
+        _register_heldout(views, held_clouds, all_fuse, clouds, poses, view_rows, counts, centre, prior,
                           (bound_m, bound_deg), settings)
 
     held = ("held-out keyframes get their arm's correction only" if settings.heldout == "arm" else
@@ -450,10 +522,44 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
                   "uncertainty_mm": round(uncertainty_m * 1000, 3), "source": source,
                   "max_sigma": settings.max_sigma, "lever_m": settings.lever_m,
                   "prior_sigma_mm": round(sigma_t * 1000, 3), "measured_at": "the envelope centre"},
-        "arm_pair": pair_record, "arms": arm_record, "rounds": rounds, "counts": counts,
+        "arm_pair": pair_record, "arms": arm_record, "rounds": rounds, "gate": gate, "counts": counts,
         "views": view_rows, "seconds": round(time.perf_counter() - start, 3),
     }
     return RefineResult(poses=poses, record=record)
+
+
+def _gate(views: Sequence[RefineView], clouds: dict[int, tuple[np.ndarray, np.ndarray]], fit_idx: list[int],
+          valid_idx: list[int], corr: dict[int, np.ndarray], total_arm: dict[str, np.ndarray],
+          arm_record: dict[str, Any], centre: np.ndarray, bounds: tuple[float, float],
+          settings: RefineSettings) -> tuple[str, dict[str, Any]]:
+    """The level to apply (``none``, ``arm`` or ``view``) and its record: each level's validation cost (the
+    validation views at their arm's correction against the fit views at that level's); the lowest wins if it
+    beats ``none`` by ``gate_min_gain``. No validation views: ``view`` (as without the gate)."""
+    if not valid_idx or not fit_idx:
+        return "view", {"used": False}
+
+    def arm_T(i: int) -> np.ndarray:
+        return total_arm.get(views[i].arm, np.eye(4)) if arm_record.get(views[i].arm, {}).get("accepted") else np.eye(4)
+
+    def view_T(i: int) -> np.ndarray:
+        T = corr.get(i)
+        return T if T is not None and arm_record[views[i].arm]["accepted"] and _within(T, centre, *bounds) is None \
+            else arm_T(i)
+
+    def placed(idx: list[int], how: Any) -> list[tuple[np.ndarray, np.ndarray]]:
+        return [(_moved(clouds[i][0], how(i)), clouds[i][1] @ how(i)[:3, :3].T) for i in idx]
+
+    costs = {}
+    for level, fit_T, valid_T in (("none", lambda i: np.eye(4), lambda i: np.eye(4)), ("arm", arm_T, arm_T),
+                                  ("view", view_T, arm_T)):
+        costs[level] = validation_cost(placed(valid_idx, valid_T), placed(fit_idx, fit_T), settings)
+    best = min(costs, key=lambda k: costs[k]["cost_mm"])  # ties: the first, i.e. the least correction
+    gain = 1.0 - costs[best]["cost_mm"] / max(costs["none"]["cost_mm"], 1e-12)
+    chosen = best if gain >= settings.gate_min_gain else "none"
+    return chosen, {"used": True, "validation_views": [views[i].key for i in valid_idx], "costs": costs,
+                    "gain": round(gain, 4), "min_gain": settings.gate_min_gain, "applied": chosen,
+                    **({"refused": f"best level {best} lowers the validation cost by {100 * gain:.1f} % < "
+                                   f"{100 * settings.gate_min_gain:.0f} %"} if chosen != best else {})}
 
 
 def _register_heldout(views: Sequence[RefineView], held_clouds: dict[int, tuple[np.ndarray, np.ndarray]],
@@ -498,4 +604,5 @@ def _register_heldout(views: Sequence[RefineView], held_clouds: dict[int, tuple[
 __all__ = ["DEFAULT_UNCERTAINTY_M", "Alignment", "RefineResult", "RefineSettings", "RefineView", "displacement_m",
            "mean_transform", "normal_space_weights", "refine_poses", "registration_cloud", "registration_region",
            "regularised_icp",
-           "rigid_power", "rotation_angle_deg", "transform_twist", "twist_transform"]
+           "rigid_power", "rotation_angle_deg", "transform_twist", "twist_transform", "validation_cost",
+           "validation_split"]
