@@ -9,7 +9,7 @@ object and pooled over objects (the paper pools 1,563,466 points of 224 keyframe
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -82,13 +82,15 @@ def heldout_points(frame: PosedDepth, settings: FusionSettings | None = None,
 
 def evaluate_heldout(frames: Iterable[PosedDepth], mesh: MeshDistance, *, object_name: str = "",
                      settings: FusionSettings | None = None, region: Region | None = None,
-                     thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M) -> HeldoutResult:
-    """Distances of every held-out frame's filtered points to ``mesh`` (streamed frame by frame)."""
+                     thresholds_m: Sequence[float] = DEFAULT_THRESHOLDS_M,
+                     region_of: Callable[[PosedDepth], Region] | None = None) -> HeldoutResult:
+    """Distances of every held-out frame's filtered points to ``mesh`` (streamed frame by frame).
+    ``region_of(frame)``: a frame's own region (e.g. its fitted table crop) instead of ``region``."""
     settings = settings or FusionSettings()
     parts: dict[str, list[np.ndarray]] = {}
     counts: dict[str, int] = {}
     for frame in frames:
-        points = heldout_points(frame, settings, region)
+        points = heldout_points(frame, settings, region if region_of is None else region_of(frame))
         counts[frame.arm] = counts.get(frame.arm, 0) + 1
         parts.setdefault(frame.arm, []).append(mesh.distances(points) if len(points) else np.empty(0, np.float32))
     distances = {arm: np.concatenate(p).astype(np.float32) for arm, p in parts.items()}

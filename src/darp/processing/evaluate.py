@@ -206,7 +206,8 @@ def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:
 
     heldout = evaluate_heldout(posed_frames(iter_keyframes(job.keyframes_dir, HELDOUT), colour=False),
                                MeshDistance(v, t), object_name=index.object_name or job.survey.name,
-                               settings=settings.fusion, region=crop)
+                               settings=settings.fusion, region=crop,
+                               region_of=(lambda f: job.table_region(f)[0]) if settings.corrections.table else None)
     _save_arrays(folder / HELDOUT_DISTANCES, heldout.distances)
 
     arms = [a for a in job.arms if (out / f"{a}.ply").is_file()]

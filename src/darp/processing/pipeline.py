@@ -57,6 +57,7 @@ from darp.formats.realsense.recording import Recording
 from darp.formats.realsense.types import IMAGE_STREAMS
 from darp.formats.survey import Survey
 from darp.processing.settings import ProcessSettings
+from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.envelope_estimate import envelope_record, estimate_survey_envelope
 from darp.reconstruction.fusion import VoxelFusion, calibration_uncertainty_m, write_voxel_cloud
@@ -161,6 +162,13 @@ class SurveyJob:
                 self._envelope_record = envelope_record(envelope)
             self._envelope = envelope
         return self._envelope
+
+    def table_region(self, frame: PosedDepth) -> tuple[Any, dict[str, Any]]:
+        """``corrections.table``: the region of one keyframe (the crop above its own fitted table plane, or the
+        crop when none is found) and its record (:mod:`darp.reconstruction.table_plane`)."""
+        from darp.reconstruction.table_plane import table_region
+
+        return table_region(frame, self.crop(), None, self.settings.fusion.depth, self.calibration_uncertainty())
 
     def envelope_record(self) -> dict[str, Any]:
         """Where the envelope came from: ``{"source": "manip_envelope.json" | "estimated", "center_m", ...}``."""
@@ -509,8 +517,15 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
     index = read_keyframe_index(job.keyframes_dir)
     total = len(index.select(FUSE))
     fusion = VoxelFusion(job.settings.fusion, job.crop())
+    table_records: list[dict[str, Any]] = []
     for k, keyframe in enumerate(iter_keyframes(job.keyframes_dir, FUSE)):
-        fusion.add(keyframe.posed_depth())
+        frame = keyframe.posed_depth()
+        if job.settings.corrections.table:  # issue 16: each keyframe above its own fitted table plane
+            region, record = job.table_region(frame)
+            table_records.append(record)
+            fusion.add(frame, region)
+        else:
+            fusion.add(frame)
         job.report("fusion", k + 1, total + 1)
     result = fusion.result()
     if len(result.fused) == 0:
@@ -524,8 +539,13 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
         for name, cloud in clouds.items():
             write_voxel_cloud(paths[name], cloud)
     job.report("fusion", total + 1, total + 1)
-    return {"points": {**{arm: len(c) for arm, c in result.per_arm.items()}, "fused": len(result.fused)},
-            "stats": result.stats}
+    out: dict[str, Any] = {"points": {**{arm: len(c) for arm, c in result.per_arm.items()},
+                                      "fused": len(result.fused)}, "stats": result.stats}
+    if job.settings.corrections.table:
+        from darp.reconstruction.table_plane import summarise
+
+        out["table"] = summarise(table_records)
+    return out
 
 
 def stage_mesh(job: SurveyJob) -> dict[str, Any]:

@@ -124,7 +124,9 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
                         **({"depth": keyframes["depth_correction"]} if keyframes.get("depth_correction") else {}),
                         **({"time": summary["poses"]["time_alignment"]}
                            if (summary.get("poses") or {}).get("time_alignment") else {}),
-                        **({"refine": keyframes["refine"]} if keyframes.get("refine") is not None else {})},
+                        **({"refine": keyframes["refine"]} if keyframes.get("refine") is not None else {}),
+                        **({"table": summary["fusion"]["table"]}
+                           if (summary.get("fusion") or {}).get("table") else {})},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),

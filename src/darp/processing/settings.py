@@ -6,7 +6,7 @@ A settings file (YAML or JSON) gives any subset; everything not given keeps its 
     fusion: {voxel_size_m: 0.0015, min_frames: 3, depth: {max_depth_m: 1.0}}
     mesh: {radius_factors: [2, 4, 8]}
     evaluation: {truth_sample_spacing_m: 0.001, figures: true}
-    corrections: {kinematics: true, depth: true, time: true, refine: true}
+    corrections: {kinematics: true, depth: true, time: true, refine: true, table: true}
     refinement: {max_sigma: 2.0, per_view: true}   # parameters of corrections.refine
 
 ``corrections`` switches darp's improvements over the paper's method (docs/accuracy.md); all off is
@@ -54,7 +54,7 @@ class EvaluationSettings:
             raise ConfigError("evaluation: max_heldout_median_mm and max_truth_accuracy_mm must be > 0")
 
 
-CORRECTIONS = ("kinematics", "time", "depth", "refine")
+CORRECTIONS = ("kinematics", "time", "depth", "refine", "table")
 
 
 @dataclass(frozen=True)
@@ -65,10 +65,11 @@ class CorrectionSettings:
     time: bool = False  # the calibration's camera-to-joint-log time offset
     depth: bool = False  # the calibration's per-camera depth scale and offset, at back-projection
     refine: bool = False  # survey-level pose refinement from overlapping depth, within the calibration's bounds
+    table: bool = False  # each keyframe cut at its own fitted table plane instead of the crop's floor
 
     @classmethod
     def parse(cls, spec: str) -> CorrectionSettings:
-        """``paper`` (none), ``all``, or a comma-separated subset of kinematics, time, depth, refine."""
+        """``paper`` (none), ``all``, or a comma-separated subset of kinematics, time, depth, refine, table."""
         words = [w.strip().lower() for w in spec.split(",") if w.strip()]
         if words == ["paper"] or words == ["none"]:
             return cls()
@@ -105,6 +106,8 @@ class ProcessSettings:
 
     def to_dict(self) -> dict[str, Any]:
         plain: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(self)))
+        if not self.corrections.table:  # added later: absent when off, so older records and fingerprints stay
+            del plain["corrections"]["table"]
         return plain
 
     def fingerprint(self, *groups: str) -> str:

@@ -413,10 +413,11 @@ class VoxelFusion:
         """Voxel rows held (state and pending): the accumulator's memory in rows."""
         return sum(len(s) for s in self._state.values()) + self._pending_rows
 
-    def add(self, frame: PosedDepth) -> int:
-        """Back-project, filter and accumulate one frame; returns the number of points it added."""
+    def add(self, frame: PosedDepth, region: Region | None = None) -> int:
+        """Back-project, filter and accumulate one frame; returns the number of points it added.
+        ``region``: this frame's own region instead of the fusion's (e.g. its fitted table crop)."""
         self._check_new(frame.arm, frame.frame_id)
-        cloud = backproject(frame, self.settings.depth, self.region)
+        cloud = backproject(frame, self.settings.depth, self.region if region is None else region)
         added = self._accumulate(frame.arm, frame.frame_id, cloud)
         if self.settings.adaptive_support:
             self.views.append(FrameView.of(frame, self.arms.index(frame.arm), self.settings.visibility_stride_px))
