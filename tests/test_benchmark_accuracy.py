@@ -76,3 +76,29 @@ def test_summary_marks_a_switch_that_does_nothing(accuracy: ModuleType, tmp_path
     assert lines[0] == accuracy.HEADER and len(lines) == 1 + 4 + 2
     assert lines[2][2] == "no effect" and lines[3][2] == "ran, nothing applied" and lines[4][4] == "1.20"
     assert all(len(line) == len(accuracy.HEADER) for line in lines)
+
+
+def test_combinations_and_the_gauge_aligned_accuracy(accuracy: ModuleType, tmp_path: Path) -> None:
+    """``a+b`` modes run ``--corrections a,b`` (the kinematic model when they include kinematics); the table
+    reports the raw and the gauge-aligned truth accuracy (mean of the surveys' medians)."""
+    assert accuracy.parse_modes("kinematics+depth+table,paper,all") == ["paper", "all", "kinematics+depth+table"]
+    assert accuracy.corrections_spec("kinematics+depth") == "kinematics,depth"
+    assert accuracy.mode_model("kinematics+depth", True) == accuracy.KINEMATIC_MODEL
+    assert accuracy.mode_model("depth+table", True) is None
+    with pytest.raises(SystemExit, match="unknown mode"):
+        accuracy.parse_modes("depth+magic")
+    for name, aligned in (("mug", 1.2), ("ketchup", 0.8)):
+        _write_results(tmp_path, name, 0.6, {"mode": "depth+table", "applied": ["depth", "table"],
+                                             "table": {"keyframes": 10, "fitted": 10}})
+        data = json.loads((tmp_path / name / "results.json").read_text())
+        data["truth"]["world_gauge"] = {"translation_mm": 2.0, "rotation_deg": 0.2,
+                                        "accuracy_aligned": {"median_mm": aligned}}
+        (tmp_path / name / "results.json").write_text(json.dumps(data))
+    row = accuracy.summarise_processed(tmp_path, ["mug", "ketchup"])
+    assert row["truth_aligned_median_mm"] == pytest.approx(1.0)
+    assert row["surveys"]["mug"]["gauge_translation_mm"] == 2.0 and row["records"] == ["table"]
+    row.update(seed=0, mode="depth+table", model=None)
+    rows = [{"seed": 0, "mode": "paper", "model": None, "heldout_median_mm": 1.4}, row]
+    accuracy.mark_effects(rows)
+    assert rows[1]["effect"] == "applied (nothing recorded for depth)"
+    assert accuracy.table_lines(rows)[2][accuracy.HEADER.index("truth aligned mm")] == "1.000"
