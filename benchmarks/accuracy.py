@@ -339,6 +339,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     if args.from_json:
         rows = [r for f in args.from_json for r in json.loads(f.read_text())]
+        mark_effects(rows)  # against the paper rows of all the files (a later run may add modes to an earlier one)
         print_table(rows)
         plot(rows, args.plot)
         return
