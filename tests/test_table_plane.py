@@ -7,6 +7,9 @@ view's own points removes the table and keeps the box, also when the view's pose
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -78,3 +81,22 @@ def test_switch_parses_and_paper_records_stay() -> None:
     assert "table" in CorrectionSettings.parse("all").applied
     assert "table" not in ProcessSettings().to_dict()["corrections"]  # off: absent (older fingerprints stay)
     assert ProcessSettings(corrections=CorrectionSettings(table=True)).to_dict()["corrections"]["table"] is True
+
+
+@pytest.mark.slow
+def test_the_switch_cuts_the_pipelines_keyframes_at_their_planes(survey_path: Path, tmp_path: Path) -> None:
+    """``--corrections table`` on the tiny twin survey: most fuse keyframes get a plane, the fusion records it,
+    and no fused point lies below the lowest plane plus the margin."""
+    from darp.cli._app import run
+    from darp.reconstruction.cloud_io import read_ply
+
+    out = tmp_path / "p"
+    assert run(["process", str(survey_path), "--truth-poses", "--corrections", "table", "-o", str(out)]) == 0
+    results = json.loads((out / survey_path.name / "results.json").read_text())
+    record = results["corrections"]["table"]
+    assert results["corrections"]["applied"] == ["table"]
+    assert record["keyframes"] > 0 and record["fitted"] >= record["keyframes"] // 2  # the rest keep the crop
+    assert record["tilt_deg_median"] < 1.0 and record["rms_mm_median"] < 1.5
+    cloud = read_ply(out / survey_path.name / "fused.ply")
+    z = np.asarray(cloud.points if hasattr(cloud, "points") else cloud[0])[:, 2]
+    assert z.min() * 1000 >= record["table_z_mm"]["min"] + record["margin_mm"] - 1.0
