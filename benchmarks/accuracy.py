@@ -9,13 +9,15 @@ and the SAME surveys are processed once per mode (``darp process --corrections S
 command in its own interpreter (the helpers of benchmarks/robustness.py), timed.
 
 Modes map to ``--corrections`` specs: ``paper`` (none: poses from calibration and kinematics, as the
-paper), ``kinematics``, ``time``, ``depth``, ``refine`` (one improvement each) and ``all``. A mode whose
+paper), ``kinematics``, ``time``, ``depth``, ``refine``, ``table`` (one improvement each), ``all``, and any
+combination joined by ``+`` (``kinematics+depth+table`` runs ``--corrections kinematics,depth,table``). A mode whose
 results.json records nothing for its correction and whose numbers equal paper mode's is reported as
 "no effect" (its switch does nothing on this branch), never as an improvement.
 
 Per mode, printed as a table and written to ``--json``: hand-eye held-out 3-D corner error (median, per
 arm, of the calibration the mode used), held-out point-to-mesh pooled over the surveys (median, RMSE,
-p90, % within 5 / 10 mm), the fused cloud's accuracy (median distance to the true mesh) and completeness
+p90, % within 5 / 10 mm), the fused cloud's accuracy (median distance to the true mesh, raw and after
+removing the world gauge: docs/accuracy.md "Accuracy against truth") and completeness
 (% of the seen true surface within 5 mm), keyframe pose error against the true poses (median translation),
 and the seconds of each step (calibration solve, processing, refinement). A plot (``--plot``) shows the
 main figures per mode with the issue's targets.
