@@ -372,10 +372,8 @@ def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], sup: dict[str
             scores = vis_f[a] @ (first + own) + sup_f[a] @ (more + co) + good[a].astype(np.float64) @ new_good
             if band and not band_met:
                 others_close = np.logical_or.reduce([co_count[b] > 0 for b in arms if b != a])
-                # a side sample no arm sees closely yet seeds the band (half weight) so the first arm starts it
-                seed = (np.logical_and.reduce([co_count[b] == 0 for b in arms])).astype(np.float64) * 0.5
-                want = side_mask & (co_count[a] < s.co_views)
-                scores = scores + co_f[a] @ (want * (others_close + seed) * s.co_band_weight)
+                want = side_mask & others_close & (co_count[a] < s.co_views)
+                scores = scores + co_f[a] @ (want * s.co_band_weight)
             for i in np.argsort(-scores, kind="stable"):
                 if int(i) in banned[a] or int(i) in picked[a]:
                     continue
