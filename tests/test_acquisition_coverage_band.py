@@ -25,7 +25,7 @@ def pick(settings: CoverageSettings) -> dict[str, list[int]]:
 
 
 def test_the_second_arm_adds_a_view_of_the_band_the_first_one_sees() -> None:
-    base = CoverageSettings(support_views=1, min_views=0, target_co_observed=0.25, min_gain=0.0)
+    base = CoverageSettings(support_views=1, min_views=0, target_co_observed=0.25, min_gain=0.0, target_co_sides=0.25)
     without = pick(CoverageSettings(**{**base.__dict__, "target_co_sides": 0.0}))
     with_band = pick(base)
     # without the band the co-observed target is met on the top (both arms see it) and the band stays one arm's
@@ -40,7 +40,7 @@ def test_no_band_is_asked_where_the_other_arm_cannot_see_the_sides() -> None:
     vis, band = pools()
     vis["arm111"] = vis["arm111"][:1]  # arm111 has only the top view
     picked = _greedy(vis, vis, vis, np.ones(band.size, bool),
-                     CoverageSettings(support_views=1, min_views=0, min_gain=0.0),
+                     CoverageSettings(support_views=1, min_views=0, min_gain=0.0, target_co_sides=0.25),
                      {a: set() for a in vis}, dict.fromkeys(vis, 0), co_vis=vis, sides=band)
     assert picked["arm110"] and 1 in picked["arm110"]  # the band is still covered, by the arm that can
     assert len(picked["arm111"]) <= 1

@@ -87,7 +87,7 @@ class CoverageSettings:
     # until target_co_sides of the covered side samples are in it (or 90 % of what the feasible views allow)
     co_views: int = 1
     co_incidence_deg: float = 60.0
-    target_co_sides: float = 0.25
+    target_co_sides: float = 0.0  # off by default: on the twin it gained nothing (docs/acquisition.md); try 0.25
     co_band_weight: float = 1.0
     min_gain: float = 0.01  # a pick must add this share of the surface (after the co-observed target)
     warn_below: float = 0.8  # a face covered less than this (predicted or reachable) is warned about
