@@ -49,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 from darp.acquisition.coverage import CoverageSettings, plan_coverage
 from darp.acquisition.motion_check import ArmCollisionModel, envelope_obstacle
 from darp.acquisition.viewpoints import RELAXATIONS, Candidate, ViewpointPlanner, orbit_shape
+from darp.errors import TwinError
 from darp.kinematics.rig import Rig, load_rig
 
 LEVELS = (0.80, 0.90, 0.95)
@@ -57,21 +58,27 @@ WIDTH, HEIGHT, FX, FY = 640, 480, 383.0, 383.0  # D435 depth at 640x480 (87 x 58
 MAX_INCIDENCE_DEG, MIN_DEPTH_M, MAX_DEPTH_M = 60.0, 0.17, 1.2
 
 
-def placements(rig: Rig, radius: float, count: int, rng: np.random.Generator) -> list[tuple[float, float, float]]:
+def placements(rig: Rig, radius: float, height: float, count: int,
+               rng: np.random.Generator) -> list[tuple[float, float, float]]:
+    """``count`` random placements that :func:`validate_placement` accepts (an object of that radius and height)."""
     from darp.twin.objects.model import ObjectPlacement
     from darp.twin.placement import validate_placement
 
     ws = rig.workspace
     out: list[tuple[float, float, float]] = []
-    while len(out) < count:
+    for _ in range(1000 * count):
+        if len(out) == count:
+            break
         x = rng.uniform(ws.x_range_m[0] + radius, ws.x_range_m[1] - radius)
         y = rng.uniform(ws.y_range_m[0] + radius, ws.y_range_m[1] - radius)
         yaw = rng.uniform(-math.pi, math.pi)
         try:
-            validate_placement(rig, radius, 0.0, ObjectPlacement(x, y, yaw))
-        except Exception:
+            validate_placement(rig, radius, height, ObjectPlacement(x, y, yaw))
+        except TwinError:
             continue
         out.append((float(x), float(y), float(yaw)))
+    if len(out) < count:
+        raise SystemExit(f"only {len(out)} of {count} random placements of a {radius * 1000:.0f} mm object were valid")
     return out
 
 
@@ -255,7 +262,7 @@ def main() -> None:
     for name in a.objects.split(","):
         obj = make_object(name)
         runs = [run_one(rig, obj, pl, a.samples, a.seed + k, a.all_relaxations, settings)
-                for k, pl in enumerate(placements(rig, obj.radius_m, a.placements, rng))]
+                for k, pl in enumerate(placements(rig, obj.radius_m, obj.height_m, a.placements, rng))]
         results[name] = runs
         for strat in ("darp", "orbit", "random"):
             r = [run["strategies"][strat] for run in runs]

@@ -81,6 +81,14 @@ class CoverageSettings:
     support_weight: float = 0.6  # gain of a further supporting sighting (up to support_views) against a first one
     target_support: float = 0.9  # of the samples support_views feasible candidates can support
     co_weight: float = 0.5
+    # the co-observed band: side samples (the top of an open container is its opening: the arms see opposite
+    # faces of its wall there) that each arm sees co_views times at most co_incidence_deg, so each arm's own
+    # cloud can keep them (with fusion's arm_support_from_fused) and cross-arm consistency can compare them,
+    # until target_co_sides of the covered side samples are in it (or 90 % of what the feasible views allow)
+    co_views: int = 1
+    co_incidence_deg: float = 60.0
+    target_co_sides: float = 0.0  # off by default: on the twin it gained nothing (docs/acquisition.md); try 0.25
+    co_band_weight: float = 1.0
     min_gain: float = 0.01  # a pick must add this share of the surface (after the co-observed target)
     warn_below: float = 0.8  # a face covered less than this (predicted or reachable) is warned about
     depth_tolerance_m: float = 0.015  # achieved coverage: depth within this of the envelope interval
@@ -306,14 +314,27 @@ def _check_pool(planner: ViewpointPlanner, cands: list[Candidate], step_m: float
 
 
 def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], sup: dict[str, BoolArray], reachable: BoolArray,
-            s: CoverageSettings, banned: dict[str, set[int]], min_views: dict[str, int]) -> dict[str, list[int]]:
+            s: CoverageSettings, banned: dict[str, set[int]], min_views: dict[str, int],
+            co_vis: dict[str, BoolArray] | None = None, sides: BoolArray | None = None) -> dict[str, list[int]]:
     """Pick pool indices per arm (see the module docstring): first sightings (``vis``), then supporting
     sightings (``sup``: at most ``support_incidence_deg``) up to ``support_views`` per sample (fusion keeps a
     voxel only when several frames from distinct directions saw it), good-incidence sightings (``good``)
     and, until the co-observed target is met, the co-observed band (samples the other arm sees, up to
-    ``support_views`` supporting sightings by this arm, so both arms' own clouds keep them)."""
+    ``support_views`` supporting sightings by this arm, so both arms' own clouds keep them). With ``co_vis`` (close
+    sightings, at most ``co_incidence_deg``) and ``sides`` (the side samples), the **co-observed band**: side
+    samples that another arm sees closely and this one has fewer than ``co_views`` close sightings of gain
+    ``co_band_weight`` each, until ``target_co_sides`` of the covered side samples are seen ``co_views`` times
+    closely by every arm (the band is left alone where the feasible views cannot reach that share)."""
     arms = list(vis)
     n = reachable.size
+    band = co_vis is not None and sides is not None and len(arms) > 1
+    co_count = {a: np.zeros(n, dtype=np.int32) for a in arms}
+    co_f = {a: (co_vis[a] if co_vis is not None else vis[a]).astype(np.float64) for a in arms}
+    side_mask = sides if sides is not None else np.zeros(n, dtype=bool)
+    if band:  # the band the feasible views allow: side samples every arm's pool sees co_views times closely
+        possible = np.logical_and.reduce([co_f[a].sum(axis=0) >= s.co_views for a in arms]) & side_mask
+        reach_sides = max(1, int(np.sum(reachable & side_mask)))
+        band_target = min(s.target_co_sides, 0.9 * float(np.sum(possible)) / reach_sides)
     k = max(1, s.support_views)
     picked: dict[str, list[int]] = {a: [] for a in arms}
     count = {a: np.zeros(n, dtype=np.int32) for a in arms}  # first sightings (any incidence)
@@ -329,7 +350,12 @@ def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], sup: dict[str
         total_sup = np.sum([support[a] for a in arms], axis=0)
         both = np.logical_and.reduce([count[a] > 0 for a in arms]) if len(arms) > 1 else np.zeros(n, bool)
         co_share = float(np.sum(both) / max(1, np.sum(union))) if len(arms) > 1 else 1.0
-        done = (np.sum(union) >= target and np.sum(total_sup >= k) >= target_k and co_share >= s.target_co_observed)
+        band_met = True
+        if band:
+            in_band = np.logical_and.reduce([co_count[a] >= s.co_views for a in arms]) & side_mask
+            band_met = float(np.sum(in_band)) / max(1, int(np.sum(union & side_mask))) >= band_target
+        done = (np.sum(union) >= target and np.sum(total_sup >= k) >= target_k and co_share >= s.target_co_observed
+                and band_met)
         short = [a for a in arms if len(picked[a]) < min_views[a]]
         first = (~union).astype(np.float64)
         more = (total_sup < k).astype(np.float64) * s.support_weight
@@ -344,6 +370,10 @@ def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], sup: dict[str
                                                                    else s.co_weight)
             own = (count[a] == 0).astype(np.float64) * 1e-3
             scores = vis_f[a] @ (first + own) + sup_f[a] @ (more + co) + good[a].astype(np.float64) @ new_good
+            if band and not band_met:
+                others_close = np.logical_or.reduce([co_count[b] > 0 for b in arms if b != a])
+                want = side_mask & others_close & (co_count[a] < s.co_views)
+                scores = scores + co_f[a] @ (want * s.co_band_weight)
             for i in np.argsort(-scores, kind="stable"):
                 if int(i) in banned[a] or int(i) in picked[a]:
                     continue
@@ -358,6 +388,7 @@ def _greedy(vis: dict[str, BoolArray], good: dict[str, BoolArray], sup: dict[str
         picked[a].append(i)
         count[a] += vis[a][i]
         support[a] += sup[a][i]
+        co_count[a] += co_vis[a][i] if co_vis is not None else vis[a][i]
         seen_good |= good[a][i]
     return picked
 
@@ -374,6 +405,8 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
     good_s = CoverageSettings(max_incidence_deg=s.good_incidence_deg, half_fov_deg=s.half_fov_deg,
                               max_depth_m=s.max_depth_m)
     sup_s = replace(good_s, max_incidence_deg=s.support_incidence_deg)
+    co_s = replace(good_s, max_incidence_deg=s.co_incidence_deg)
+    co_vis: dict[str, BoolArray] = {}
     sup: dict[str, BoolArray] = {}
     vis: dict[str, BoolArray] = {}
     good: dict[str, BoolArray] = {}
@@ -389,12 +422,13 @@ def plan_coverage(planners: dict[str, ViewpointPlanner], settings: CoverageSetti
         vis[arm_id] = visibility(samples, cams, s, md) if len(cams) else np.zeros((0, n), dtype=bool)
         good[arm_id] = visibility(samples, cams, good_s, md) if len(cams) else np.zeros((0, n), dtype=bool)
         sup[arm_id] = visibility(samples, cams, sup_s, md) if len(cams) else np.zeros((0, n), dtype=bool)
+        co_vis[arm_id] = visibility(samples, cams, co_s, md) if len(cams) else np.zeros((0, n), dtype=bool)
     reachable = np.logical_or.reduce([v.any(axis=0) for v in vis.values()])
     banned: dict[str, set[int]] = {a: set() for a in arms}
     min_views = {a: min(s.min_views, len(pools[a])) for a in arms}
     tours: dict[str, list[Candidate]] = {}
     for _ in range(10):  # views the tour drops (joint motion, paths) are banned and the cover redone
-        picked = _greedy(vis, good, sup, reachable, s, banned, min_views)
+        picked = _greedy(vis, good, sup, reachable, s, banned, min_views, co_vis, samples.faces != "top")
         dropped = False
         for a, planner in planners.items():
             chosen = [pools[a][i] for i in picked[a]]

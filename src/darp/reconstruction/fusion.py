@@ -78,6 +78,9 @@ class FusionSettings:
     support_fraction: float = 0.5  # ... and at least this fraction of the frames it was in view of
     visibility_tolerance_m: float = 0.01  # in view: not more than this behind the frame's measured depth
     visibility_stride_px: int = 4  # the in-view test reads every n-th depth pixel (memory: ~W*H/n^2 per frame)
+    support_neighbourhood: int = 0  # count support over the (2n+1)^3 voxels around each voxel (0 = the voxel alone)
+    arm_support_from_fused: int = 0  # an arm's cloud also keeps voxels the fused cloud supports that this many
+    # of the arm's own frames saw (0 = off: each arm's cloud needs the support from its own frames alone)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.voxel_size_m) and 1e-4 <= self.voxel_size_m <= 0.1):
@@ -94,6 +97,10 @@ class FusionSettings:
                 and self.table_calibration_factor >= 0):
             raise ReconstructionError("envelope_margin_m, table_margin_m, calibration_margin_factor and "
                                       "table_calibration_factor must be >= 0")
+        if self.arm_support_from_fused < 0:
+            raise ReconstructionError("arm_support_from_fused must be >= 0")
+        if not 0 <= self.support_neighbourhood <= 2:
+            raise ReconstructionError(f"support_neighbourhood must be 0, 1 or 2, got {self.support_neighbourhood}")
         if not (self.min_frames_floor >= 1 and 0 < self.support_fraction <= 1 and self.visibility_tolerance_m > 0
                 and self.visibility_stride_px >= 1):
             raise ReconstructionError("min_frames_floor and visibility_stride_px must be >= 1, support_fraction "
@@ -293,9 +300,32 @@ VisibilityFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``visibility(centres (N, 3), unit normals (N, 3)) -> (frames expected to hit each voxel, bins in view)``."""
 
 
+def neighbourhood_support(stats: VoxelStats, radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per voxel, lower bounds of the support of the ``(2 radius + 1)^3`` voxels around it: the most frames
+    any of them saw (so at least that many distinct frames saw the neighbourhood) and the union of their
+    viewing-direction bins (exact). ``radius`` 0 returns the voxel's own."""
+    frames = stats.n_frames.copy()
+    bins = stats.view_mask.copy()
+    if radius <= 0 or len(stats) == 0:
+        return frames, bins
+    ijk = unpack_keys(stats.keys)
+    r = range(-radius, radius + 1)
+    for offset in [(i, j, k) for i in r for j in r for k in r if (i, j, k) != (0, 0, 0)]:
+        keys = pack_keys(ijk + np.array(offset, np.int64))
+        pos = np.minimum(np.searchsorted(stats.keys, keys), len(stats) - 1)
+        found = stats.keys[pos] == keys
+        frames[found] = np.maximum(frames[found], stats.n_frames[pos[found]])
+        bins[found] |= stats.view_mask[pos[found]]
+    return frames, bins
+
+
 def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
                      counts: dict[str, int] | None = None) -> np.ndarray:
-    """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``)."""
+    """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``), counted
+    over each voxel's neighbourhood with ``support_neighbourhood``."""
+    n_frames, view_mask = neighbourhood_support(stats, settings.support_neighbourhood)
+    if settings.support_neighbourhood > 0:
+        stats = dataclasses.replace(stats, n_frames=n_frames, view_mask=view_mask)
     n_views = popcount64(stats.view_mask)
     fixed = (stats.n_frames >= settings.min_frames) & (n_views >= settings.min_view_bins)
     if visibility is None or not settings.adaptive_support:
@@ -320,10 +350,18 @@ def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: Vi
 
 
 def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],
-                     counts: dict[str, int] | None = None, visibility: VisibilityFn | None = None) -> VoxelCloud:
-    """Apply voxel support, average each voxel and remove statistical outliers."""
+                     counts: dict[str, int] | None = None, visibility: VisibilityFn | None = None,
+                     also_keys: np.ndarray | None = None) -> VoxelCloud:
+    """Apply voxel support, average each voxel and remove statistical outliers. ``also_keys`` (sorted voxel
+    keys, e.g. those the fused cloud supports) are kept too where ``arm_support_from_fused`` frames saw them."""
     n_views = popcount64(stats.view_mask)
     supported = supported_voxels(stats, settings, visibility, counts)
+    if also_keys is not None and also_keys.size and len(stats) and settings.arm_support_from_fused > 0:
+        pos = np.minimum(np.searchsorted(also_keys, stats.keys), also_keys.size - 1)
+        confirmed = (also_keys[pos] == stats.keys) & (stats.n_frames >= settings.arm_support_from_fused)
+        if counts is not None:
+            counts["from_fused"] = int((confirmed & ~supported).sum())
+        supported = supported | confirmed
     kept = stats.select(supported)
     n = kept.n_points.astype(np.float64)[:, None]
     points = (kept.sum_xyz / n).astype(np.float32)
@@ -479,14 +517,18 @@ class VoxelFusion:
             voxel = self.settings.voxel_size_m
             return lambda points, normals: in_view(points, self.views, tolerance, bits, normals, voxel)
 
-        for bit, arm in enumerate(arms):
-            c: dict[str, int] = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
-            per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
-                                            self.settings, arms, c, visibility(1 << bit))
-            counts[arm] = c
-        c = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
-        fused = cloud_from_stats(merge_stats(list(self._state.values())), self.settings, arms, c, visibility(0xFF))
+        c: dict[str, int] = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
+        all_stats = merge_stats(list(self._state.values()))
+        fused = cloud_from_stats(all_stats, self.settings, arms, c, visibility(0xFF))
         counts["fused"] = c
+        fused_keys = None
+        if self.settings.arm_support_from_fused > 0:
+            fused_keys = all_stats.keys[supported_voxels(all_stats, self.settings, visibility(0xFF))]
+        for bit, arm in enumerate(arms):
+            c = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
+            per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
+                                            self.settings, arms, c, visibility(1 << bit), fused_keys)
+            counts[arm] = c
         counts["peak_rows"] = self.peak_rows
         return FusionResult(fused=fused, per_arm=per_arm, settings=self.settings, stats=counts)
 
@@ -523,6 +565,7 @@ __all__ = [
     "fuse",
     "in_view",
     "merge_coincident",
+    "neighbourhood_support",
     "statistical_outliers",
     "supported_voxels",
     "write_voxel_cloud",
