@@ -78,9 +78,13 @@ def _die_with_parent() -> None:
         pass
 
 
-def _child(conn: Any, payload: bytes) -> None:
+def _child(conn: Any, payload: bytes, threads: int | None = None) -> None:
     _die_with_parent()
     try:
+        if threads is not None:
+            from darp.batch.threads import limit_threads
+
+            limit_threads(threads)
         fn, args = pickle.loads(payload)
         answer: tuple[str, Any] = ("ok", fn(*args))
     except BaseException as err:  # everything goes back to the caller
@@ -130,12 +134,14 @@ def _dumps(fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
     return bytes(cloudpickle.dumps((fn, args)))  # type: ignore[no-untyped-call]
 
 
-def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *, what: str = "task") -> Any:
+def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *, what: str = "task",
+                          threads: int | None = None) -> Any:
     """``fn(*args)`` in a fresh child of this process's forkserver: its result, or its exception raised
-    here; :class:`ChildCrashed` naming ``what`` and the exit code/signal if the child died."""
+    here; :class:`ChildCrashed` naming ``what`` and the exit code/signal if the child died. ``threads``:
+    every library's thread pool in the child sized to it (:func:`darp.batch.threads.limit_threads`)."""
     ctx = forkserver_context()
     receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_child, args=(send, _dumps(fn, args)), name=f"darp-{what}")
+    child = ctx.Process(target=_child, args=(send, _dumps(fn, args), threads), name=f"darp-{what}")
     with _without_main():
         child.start()
     send.close()
@@ -154,9 +160,19 @@ def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *,
     return value
 
 
-def run_fresh(fn: Callable[..., Any], *args: Any) -> Any:
-    """What one Ray task runs: ``fn(*args)`` in a fresh forked process (see the module docstring)."""
-    return call_in_fresh_process(fn, args, what=getattr(fn, "__name__", "task"))
+def run_fresh(fn: Callable[..., Any], *args: Any, threads: int | None = None) -> Any:
+    """What one Ray task runs: ``fn(*args)`` in a fresh forked process (see the module docstring), its
+    libraries' thread pools sized to ``threads`` (the task's CPUs) when given."""
+    return call_in_fresh_process(fn, args, what=getattr(fn, "__name__", "task"), threads=threads)
+
+
+def run_with_threads(threads: int, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)`` in this process with every library's thread pool sized to ``threads`` (what a task
+    runs with ``isolation="worker"``: a fresh Ray worker per task)."""
+    from darp.batch.threads import limit_threads
+
+    limit_threads(threads)
+    return fn(*args)
 
 
 def idle(sleep_s: float = 0.0) -> int:
@@ -170,4 +186,4 @@ def idle(sleep_s: float = 0.0) -> int:
 
 
 __all__ = ["PRELOAD", "ChildCrashed", "call_in_fresh_process", "exit_reason", "forkserver_context",
-           "idle", "run_fresh"]
+           "idle", "run_fresh", "run_with_threads"]
