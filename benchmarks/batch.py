@@ -38,7 +38,6 @@ import resource
 import shutil
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -58,6 +57,10 @@ THREADS = _threads_argument(sys.argv)
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("RAY_worker_niceness", "0")  # as darp's own local Ray: workers at the loop's priority
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+# Ray's workers, their forkservers and the survey processes import cputree.timed_process_one by reference.
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    [str(Path(__file__).resolve().parent), str(Path(__file__).resolve().parents[1] / "src"),
+     *([os.environ["PYTHONPATH"]] if os.environ.get("PYTHONPATH") else [])])
 from darp.batch.threads import limit_threads, thread_env  # noqa: E402  (imports nothing heavy)
 
 # The loop and every Ray task run with the same thread configuration: THREADS threads in every library
@@ -66,12 +69,11 @@ from darp.batch.threads import limit_threads, thread_env  # noqa: E402  (imports
 os.environ.update(thread_env(THREADS))
 
 _t0 = time.perf_counter()
-from cputree import RAY_OWN, CpuTree, delta, thread_cpu  # noqa: E402  (benchmarks/cputree.py)
+from cputree import RAY_OWN, CpuTree, delta, timed_process_one  # noqa: E402  (benchmarks/cputree.py)
 
 from darp.batch.executor import Executor, run_tasks  # noqa: E402
 from darp.batch.fresh import idle  # noqa: E402
 from darp.batch.generate import plan_surveys, record_generated  # noqa: E402
-from darp.batch.tasks import process_one  # noqa: E402
 from darp.processing.settings import ProcessSettings  # noqa: E402
 
 IMPORT_S = time.perf_counter() - _t0  # the loop's start-up: darp's processing stack imported here
@@ -82,20 +84,6 @@ def cpu_s() -> float:
     """CPU seconds of this process and its finished children (user + system)."""
     s, c = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
     return s.ru_utime + s.ru_stime + c.ru_utime + c.ru_stime
-
-
-def timed_process_one(*call: Any) -> dict[str, Any]:
-    """:func:`process_one` with what it took in its process: wall, CPU of the calling thread and of every
-    other thread (OpenCV's, Open3D's, BLAS's pools), the process and its parent (which worker ran it)."""
-    main = threading.get_native_id()
-    before, t0, w0 = thread_cpu(), time.perf_counter(), time.time()
-    outcome = process_one(*call)
-    after = thread_cpu()
-    used = {tid: cpu - before.get(tid, 0.0) for tid, cpu in after.items()}
-    return {"name": Path(call[0]).name, "status": outcome.status, "start": w0, "wall_s": time.perf_counter() - t0,
-            "main_thread_cpu_s": used.get(main, 0.0),
-            "other_threads_cpu_s": sum(v for k, v in used.items() if k != main),
-            "threads": len(after), "pid": os.getpid(), "ppid": os.getppid()}
 
 
 def folder_bytes(path: Path) -> int:
@@ -132,10 +120,13 @@ def per_survey(stats: list[dict[str, Any]], wall_s: float) -> dict[str, Any]:
     for s in stats:
         busy[s["ppid"]] = busy.get(s["ppid"], 0.0) + s["wall_s"]
     main_cpu = sum(s["main_thread_cpu_s"] for s in stats)
+    before_cpu = sum(s["process_cpu_before_s"] for s in stats) if stats[0]["pid"] != os.getpid() else 0.0
     other_cpu = sum(s["other_threads_cpu_s"] for s in stats)
     return {"survey_wall_s": round(sum(s["wall_s"] for s in stats), 2),
             "survey_cpu_s": round(main_cpu + other_cpu, 2), "main_thread_cpu_s": round(main_cpu, 2),
             "other_threads_cpu_s": round(other_cpu, 2), "threads_max": max(s["threads"] for s in stats),
+            "process_cpu_s": round(sum(s["process_cpu_s"] for s in stats), 2),
+            "child_cpu_before_call_s": round(before_cpu, 2),
             "worker_busy_s": sorted((round(v, 2) for v in busy.values()), reverse=True),
             "outside_surveys_s": round(wall_s - max(busy.values()), 2),
             "order": [s["name"] for s in sorted(stats, key=lambda s: s["start"])]}
@@ -193,34 +184,42 @@ def process_all(surveys: list[Path], out: Path, executor: Executor, workers: int
             "ray_own_cores": round(ray_own / wall, 4), "surveys": per_survey(stats, wall)}
 
 
-def _compute_job(seconds_of_work: float, out: Any) -> None:
-    """A fixed amount of pure compute (Python arithmetic and single-threaded numpy), timed in its process."""
+def _compute_job(seconds_of_work: float, kind: str, out: Any) -> None:
+    """A fixed amount of work timed in its process: ``compute`` (Python arithmetic and single-threaded numpy
+    in cache) or ``memory`` (numpy streaming 64 MB arrays, twice the L3 cache: memory bandwidth)."""
     import numpy as np
 
     t0, c0 = time.perf_counter(), time.process_time()
     rng = np.random.default_rng(0)
-    a = rng.standard_normal((256, 256))
-    total = 0
-    for k in range(int(seconds_of_work * 4e6)):
-        total += k * k % 7
-    for _ in range(int(seconds_of_work * 300)):
-        a = np.tanh(a @ a.T / 256.0)
+    if kind == "compute":
+        a = rng.standard_normal((256, 256))
+        total = 0
+        for k in range(int(seconds_of_work * 4e6)):
+            total += k * k % 7
+        for _ in range(int(seconds_of_work * 300)):
+            a = np.tanh(a @ a.T / 256.0)
+    else:
+        src, dst = rng.standard_normal(8 << 20), np.empty(8 << 20)
+        for _ in range(int(seconds_of_work * 100)):
+            np.multiply(src, 1.0001, out=dst)
+            np.add(dst, 1.0, out=src)
     out.put((time.perf_counter() - t0, time.process_time() - c0))
 
 
-def compute_ceiling(seconds_of_work: float = 2.0) -> dict[str, Any]:
-    """The machine's own 1 -> 2 process ceiling: one pure-compute job alone, then two identical ones at once.
+def compute_ceiling(kind: str = "compute", seconds_of_work: float = 2.0) -> dict[str, Any]:
+    """The machine's own 1 -> 2 process ceiling: one job alone, then two identical ones at once.
 
     ``T1 / T2`` (T2: the slower of the pair) is what two processes can give here at most (1.0: two full
-    cores; about 0.6 when the two vCPUs are SMT siblings on the host, or less when other jobs hold the cores);
-    the CPU-seconds a job needs alone and in the pair show SMT or cache contention even under load."""
+    cores; about 0.6 when the two vCPUs are SMT siblings on the host, less when other jobs hold the cores
+    or, for ``memory``, when one job already takes most of the memory bandwidth); the CPU-seconds a job
+    needs alone and in the pair show that contention even under load."""
     import multiprocessing
 
     ctx = multiprocessing.get_context("fork")
     runs: dict[str, Any] = {}
     for n in (1, 2):
         queue = ctx.Queue()
-        jobs = [ctx.Process(target=_compute_job, args=(seconds_of_work, queue)) for _ in range(n)]
+        jobs = [ctx.Process(target=_compute_job, args=(seconds_of_work, kind, queue)) for _ in range(n)]
         for job in jobs:
             job.start()
         results = [queue.get() for _ in jobs]
@@ -259,7 +258,8 @@ def main() -> None:
                      "wall_s": round(time.perf_counter() - t0, 2), "bytes": folder_bytes(gen / spec.name)})
     surveys = [gen / s.name for s in specs]
 
-    ceiling = compute_ceiling()
+    ceiling = compute_ceiling("compute")
+    ceiling_memory = compute_ceiling("memory")
     loop = None if args.only_ray else process_all(surveys, work / "loop", Executor(), 1, "worker")
     processed_bytes = [folder_bytes(work / ("ray1" if loop is None else "loop") / s.name) for s in surveys]
     ray1 = process_all(surveys, work / "ray1", Executor("ray"), 1)
@@ -280,7 +280,7 @@ def main() -> None:
         "survey_bytes_mean": int(sum(m["bytes"] for m in make) / len(make)),
         "processed_bytes_mean": int(sum(processed_bytes) / len(processed_bytes)),
         "process_cpu_s_per_survey": round(base["surveys"]["survey_cpu_s"] / args.surveys, 2),
-        "loop_import_s": round(IMPORT_S, 2), "compute_ceiling": ceiling,
+        "loop_import_s": round(IMPORT_S, 2), "compute_ceiling": ceiling, "memory_ceiling": ceiling_memory,
         "loop": loop, "ray_1_worker": ray1, "ray_2_workers": ray2, "ray_1_fresh_worker_per_task": fresh1,
         "scaling_efficiency_pct": round(100 * ray1["wall_s"] / (2.0 * ray2["wall_s"]), 1),
         # scaling = (surveys' time alone / two at once) x (balance of the workers) x (share of the batch in surveys)
@@ -317,6 +317,10 @@ def report(args: argparse.Namespace, result: dict[str, Any]) -> None:
     print(f"machine ceiling, 1 -> 2 pure-compute processes: {c['efficiency_pct']} % "
           f"(one alone {c['1']['wall_s'][0]} s, "
           f"two at once {c['2']['wall_s']} s; CPU-s per job in the pair / alone {c['cpu_per_job_pair_vs_alone']})")
+    m = result["memory_ceiling"]
+    print(f"machine ceiling, 1 -> 2 memory-bound processes: {m['efficiency_pct']} % "
+          f"(one alone {m['1']['wall_s'][0]} s, two at once {m['2']['wall_s']} s; CPU-s per job in the pair / alone "
+          f"{m['cpu_per_job_pair_vs_alone']})")
     print(f"loop start-up (import darp here): {IMPORT_S:.2f} s")
     for name, r in (("loop", loop), ("ray_1_worker", ray1), ("ray_2_workers", ray2),
                     ("ray_1_fresh_worker_per_task", fresh1)):
@@ -328,7 +332,8 @@ def report(args: argparse.Namespace, result: dict[str, Any]) -> None:
               f"{sum(r['startup_cpu_s'].values()):.1f} s)")
         print(f"    CPU-s in the batch: {r['cpu_s_total']} = {r['cpu_s']}")
         print(f"    surveys: {sv['survey_wall_s']} s wall, {sv['survey_cpu_s']} CPU-s ({sv['main_thread_cpu_s']} main "
-              f"thread + {sv['other_threads_cpu_s']} other threads, up to {sv['threads_max']} threads); workers busy "
+              f"thread + {sv['other_threads_cpu_s']} other threads, up to {sv['threads_max']} threads; process "
+              f"{sv['process_cpu_s']}, child before the call {sv['child_cpu_before_call_s']}); workers busy "
               f"{sv['worker_busy_s']} s; Ray's own processes {r['ray_own_cores']} cores; order {sv['order']}")
     if loop is not None:
         print(f"Ray overhead vs plain loop (1 worker, fork per task): {result['ray_overhead_pct']} % wall "

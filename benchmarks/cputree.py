@@ -7,6 +7,11 @@ CPU of the whole tree, dead processes included, as long as their parents live.
 
 from __future__ import annotations
 
+import os
+import resource
+import threading
+import time
+from pathlib import Path
 from typing import Any
 
 # A process's reaped children are counted under this role (a forkserver's children are the survey processes).
@@ -90,7 +95,29 @@ def thread_cpu() -> dict[int, float]:
     return {t.id: t.user_time + t.system_time for t in psutil.Process().threads()}
 
 
+def timed_process_one(*call: Any) -> dict[str, Any]:
+    """``darp.batch.tasks.process_one(*call)`` with what it took in its process: wall; CPU of the process
+    before the call (the fork's and the start's share) and during it, of the calling thread and of the
+    other threads alive at its end (OpenCV's, Open3D's, BLAS's pools); its process and parent (the worker's
+    forkserver: which worker ran it). A module's function, so a task pickles it by reference: the child
+    imports this light module, not Ray's cloudpickle (``import ray``: 0.5 CPU-s per child, measured)."""
+    from darp.batch.tasks import process_one
+
+    main = threading.get_native_id()
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    before, t0, w0 = thread_cpu(), time.perf_counter(), time.time()
+    outcome = process_one(*call)
+    after, r1 = thread_cpu(), resource.getrusage(resource.RUSAGE_SELF)
+    used = {tid: cpu - before.get(tid, 0.0) for tid, cpu in after.items()}
+    return {"name": Path(call[0]).name, "status": outcome.status, "start": w0, "wall_s": time.perf_counter() - t0,
+            "process_cpu_before_s": r0.ru_utime + r0.ru_stime,
+            "process_cpu_s": r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime,
+            "main_thread_cpu_s": used.get(main, 0.0),
+            "other_threads_cpu_s": sum(v for k, v in used.items() if k != main),
+            "threads": len(after), "pid": os.getpid(), "ppid": os.getppid()}
+
+
 RAY_OWN = ("gcs_server", "raylet", "dashboard", "autoscaler monitor", "log_monitor", "dashboard agent",
            "runtime env agent")
 
-__all__ = ["CHILDREN_OF", "RAY_OWN", "CpuTree", "delta", "role", "thread_cpu"]
+__all__ = ["CHILDREN_OF", "RAY_OWN", "CpuTree", "delta", "role", "thread_cpu", "timed_process_one"]

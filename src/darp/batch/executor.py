@@ -127,12 +127,13 @@ def _run_ray(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], address: 
             options["runtime_env"] = {"env_vars": {k: os.environ[k] for k in WORKER_ENV if k in os.environ}}
         ray.init(address=address, **options)
     try:
-        from darp.batch.fresh import ChildCrashed, run_fresh, run_with_threads
+        from darp.batch.fresh import ChildCrashed, dumps_call, loads_answer, run_pickled, run_with_threads
 
-        if isolation == "fork":  # reused workers, a forked process per task
+        if isolation == "fork":  # reused workers, a forked process per task, the call pickled here
             remote = ray.remote(num_cpus=num_cpus, memory=memory_bytes, max_retries=max_retries,
-                                retry_exceptions=[ChildCrashed])(run_fresh)  # type: ignore[call-overload]
-            submitted = {k: remote.remote(fn, *calls[k], threads=threads) for k in order}
+                                retry_exceptions=[ChildCrashed])(run_pickled)  # type: ignore[call-overload]
+            what = getattr(fn, "__name__", "task")
+            submitted = {k: remote.remote(dumps_call(fn, tuple(calls[k])), what, threads) for k in order}
         else:  # a fresh worker per task
             remote = ray.remote(num_cpus=num_cpus, memory=memory_bytes, max_retries=max_retries, max_calls=1,
                                 retry_exceptions=False)(run_with_threads)
@@ -147,13 +148,21 @@ def _run_ray(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], address: 
             for ref in done:
                 k = index[ref]
                 try:
-                    results[k] = ray.get(ref)
-                    continue
+                    value = ray.get(ref)
                 except ray.exceptions.RayTaskError as err:
                     cause = err.cause if isinstance(getattr(err, "cause", None), BaseException) else err
                     crashed = isinstance(cause, ChildCrashed)
                 except ray.exceptions.RayError as err:  # the worker died max_retries + 1 times
                     cause, crashed = DarpError(f"task {k} failed on Ray: {_first_line(err)}"), True
+                else:
+                    if isolation != "fork":
+                        results[k] = value
+                        continue
+                    try:  # the child's answer, pickled: its result, or the exception fn raised there
+                        results[k] = loads_answer(value)
+                        continue
+                    except BaseException as err:  # fn's own error in the child, as Ray raised it before
+                        cause, crashed = err, False
                 if failure is not None and crashed:
                     results[k] = failure(calls[k], cause)
                 else:
