@@ -3,26 +3,34 @@
 
 1. ``--surveys`` twin surveys are made with ``darp twin generate``'s draws (cube / mug / ketchup; by
    default tiny: 424x240 at 6 fps, 2 views per arm; ``--resolution``, ``--fps`` and ``--views`` make them
-   closer to real surveys, whose processing dwarfs a fresh worker's start-up), in a plain loop in this
-   process: CPU-seconds and bytes per survey made.
-2. The same surveys are processed (``darp process --truth-poses``'s stages) four ways: a plain loop
+   closer to real surveys), in a plain loop in this process: CPU-seconds and bytes per survey made.
+2. The machine's own 1 -> 2 ceiling: one job alone, then two identical ones at once, pure compute
+   (Python + single-threaded numpy in cache) and memory-bound (numpy streaming twice the L3).
+3. The same surveys are processed (``darp process --truth-poses``'s stages) four ways: a plain loop
    in this process; Ray with one worker (``num_cpus=1``) and with two workers, each task in a fresh
    process forked from the worker's preloaded forkserver (darp's default, ``isolation="fork"``); and
    Ray with one worker and a fresh worker per task (``isolation="worker"``, ``max_calls=1``: what darp
-   did before; ``--no-compare`` skips it). Each Ray run starts its own local Ray instance; its start-up
-   (``ray.init``, then one warm-up task per worker that starts the worker's forkserver and imports darp
-   there) is timed apart from the batch, as the loop's start-up (importing darp in this process) is.
-   Before each run the surveys' files are read once, so every run finds them in the page cache.
-3. After the one-worker batch, tasks that do nothing measure the fixed cost per task (the fork, the
+   did before; ``--no-compare`` skips it). **The same thread configuration everywhere**: ``--threads``
+   (default 1) threads in every library (BLAS, OpenMP, OpenCV, Open3D) in the loop (set before numpy
+   loads) and in each task (``run_tasks(threads=...)``). The loop imports darp and the modules the
+   forkservers preload (``darp.batch.fresh.PRELOAD``) before its batch, as Ray's start-up does (``ray.init``,
+   then one warm-up task per worker that starts its forkserver); both start-ups are timed apart from the
+   batch. Surveys are submitted largest first (as ``darp process`` does). Before each run the surveys'
+   files are read once, so every run finds them in the page cache.
+4. After the one-worker batch, tasks that do nothing measure the fixed cost per task (the fork, the
    Ray round trip).
 
-Printed: per-survey CPU-seconds and bytes (raw survey, processed output), the overhead of Ray with one
-worker against the loop (target <= 5 %; also with both start-ups counted), the scaling efficiency from 1 to 2 workers
-(``T1 / (2 * T2)``, target >= 90 %), and the load average before and after each run: this 2-core machine
-is shared, so wall-clock ratios move with what else runs.
+Printed, with the load average before and after each run (this 2-core machine is shared): the overhead
+of Ray with one worker against the loop (target <= 5 %; wall, CPU-seconds, and with both start-ups), the
+scaling efficiency from 1 to 2 workers (``T1 / (2 * T2)``, target >= 90 %) next to the machine's ceiling
+and split into its factors (a survey's slowdown and CPU with two at once, the workers' balance, the
+share of the batch spent in surveys), and the **CPU accounting** of every run: CPU-seconds of every
+process of the tree by role (this driver, gcs_server, raylet, dashboard, monitors, agents, workers,
+forkservers, the survey processes; ``benchmarks/cputree.py``), and per survey, inside its process, the
+CPU of its main thread and of the other threads, and the CPU its process used before the call.
 
     .venv/bin/python benchmarks/batch.py [--surveys 4] [--seed 0] [--resolution 424x240] [--fps 6] [--views 2]
-        [--work DIR] [--json results.json] [--no-compare]
+        [--threads 1] [--work DIR] [--json results.json] [--no-compare] [--only-ray]
 
 The idle-machine reference run (docs/scaling.md) is
 ``benchmarks/batch.py --resolution 640x480 --fps 15 --views 3 --work /tmp/darp-batch`` (a second run
@@ -32,6 +40,7 @@ with the same ``--work`` skips making the surveys).
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import resource
@@ -72,10 +81,12 @@ _t0 = time.perf_counter()
 from cputree import RAY_OWN, CpuTree, delta, timed_process_one  # noqa: E402  (benchmarks/cputree.py)
 
 from darp.batch.executor import Executor, run_tasks  # noqa: E402
-from darp.batch.fresh import idle  # noqa: E402
+from darp.batch.fresh import PRELOAD, idle  # noqa: E402
 from darp.batch.generate import plan_surveys, record_generated  # noqa: E402
 from darp.processing.settings import ProcessSettings  # noqa: E402
 
+for _module in PRELOAD:  # what each Ray worker's forkserver imports before the batch, the loop imports too:
+    importlib.import_module(_module)  # else the loop's first survey pays the lazy imports inside its batch
 IMPORT_S = time.perf_counter() - _t0  # the loop's start-up: darp's processing stack imported here
 LOOP_THREADS = limit_threads(THREADS)
 
