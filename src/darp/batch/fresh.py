@@ -174,9 +174,12 @@ def call_pickled_in_fresh_process(payload: bytes, *, what: str = "task", threads
         data = None
     finally:
         receive.close()
-    child.join()
     if data is None:
+        child.join()
         raise ChildCrashed(f"{what}: its process (pid {child.pid}) died: {exit_reason(child.exitcode)}")
+    # The answer is here: the child's exit (freeing its memory: 0.09-0.12 s after a tiny survey at load 16,
+    # measured) need not hold up the next task. Its forkserver reaps it; multiprocessing forgets it when
+    # the next child starts (or at active_children()).
     return data
 
 
