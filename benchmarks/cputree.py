@@ -63,8 +63,9 @@ class CpuTree:
                 continue
         out: Snapshot = {}
         for key, name, own, children, ppid in seen.values():
-            if name == "forkservers" and ppid in seen and seen[ppid][1] == "forkservers":
-                name = "survey processes (forked)"  # forked from a forkserver: its command line is the same
+            if ppid in seen and seen[ppid][1] == "forkservers":
+                # forked from a forkserver (its command line is the same; empty once it has exited, unreaped)
+                name = "survey processes (forked)"
             out[key] = (name, own, children)
         return out
 
