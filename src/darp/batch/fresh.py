@@ -200,7 +200,9 @@ def run_pickled(payload: bytes, what: str, threads: int | None = None) -> bytes:
 
 def run_with_threads(threads: int, fn: Callable[..., Any], *args: Any) -> Any:
     """``fn(*args)`` in this process with every library's thread pool sized to ``threads`` (what a task
-    runs with ``isolation="worker"``: a fresh Ray worker per task)."""
+    runs with ``isolation="worker"``: a fresh Ray worker per task). Ray has unpickled ``fn`` by then, so
+    the libraries its module imports (darp's tasks: OpenCV, Open3D) are sized; Open3D imported later
+    inside ``fn`` keeps its default (it reads no environment variable)."""
     from darp.batch.threads import limit_threads
 
     limit_threads(threads)
