@@ -11,6 +11,7 @@ import pytest
 
 os.environ.setdefault("DARP_FRESH_TEST", "inherited")  # before this process's forkserver starts
 
+from darp.batch.executor import submission_order
 from darp.batch.fresh import ChildCrashed, call_in_fresh_process, exit_reason
 from darp.errors import DarpError, TwinError
 
@@ -53,6 +54,29 @@ def test_each_call_is_a_fresh_child_of_one_preloaded_forkserver() -> None:
     assert first["main_file"] is None  # this process's __main__ (pytest here, Ray's worker script) is not re-run
     assert call_in_fresh_process(_grow, ("abc",)) == 3
     assert not call_in_fresh_process(_has_marker)  # the previous call's state died with its process
+
+
+def _pools() -> dict[str, object]:
+    import cv2
+    import open3d
+
+    return {"opencv": cv2.getNumThreads(), "open3d": open3d.utility.get_max_threads(),
+            "omp": os.environ.get("OMP_NUM_THREADS"), "opencv_env": os.environ.get("OPENCV_FOR_THREADS_NUM")}
+
+
+def test_a_task_runs_with_its_thread_budget_in_every_library() -> None:
+    """threads=1 (a num_cpus=1 Ray task) reaches OpenCV and Open3D, which OMP_NUM_THREADS alone does not."""
+    one = call_in_fresh_process(_pools, threads=1)
+    assert one == {"opencv": 1, "open3d": 1, "omp": "1", "opencv_env": "1"}
+    two = call_in_fresh_process(_pools, threads=2)
+    assert (two["opencv"], two["open3d"], two["omp"]) == (2, 2, "2")
+    untouched = call_in_fresh_process(_pools)  # no budget: the forkserver's own configuration
+    assert untouched["omp"] == os.environ.get("OMP_NUM_THREADS")
+
+
+def test_submission_order_puts_the_largest_first() -> None:
+    assert submission_order(4, [5.0, 9.0, 1.0, 9.0]) == [1, 3, 0, 2]
+    assert submission_order(3, None) == [0, 1, 2]
 
 
 def test_errors_come_back_and_crashes_are_named() -> None:

@@ -68,6 +68,17 @@ def test_ray_tasks_keep_order_retry_a_dead_worker_and_raise_darp_errors(local_ra
     assert len({pid for _, pid, *_ in out}) == 4  # a fresh process per task ...
     assert len({ppid for _, _, ppid, *_ in out}) <= 2  # ... forked by the forkserver of one of the 2 reused workers
     assert {(env, gl) for *_, env, gl in out} == {("inherited", os.environ.get("MUJOCO_GL"))}
+
+    import cv2
+    import open3d
+
+    def pools() -> tuple[int, int, str | None]:  # imports OpenCV and Open3D with it, as darp's tasks do
+        return cv2.getNumThreads(), open3d.utility.get_max_threads(), os.environ.get("OPENCV_FOR_THREADS_NUM")
+
+    # a num_cpus=1 task: one thread in OpenCV and Open3D too (Ray's OMP_NUM_THREADS reaches neither)
+    assert run_tasks(pools, [()], Executor("ray")) == [(1, 1, "1")]
+    assert run_tasks(pools, [()], Executor("ray"), isolation="worker") == [(1, 1, "1")]
+    assert run_tasks(pools, [()], Executor("ray"), threads=2) == [(2, 2, "2")]
     marker = tmp_path / "died-once"
 
     def dies_once(path: str) -> str:

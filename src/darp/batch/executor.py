@@ -52,6 +52,24 @@ def parse_executor(value: str | Executor) -> Executor:
     return Executor(kind, address or None)
 
 
+def ray_init_options(address: str | None = None, num_cpus: int | None = None) -> dict[str, Any]:
+    """``ray.init`` options of the Ray darp starts (``address`` None) or joins: lean.
+
+    No dashboard (its head process still starts, without its modules), no metrics export nor usage
+    statistics (``_system_config`` and ``RAY_USAGE_STATS_ENABLED=0`` unless the user set it), no worker
+    logs streamed to the driver (a task's errors come back with its result), and for a local Ray its
+    workers at this process's priority (``RAY_worker_niceness=0`` unless set). Measured: Ray's own
+    processes then use 0.07 of a core while tasks run (docs/scaling.md, CPU accounting)."""
+    options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "logging_level": "ERROR"}
+    if address is None:  # a local Ray: the system config is the head's to set
+        os.environ.setdefault(WORKER_NICENESS, "0")
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        options["_system_config"] = {"enable_metrics_collection": False}
+        if num_cpus is not None:
+            options["num_cpus"] = num_cpus
+    return options
+
+
 ISOLATIONS = ("fork", "worker")
 FailureFn = Callable[[tuple[Any, ...], BaseException], Any]  # (a crashed task's args, its error) -> its result
 
@@ -59,14 +77,21 @@ FailureFn = Callable[[tuple[Any, ...], BaseException], Any]  # (a crashed task's
 def run_tasks(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], executor: Executor, *,
               num_cpus: float = 1.0, memory_bytes: int = DEFAULT_MEMORY_BYTES, max_retries: int = 2,
               progress: ProgressFn | None = None, ray_init: dict[str, Any] | None = None,
-              isolation: str = "fork", failure: FailureFn | None = None) -> list[Any]:
+              isolation: str = "fork", failure: FailureFn | None = None, threads: int | None = None,
+              costs: Sequence[float] | None = None) -> list[Any]:
     """``[fn(*args) for args in calls]`` on the executor, results in the order of ``calls``.
 
     The first task error is raised after every task has finished (its DarpError as is); with
     ``failure``, a task whose process crashed on every try gives ``failure(args, error)`` instead.
+    On Ray, each task's libraries (BLAS, OpenMP, OpenCV, Open3D) use ``threads`` threads (default: the
+    task's ``num_cpus``, at least 1; :mod:`darp.batch.threads`), and tasks are submitted in decreasing
+    ``costs`` (e.g. the survey's bytes; default: the order of ``calls``) so that the largest start first
+    and the workers finish together. The local loop keeps the order and this process's threads.
     """
     if isolation not in ISOLATIONS:
         raise ConfigError(f"isolation {isolation!r}: expected one of {', '.join(ISOLATIONS)}")
+    if costs is not None and len(costs) != len(calls):
+        raise ConfigError(f"costs: {len(costs)} for {len(calls)} tasks")
     if executor.kind == "local":
         results = []
         for k, args in enumerate(calls):
@@ -76,53 +101,68 @@ def run_tasks(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], executor
         return results
     return _run_ray(fn, calls, executor.address, num_cpus=num_cpus, memory_bytes=memory_bytes,
                     max_retries=max_retries, progress=progress, ray_init=ray_init or {}, isolation=isolation,
-                    failure=failure)
+                    failure=failure, threads=max(1, int(num_cpus)) if threads is None else max(1, int(threads)),
+                    order=submission_order(len(calls), costs))
+
+
+def submission_order(n: int, costs: Sequence[float] | None) -> list[int]:
+    """Task indices in the order they are submitted: the largest cost first (ties: call order)."""
+    if costs is None:
+        return list(range(n))
+    return sorted(range(n), key=lambda k: (-float(costs[k]), k))
 
 
 def _run_ray(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], address: str | None, *, num_cpus: float,
              memory_bytes: int, max_retries: int, progress: ProgressFn | None,
-             ray_init: dict[str, Any], isolation: str, failure: FailureFn | None) -> list[Any]:
+             ray_init: dict[str, Any], isolation: str, failure: FailureFn | None, threads: int,
+             order: Sequence[int]) -> list[Any]:
     try:
         import ray
     except ImportError:
         raise DarpError("--executor ray needs Ray (pip install ray, or make setup)") from None
     started_here = not ray.is_initialized()
     if started_here:
-        if address is None:  # a local Ray: its workers at this process's priority, as the loop would run
-            os.environ.setdefault(WORKER_NICENESS, "0")
-        env = {k: os.environ[k] for k in WORKER_ENV if k in os.environ}
-        options: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
-                                   "logging_level": "ERROR", **ray_init}
+        options: dict[str, Any] = {**ray_init_options(address), **ray_init}
         if address is not None:
-            options["runtime_env"] = {"env_vars": env}
+            options["runtime_env"] = {"env_vars": {k: os.environ[k] for k in WORKER_ENV if k in os.environ}}
         ray.init(address=address, **options)
     try:
-        from darp.batch.fresh import ChildCrashed, run_fresh
+        from darp.batch.fresh import ChildCrashed, dumps_call, loads_answer, run_pickled, run_with_threads
 
-        if isolation == "fork":  # reused workers, a forked process per task
+        if isolation == "fork":  # reused workers, a forked process per task, the call pickled here
             remote = ray.remote(num_cpus=num_cpus, memory=memory_bytes, max_retries=max_retries,
-                                retry_exceptions=[ChildCrashed])(run_fresh)  # type: ignore[call-overload]
-            refs = [remote.remote(fn, *args) for args in calls]
+                                retry_exceptions=[ChildCrashed])(run_pickled)  # type: ignore[call-overload]
+            what = getattr(fn, "__name__", "task")
+            submitted = {k: remote.remote(dumps_call(fn, tuple(calls[k])), what, threads) for k in order}
         else:  # a fresh worker per task
             remote = ray.remote(num_cpus=num_cpus, memory=memory_bytes, max_retries=max_retries, max_calls=1,
-                                retry_exceptions=False)(fn)
-            refs = [remote.remote(*args) for args in calls]
-        order = {ref: k for k, ref in enumerate(refs)}
+                                retry_exceptions=False)(run_with_threads)
+            submitted = {k: remote.remote(threads, fn, *calls[k]) for k in order}
+        refs = [submitted[k] for k in range(len(calls))]
+        index = {ref: k for k, ref in enumerate(refs)}
         results: list[Any] = [None] * len(refs)
         errors: list[tuple[int, BaseException]] = []
         pending = list(refs)
         while pending:
             done, pending = ray.wait(pending, num_returns=1)
             for ref in done:
-                k = order[ref]
+                k = index[ref]
                 try:
-                    results[k] = ray.get(ref)
-                    continue
+                    value = ray.get(ref)
                 except ray.exceptions.RayTaskError as err:
                     cause = err.cause if isinstance(getattr(err, "cause", None), BaseException) else err
                     crashed = isinstance(cause, ChildCrashed)
                 except ray.exceptions.RayError as err:  # the worker died max_retries + 1 times
                     cause, crashed = DarpError(f"task {k} failed on Ray: {_first_line(err)}"), True
+                else:
+                    if isolation != "fork":
+                        results[k] = value
+                        continue
+                    try:  # the child's answer, pickled: its result, or the exception fn raised there
+                        results[k] = loads_answer(value)
+                        continue
+                    except BaseException as err:  # fn's own error in the child, as Ray raised it before
+                        cause, crashed = err, False
                 if failure is not None and crashed:
                     results[k] = failure(calls[k], cause)
                 else:
@@ -142,4 +182,5 @@ def _first_line(err: BaseException) -> str:
     return text.splitlines()[0] if text else type(err).__name__
 
 
-__all__ = ["DEFAULT_MEMORY_BYTES", "ISOLATIONS", "Executor", "parse_executor", "run_tasks"]
+__all__ = ["DEFAULT_MEMORY_BYTES", "ISOLATIONS", "Executor", "parse_executor", "ray_init_options", "run_tasks",
+           "submission_order"]

@@ -78,9 +78,13 @@ def _die_with_parent() -> None:
         pass
 
 
-def _child(conn: Any, payload: bytes) -> None:
+def _child(conn: Any, payload: bytes, threads: int | None = None) -> None:
     _die_with_parent()
     try:
+        if threads is not None:
+            from darp.batch.threads import limit_threads
+
+            limit_threads(threads)
         fn, args = pickle.loads(payload)
         answer: tuple[str, Any] = ("ok", fn(*args))
     except BaseException as err:  # everything goes back to the caller
@@ -130,33 +134,79 @@ def _dumps(fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
     return bytes(cloudpickle.dumps((fn, args)))  # type: ignore[no-untyped-call]
 
 
-def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *, what: str = "task") -> Any:
+def dumps_call(fn: Callable[..., Any], args: tuple[Any, ...]) -> bytes:
+    """``(fn, args)`` pickled for :func:`call_pickled_in_fresh_process`: a module's function by reference
+    (the child imports it, preloaded), a closure or ``__main__``'s function by value."""
+    return _dumps(fn, args)
+
+
+def call_in_fresh_process(fn: Callable[..., Any], args: tuple[Any, ...] = (), *, what: str = "task",
+                          threads: int | None = None) -> Any:
     """``fn(*args)`` in a fresh child of this process's forkserver: its result, or its exception raised
-    here; :class:`ChildCrashed` naming ``what`` and the exit code/signal if the child died."""
-    ctx = forkserver_context()
-    receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_child, args=(send, _dumps(fn, args)), name=f"darp-{what}")
-    with _without_main():
-        child.start()
-    send.close()
-    try:
-        data = receive.recv_bytes()
-    except EOFError:
-        data = None
-    finally:
-        receive.close()
-    child.join()
-    if data is None:
-        raise ChildCrashed(f"{what}: its process (pid {child.pid}) died: {exit_reason(child.exitcode)}")
+    here; :class:`ChildCrashed` naming ``what`` and the exit code/signal if the child died. ``threads``:
+    every library's thread pool in the child sized to it (:func:`darp.batch.threads.limit_threads`)."""
+    return loads_answer(call_pickled_in_fresh_process(_dumps(fn, args), what=what, threads=threads))
+
+
+def loads_answer(data: bytes) -> Any:
+    """The result a child sent back (:func:`call_pickled_in_fresh_process`), or its exception raised."""
     status, value = pickle.loads(data)
     if status == "error":
         raise value
     return value
 
 
-def run_fresh(fn: Callable[..., Any], *args: Any) -> Any:
-    """What one Ray task runs: ``fn(*args)`` in a fresh forked process (see the module docstring)."""
-    return call_in_fresh_process(fn, args, what=getattr(fn, "__name__", "task"))
+def call_pickled_in_fresh_process(payload: bytes, *, what: str = "task", threads: int | None = None) -> bytes:
+    """A call pickled by :func:`dumps_call` in a fresh child: the child's answer, still pickled
+    (:func:`loads_answer` gives its result or raises its exception). This process unpickles neither the
+    call nor its result, so it never imports their modules: a Ray worker stays light, only its
+    forkserver and the children import darp's processing stack. :class:`ChildCrashed` if the child died."""
+    ctx = forkserver_context()
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_child, args=(send, payload, threads), name=f"darp-{what}")
+    with _without_main():
+        child.start()
+    send.close()
+    data: bytes | None
+    try:
+        data = receive.recv_bytes()
+    except EOFError:
+        data = None
+    finally:
+        receive.close()
+    if data is None:
+        child.join()
+        raise ChildCrashed(f"{what}: its process (pid {child.pid}) died: {exit_reason(child.exitcode)}")
+    # The answer is here: the child's exit (freeing its memory: 0.09-0.12 s after a tiny survey at load 16,
+    # measured) need not hold up the next task. Its forkserver reaps it; multiprocessing forgets it when
+    # the next child starts (or at active_children()).
+    return data
+
+
+def run_fresh(fn: Callable[..., Any], *args: Any, threads: int | None = None) -> Any:
+    """``fn(*args)`` in a fresh forked process (see the module docstring), its libraries' thread pools
+    sized to ``threads`` when given. (darp's executor runs :func:`run_pickled` instead.)"""
+    return call_in_fresh_process(fn, args, what=getattr(fn, "__name__", "task"), threads=threads)
+
+
+def run_pickled(payload: bytes, what: str, threads: int | None = None) -> bytes:
+    """What one Ray task runs (``isolation="fork"``): a call pickled by the driver (:func:`dumps_call`), in
+    a fresh forked process, its libraries' thread pools sized to ``threads``; the child's answer goes back
+    still pickled (the driver calls :func:`loads_answer`). The worker only passes bytes on: Ray would
+    otherwise unpickle ``fn`` and the result in the worker, which then imports darp's processing stack
+    itself (measured: 2.2 CPU-s per worker, on its first task, inside the batch)."""
+    return call_pickled_in_fresh_process(payload, what=what, threads=threads)
+
+
+def run_with_threads(threads: int, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)`` in this process with every library's thread pool sized to ``threads`` (what a task
+    runs with ``isolation="worker"``: a fresh Ray worker per task). Ray has unpickled ``fn`` by then, so
+    the libraries its module imports (darp's tasks: OpenCV, Open3D) are sized; Open3D imported later
+    inside ``fn`` keeps its default (it reads no environment variable)."""
+    from darp.batch.threads import limit_threads
+
+    limit_threads(threads)
+    return fn(*args)
 
 
 def idle(sleep_s: float = 0.0) -> int:
@@ -169,5 +219,6 @@ def idle(sleep_s: float = 0.0) -> int:
     return os.getppid()
 
 
-__all__ = ["PRELOAD", "ChildCrashed", "call_in_fresh_process", "exit_reason", "forkserver_context",
-           "idle", "run_fresh"]
+__all__ = ["PRELOAD", "ChildCrashed", "call_in_fresh_process", "call_pickled_in_fresh_process", "dumps_call",
+           "exit_reason", "forkserver_context", "idle", "loads_answer", "run_fresh", "run_pickled",
+           "run_with_threads"]

@@ -148,7 +148,8 @@ def generate_batch(n: int, seed: int, objects: Sequence[str], out: str | Path, e
     specs = plan_surveys(n, seed, objects, **spec_options)
     write_json_atomic(out / MANIFEST, {"seed": seed, "n": n, "objects": list(objects),
                                        "surveys": [dataclasses.asdict(s) for s in specs]})
-    return run_tasks(record_generated, [(s, str(out)) for s in specs], executor, progress=progress)
+    costs = [s.width * s.height * s.fps * len(s.azimuths_deg) for s in specs]  # frames x pixels, roughly
+    return run_tasks(record_generated, [(s, str(out)) for s in specs], executor, progress=progress, costs=costs)
 
 
 __all__ = ["MANIFEST", "SurveySpec", "generate_batch", "plan_surveys", "record_generated"]

@@ -40,7 +40,16 @@ def process_batch(folders: Sequence[Path], out: Path, calibration: Path | None, 
 
     calls = [(str(f), str(out / f.name), None if calibration is None else str(calibration), truth_poses,
               settings.to_dict(), resume) for f in folders]
-    return list(run_tasks(process_one, calls, executor, progress=progress, failure=crashed_outcome))
+    return list(run_tasks(process_one, calls, executor, progress=progress, failure=crashed_outcome,
+                          costs=[survey_bytes(f) for f in folders]))
+
+
+def survey_bytes(folder: Path) -> int:
+    """A survey's size on disk (its bags dominate): the cost by which a batch submits the largest first."""
+    try:
+        return sum(p.stat().st_size for p in Path(folder).rglob("*") if p.is_file())
+    except OSError:  # a folder that cannot be read fails in its task, with its reason
+        return 0
 
 
 def crashed_outcome(args: tuple[Any, ...], err: BaseException) -> SurveyOutcome:
@@ -50,4 +59,4 @@ def crashed_outcome(args: tuple[Any, ...], err: BaseException) -> SurveyOutcome:
     return SurveyOutcome(survey_path.name, survey_path, target, FAILED, "worker", reason.splitlines()[0])
 
 
-__all__ = ["crashed_outcome", "process_batch", "process_one"]
+__all__ = ["crashed_outcome", "process_batch", "process_one", "survey_bytes"]
