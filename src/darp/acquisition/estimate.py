@@ -254,7 +254,7 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
     sigma_per_m2 = table_noise_floor(h, ranges, s.plane_band_m)
     margin = np.clip(s.noise_floor_k * sigma_per_m2 * ranges ** 2, s.table_margin_m, s.max_noise_margin_m)
     stats["table_noise_mm_at_1m"] = round(1000.0 * sigma_per_m2, 3)
-    stats["table_margin_mm"] = [round(1000.0 * float(np.min(margin)), 2), round(1000.0 * float(np.max(margin)), 2)]
+    stats["table_margin_mm"] = [round(1000.0 * float(np.min(margin)), 2), round(1000.0 * float(np.median(margin)), 2)]
     lo = np.array([max(ws.x_range_m[0] - s.region_margin_m, rig.table.x_range_m[0]),
                    max(ws.y_range_m[0] - s.region_margin_m, rig.table.y_range_m[0])])
     hi = np.array([min(ws.x_range_m[1] + s.region_margin_m, rig.table.x_range_m[1]),
