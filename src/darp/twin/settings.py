@@ -431,7 +431,7 @@ def paper_profile(seed: int = 0) -> TwinSettings:
 
 
 # The paper profile's non-absorbable errors (sources and ranges: docs/twin.md, "Error sources").
-PAPER_ARM_ERRORS = ArmErrorSettings(link_origin_std_mm=0.9, axis_tilt_std_deg=0.15, joint_stiffness_nm_per_rad=1000.0,
+PAPER_ARM_ERRORS = ArmErrorSettings(link_origin_std_mm=1.0, axis_tilt_std_deg=0.2, joint_stiffness_nm_per_rad=1000.0,
                                     payload_kg=0.2, backlash_deg=0.22, repeatability_mm=0.1)
 PAPER_DEPTH_ERRORS = DepthErrorSettings(scale_std_pct=1.0, offset_std_mm=2.0, bias_std_mm_per_m2=4.0,
                                         thermal_drift_pct=0.4, thermal_tau_s=600.0, focal_std_pct=0.3,
