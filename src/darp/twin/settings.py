@@ -411,8 +411,8 @@ def paper_profile(seed: int = 0) -> TwinSettings:
     """The ``paper`` profile: real-rig error levels, each inside the range docs/twin.md cites for it.
 
     Tuned toward the paper's real-rig figures (hand-eye held-out 3.58 / 3.93 mm, held-out point-to-mesh
-    median 2.13 mm ...); on seed 0 five of the seven are within +-25 % (median and p90 low); the measured
-    figures are in docs/twin.md.
+    median 2.13 mm ...); `darp demo --profile paper` on seed 0 has six of the seven within +-25 % (the
+    median 0.747x); the measured figures are in docs/twin.md.
     """
     return TwinSettings(
         profile="paper",
