@@ -140,3 +140,44 @@ def test_search_targets_start_at_the_workspace_centre_and_cover_it() -> None:
     assert np.isclose(targets[:, 1].min(), ws.y_range_m[0]) and np.isclose(targets[:, 1].max(), ws.y_range_m[1])
     # The far row (from arm110 at -x) comes before the near row.
     assert targets[3, 0] > targets[6, 0]
+
+
+def wavy_depth(depth: np.ndarray, field_px: float, seed: int, noise_px: float = 0.08) -> np.ndarray:
+    """Depth with a stereo camera's disparity errors: a smooth field (std ``field_px`` on a 4 x 5 grid,
+    cubic-interpolated, as the twin's D400 "breathing") plus per-pixel noise; depth error z^2 e / (f B)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(seed)
+    h, w = depth.shape
+    nodes = rng.normal(0.0, field_px, (4, 5))
+    field = ndimage.zoom(nodes, (h / 4, w / 5), order=3, mode="nearest")[:h, :w]
+    e = field + rng.normal(0.0, noise_px, depth.shape)
+    return np.where(depth > 0, depth + depth ** 2 * e / (INTRINSICS.fx * 0.05), 0.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_a_wavy_noisy_table_is_not_taken_for_the_object(seed: int) -> None:
+    # Issue 12: at 2x the paper profile (424x240) the far table rose above the fixed 6 mm margin as one
+    # wide flat blob that outweighed the object, which was then "found" at y ~ -0.3 m (outside the
+    # workspace) or not at all. The margin now follows the view's own table noise at each range.
+    cyl = Cylinder(-0.06, 0.07, 0.04, 0.10)
+    T = camera_looking_at(np.zeros(3), 0.55, 50.0)
+    clean = render_depth(T, INTRINSICS, [cyl], RIG)
+    frames = [(wavy_depth(clean, 0.2, 10 * seed + k), INTRINSICS, T) for k in range(2)]
+    obs = estimate_from_depth(frames, RIG, "arm110")
+    assert obs.ok, obs.detail
+    assert np.linalg.norm(obs.estimate.centre_m[:2] - [cyl.x_m, cyl.y_m]) < 0.015
+    assert obs.estimate.radius_m < 0.06
+    assert obs.stats["table_margin_mm"][1] > 10.0  # the far table's margin grew with its noise
+    # The fixed margin alone (noise_floor_k = 0) takes the table for the object: the bug this fixes.
+    fixed = estimate_from_depth(frames, RIG, "arm110", LocaliseSettings(noise_floor_k=0.0))
+    est = fixed.estimate or fixed.candidate
+    assert est is not None and (np.linalg.norm(est.centre_m[:2] - [cyl.x_m, cyl.y_m]) > 0.05 or est.radius_m > 0.1)
+
+
+def test_a_clean_table_keeps_the_fixed_margin() -> None:
+    cyl = Cylinder(0.0, 0.0, 0.05, 0.02)  # a low object: 2 cm, just above a 6 mm margin's worth of noise
+    T = camera_looking_at(np.array([0.0, 0.0, 0.01]), 0.45, 45.0)
+    obs = estimate_from_depth(frames_of([cyl], T), RIG, "arm110")
+    assert obs.ok and obs.stats["table_margin_mm"] == [6.0, 6.0]
+    assert obs.estimate.height_m == pytest.approx(0.02, abs=0.003)

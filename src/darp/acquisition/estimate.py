@@ -8,9 +8,15 @@ For one or a few live depth frames (:func:`estimate_from_depth`):
 2. fit the table plane to the points within ``plane_band_m`` of the nominal table height (least
    squares, trimmed three times): with a nominal calibration the table appears shifted and tilted by
    millimetres, and heights are measured from the plane the camera sees, not from the nominal one;
-3. keep points at least ``table_margin_m`` above that plane and inside the search region (the
-   placement workspace grown by ``region_margin_m``); bin them on a 1 cm grid of the table and keep
-   the largest 8-connected blob (by points); fewer than ``noise_points`` per frame is noise;
+3. keep points above that plane by more than the view's own noise floor and inside the search region
+   (the placement workspace grown by ``region_margin_m``); bin them on a 1 cm grid of the table and keep
+   the largest 8-connected blob (by points); fewer than ``noise_points`` per frame is noise. The noise
+   floor (:func:`table_noise_floor`): the table's scatter about the fitted plane grows with the square of
+   the range (stereo depth: ``sigma_z ~ z^2 sigma_d / (f B)``, plus low-frequency depth waves), so it is
+   measured per view as a robust ``sigma / z^2`` of the plane's band and a point counts as above the table
+   when ``h > max(table_margin_m, noise_floor_k * sigma * z^2)``. A fixed margin is what a noisier
+   camera or a lower resolution breaks: the far table then rises above it as one wide, flat blob
+   that outweighs the object (issue 12, 2x the ``paper`` profile at 424x240);
 4. reject the blob with a reason when it is too small (``too_small``), not in the workspace
    (``outside_workspace``, ``too_tall``), not supported (``few_points``, ``low_valid_fraction``) or
    cut by the image border (``truncated``); the rejected estimate is kept as a hint for a closer look;
@@ -58,6 +64,8 @@ class LocaliseSettings:
     plane_band_m: float = 0.04  # table-plane candidates: within this of the nominal table height
     max_plane_tilt_deg: float = 5.0
     table_margin_m: float = 0.006  # object points: at least this far above the fitted table plane
+    noise_floor_k: float = 4.0  # ... and more than this many times the view's table scatter at their range
+    max_noise_margin_m: float = 0.05  # the noise margin's cap: a table noisier than this is no table
     region_margin_m: float = 0.15  # search region = workspace grown by this (objects just outside are seen)
     cell_m: float = 0.01  # grid of the connected-blob clustering
     min_cell_points: int = 2
@@ -82,6 +90,8 @@ class LocaliseSettings:
             raise AcquisitionError("localisation needs 0 < min_range_m < max_range_m")
         if self.frames_per_view < 1 or self.min_points < 1 or self.cell_m <= 0:
             raise AcquisitionError("localisation needs frames_per_view >= 1, min_points >= 1, cell_m > 0")
+        if not (self.noise_floor_k >= 0 and self.max_noise_margin_m >= self.table_margin_m):
+            raise AcquisitionError("localisation needs noise_floor_k >= 0 and max_noise_margin_m >= table_margin_m")
 
 
 @dataclass
@@ -159,6 +169,23 @@ def fit_table_plane(points: Array, table_z: float, band_m: float) -> tuple[Array
     return coef, len(sel)
 
 
+def table_noise_floor(heights_m: Array, ranges_m: Array, band_m: float) -> float:
+    """The table's scatter about its fitted plane per square metre of range (``sigma / z^2``, 1/m).
+
+    ``heights_m``: the points' heights above the fitted plane, ``ranges_m``: their camera depths. Only the
+    points within ``band_m`` of the plane count (the table and an object's foot); the scale is the median
+    absolute deviation (x 1.4826, a Gaussian's sigma), robust to the object's few points in the band.
+    0 when fewer than 200 points are in the band.
+    """
+    h = np.asarray(heights_m, dtype=np.float64)
+    z = np.asarray(ranges_m, dtype=np.float64)
+    near = (np.abs(h) < band_m) & (z > 0)
+    if int(near.sum()) < 200:
+        return 0.0
+    s = h[near] / z[near] ** 2
+    return float(1.4826 * np.median(np.abs(s - np.median(s))))
+
+
 def _largest_blob(xy: Array, lo: Array, hi: Array, cell_m: float, min_cell_points: int) -> IndexArray:
     """Indices of the points in the largest 8-connected blob of occupied grid cells (by points)."""
     shape = np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
@@ -190,7 +217,7 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
         raise AcquisitionError("no frames to estimate from")
     table_z = rig.table.height_m
     ws = rig.workspace
-    pts_all, uv_all, valid_fracs = [], [], []
+    pts_all, uv_all, range_all, valid_fracs = [], [], [], []
     shape = np.asarray(frames[0][0]).shape
     for depth_m, intr, T_world_cam in frames:
         d = np.asarray(depth_m, dtype=np.float64)
@@ -201,6 +228,7 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
         T = np.asarray(T_world_cam, dtype=np.float64)
         pts_all.append(pc @ T[:3, :3].T + T[:3, 3])
         uv_all.append(np.column_stack([u, v]))
+        range_all.append(pc[:, 2])
     valid_fraction = float(np.mean(valid_fracs))
     camera = np.asarray(frames[-1][2], dtype=np.float64)[:3, 3]
     stats: dict[str, Any] = {"valid_fraction": round(valid_fraction, 4)}
@@ -211,6 +239,7 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
                            f"(minimum {s.min_valid_fraction:.0%})", stats=stats)
     pts = np.vstack(pts_all)
     uv = np.vstack(uv_all)
+    ranges = np.concatenate(range_all)
     fit = fit_table_plane(pts, table_z, s.plane_band_m)
     if fit is None:
         coef, n_plane, plane_source = np.array([0.0, 0.0, table_z]), 0, "nominal"
@@ -222,11 +251,15 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
     plane = {"a": float(coef[0]), "b": float(coef[1]), "c": float(coef[2]), "n_points": float(n_plane)}
     stats["plane"] = plane_source
     h = pts[:, 2] - (pts[:, 0] * coef[0] + pts[:, 1] * coef[1] + coef[2])
+    sigma_per_m2 = table_noise_floor(h, ranges, s.plane_band_m)
+    margin = np.clip(s.noise_floor_k * sigma_per_m2 * ranges ** 2, s.table_margin_m, s.max_noise_margin_m)
+    stats["table_noise_mm_at_1m"] = round(1000.0 * sigma_per_m2, 3)
+    stats["table_margin_mm"] = [round(1000.0 * float(np.min(margin)), 2), round(1000.0 * float(np.median(margin)), 2)]
     lo = np.array([max(ws.x_range_m[0] - s.region_margin_m, rig.table.x_range_m[0]),
                    max(ws.y_range_m[0] - s.region_margin_m, rig.table.y_range_m[0])])
     hi = np.array([min(ws.x_range_m[1] + s.region_margin_m, rig.table.x_range_m[1]),
                    min(ws.y_range_m[1] + s.region_margin_m, rig.table.y_range_m[1])])
-    keep = ((h > s.table_margin_m) & (h < ws.z_range_m[1] + 0.2) & np.all(pts[:, :2] >= lo, axis=1)
+    keep = ((h > margin) & (h < ws.z_range_m[1] + 0.2) & np.all(pts[:, :2] >= lo, axis=1)
             & np.all(pts[:, :2] <= hi, axis=1))
     pts, uv, h = pts[keep], uv[keep], h[keep]
     stats["above_table_points"] = len(pts)
@@ -274,4 +307,4 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
 
 
 __all__ = ["REJECTION_REASONS", "LocaliseSettings", "ObjectEstimate", "Observation", "backproject",
-           "estimate_from_depth", "fit_table_plane", "in_workspace_xy"]
+           "estimate_from_depth", "fit_table_plane", "in_workspace_xy", "table_noise_floor"]

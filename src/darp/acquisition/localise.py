@@ -193,6 +193,11 @@ class Localiser:
                 if obs is not None and obs.reason in ("outside_workspace", "too_tall"):
                     current = None
                     result.reason, result.detail, result.candidate = obs.reason, obs.detail, obs.candidate
+                elif obs is not None and obs.reason == "no_object" and current is None:
+                    # A closer look at a rejected estimate found nothing there: it was noise (a far, noisy
+                    # stretch of table), not the object; forget it so that the search goes on.
+                    result.reason = result.detail = ""
+                    result.candidate = None
                 break
             moved = float(np.linalg.norm(obs.estimate.centre_m[:2] - target.centre_m[:2]))
             current = target = obs.estimate
