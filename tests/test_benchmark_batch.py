@@ -16,7 +16,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def cputree() -> ModuleType:
-    pytest.importorskip("psutil")
     spec = importlib.util.spec_from_file_location("bench_cputree", ROOT / "benchmarks" / "cputree.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
