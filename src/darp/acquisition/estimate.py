@@ -186,11 +186,21 @@ def table_noise_floor(heights_m: Array, ranges_m: Array, band_m: float) -> float
     return float(1.4826 * np.median(np.abs(s - np.median(s))))
 
 
+def _grid_shape(lo: Array, hi: Array, cell_m: float) -> IndexArray:
+    return np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
+
+
+def _cells(xy: Array, lo: Array, hi: Array, cell_m: float) -> IndexArray:
+    """Each point's flat grid-cell index on the table grid from ``lo`` to ``hi``."""
+    shape = _grid_shape(lo, hi, cell_m)
+    ij = np.clip(((xy - lo) / cell_m).astype(int), 0, shape - 1)
+    return ij[:, 0] * shape[1] + ij[:, 1]
+
+
 def _largest_blob(xy: Array, lo: Array, hi: Array, cell_m: float, min_cell_points: int) -> IndexArray:
     """Indices of the points in the largest 8-connected blob of occupied grid cells (by points)."""
-    shape = np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
-    ij = np.clip(((xy - lo) / cell_m).astype(int), 0, shape - 1)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    shape = _grid_shape(lo, hi, cell_m)
+    flat = _cells(xy, lo, hi, cell_m)
     counts = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
     labels, n = ndimage.label(counts >= min_cell_points, structure=np.ones((3, 3), dtype=int))
     if n == 0:
@@ -259,13 +269,18 @@ def estimate_from_depth(frames: list[tuple[Array, Intrinsics, Array]], rig: Rig,
                    max(ws.y_range_m[0] - s.region_margin_m, rig.table.y_range_m[0])])
     hi = np.array([min(ws.x_range_m[1] + s.region_margin_m, rig.table.x_range_m[1]),
                    min(ws.y_range_m[1] + s.region_margin_m, rig.table.y_range_m[1])])
-    keep = ((h > margin) & (h < ws.z_range_m[1] + 0.2) & np.all(pts[:, :2] >= lo, axis=1)
-            & np.all(pts[:, :2] <= hi, axis=1))
-    pts, uv, h = pts[keep], uv[keep], h[keep]
-    stats["above_table_points"] = len(pts)
-    blob = _largest_blob(pts[:, :2], lo, hi, s.cell_m, s.min_cell_points) if len(pts) else np.zeros(0, int)
+    candidates = ((h > s.table_margin_m) & (h < ws.z_range_m[1] + 0.2) & np.all(pts[:, :2] >= lo, axis=1)
+                  & np.all(pts[:, :2] <= hi, axis=1))
+    pts, uv, h, margin = pts[candidates], uv[candidates], h[candidates], margin[candidates]
+    keep = np.flatnonzero(h > margin)
+    stats["above_table_points"] = len(keep)
+    blob = (keep[_largest_blob(pts[keep, :2], lo, hi, s.cell_m, s.min_cell_points)] if len(keep)
+            else np.zeros(0, int))
     if len(blob) == 0:
         return Observation(None, "no_object", "nothing stands on the table in view", stats=stats)
+    # The noise margin finds the object; its extent is measured down to the fixed margin inside the cells the
+    # object occupies (a foot between the two margins would otherwise be cut, moving the centre by millimetres).
+    blob = np.flatnonzero(np.isin(_cells(pts[:, :2], lo, hi, s.cell_m), _cells(pts[blob, :2], lo, hi, s.cell_m)))
     pts, uv, h = pts[blob], uv[blob], h[blob]
     stats["blob_points"] = len(pts)
     n_frames = len(frames)
