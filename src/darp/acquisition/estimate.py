@@ -187,14 +187,16 @@ def table_noise_floor(heights_m: Array, ranges_m: Array, band_m: float) -> float
 
 
 def _grid_shape(lo: Array, hi: Array, cell_m: float) -> IndexArray:
-    return np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
+    shape: IndexArray = np.maximum(np.ceil((hi - lo) / cell_m).astype(int), 1)
+    return shape
 
 
 def _cells(xy: Array, lo: Array, hi: Array, cell_m: float) -> IndexArray:
     """Each point's flat grid-cell index on the table grid from ``lo`` to ``hi``."""
     shape = _grid_shape(lo, hi, cell_m)
     ij = np.clip(((xy - lo) / cell_m).astype(int), 0, shape - 1)
-    return ij[:, 0] * shape[1] + ij[:, 1]
+    flat: IndexArray = ij[:, 0] * shape[1] + ij[:, 1]
+    return flat
 
 
 def _largest_blob(xy: Array, lo: Array, hi: Array, cell_m: float, min_cell_points: int) -> IndexArray:
