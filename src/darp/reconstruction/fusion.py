@@ -529,6 +529,7 @@ class VoxelFusion:
             per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
                                             self.settings, arms, c, visibility(1 << bit), fused_keys)
             counts[arm] = c
+        counts["fused"] = counts.pop("fused")  # the per-arm counts first, as recorded before
         counts["peak_rows"] = self.peak_rows
         return FusionResult(fused=fused, per_arm=per_arm, settings=self.settings, stats=counts)
 
