@@ -2,25 +2,19 @@
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 import time
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from helpers.benchmark_modules import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def cputree() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("bench_cputree", ROOT / "benchmarks" / "cputree.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("cputree")
 
 
 def test_roles_of_rays_processes(cputree: ModuleType) -> None:
