@@ -8,7 +8,14 @@ import pytest
 
 from darp.cli._app import run
 from darp.errors import ConfigError
-from darp.processing.settings import CORRECTIONS, CorrectionSettings, ProcessSettings, load_settings
+from darp.processing.settings import (
+    ADDED_LATER,
+    CORRECTIONS,
+    CorrectionSettings,
+    ProcessSettings,
+    load_settings,
+    settings_from_dict,
+)
 
 
 def test_paper_mode_is_the_default() -> None:
@@ -43,6 +50,17 @@ def test_a_settings_file_switches_corrections_and_rejects_unknown_keys(tmp_path:
     bad.write_text("corrections: {colour: true}\n")
     with pytest.raises(ConfigError, match="unknown key"):
         load_settings(bad)
+
+
+@pytest.mark.parametrize(("group", "name"), ADDED_LATER)
+def test_settings_added_later_are_absent_at_their_default_and_recorded_when_changed(group: str, name: str) -> None:
+    default = ProcessSettings()
+    assert name not in default.to_dict()[group]
+    value = getattr(getattr(default, group), name)
+    changed = settings_from_dict({group: {name: (not value) if isinstance(value, bool) else value + 1}})
+    assert changed.to_dict()[group][name] != value
+    assert changed.fingerprint(group) != default.fingerprint(group)
+    assert changed.fingerprint("mesh") == default.fingerprint("mesh")
 
 
 def test_a_bad_flag_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -93,6 +93,16 @@ class CorrectionSettings:
         return "paper" if not on else "all" if len(on) == len(CORRECTIONS) else "+".join(on)
 
 
+# Settings added after results.json records and stage fingerprints were first written. Each is left out of
+# ``to_dict`` while it holds its default, so a record written before it existed reads the same and a processed
+# folder's stages are not redone only because darp learnt a new option. Append new settings here.
+ADDED_LATER: tuple[tuple[str, str], ...] = (
+    ("corrections", "table"),
+    ("fusion", "support_neighbourhood"),
+    ("fusion", "arm_support_from_fused"),
+)
+
+
 @dataclass(frozen=True)
 class ProcessSettings:
     """Every setting of the processing pipeline."""
@@ -105,9 +115,12 @@ class ProcessSettings:
     refinement: RefineSettings = field(default_factory=RefineSettings)  # parameters of corrections.refine
 
     def to_dict(self) -> dict[str, Any]:
+        """Plain values of every group, less the :data:`ADDED_LATER` settings that hold their defaults."""
         plain: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(self)))
-        if not self.corrections.table:  # added later: absent when off, so older records and fingerprints stay
-            del plain["corrections"]["table"]
+        defaults: dict[str, Any] = json.loads(json.dumps(dataclasses.asdict(ProcessSettings())))
+        for group, name in ADDED_LATER:
+            if plain[group][name] == defaults[group][name]:
+                del plain[group][name]
         return plain
 
     def fingerprint(self, *groups: str) -> str:
