@@ -351,11 +351,13 @@ def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: Vi
 
 def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],
                      counts: dict[str, int] | None = None, visibility: VisibilityFn | None = None,
-                     also_keys: np.ndarray | None = None) -> VoxelCloud:
+                     also_keys: np.ndarray | None = None, supported: np.ndarray | None = None) -> VoxelCloud:
     """Apply voxel support, average each voxel and remove statistical outliers. ``also_keys`` (sorted voxel
-    keys, e.g. those the fused cloud supports) are kept too where ``arm_support_from_fused`` frames saw them."""
+    keys, e.g. those the fused cloud supports) are kept too where ``arm_support_from_fused`` frames saw them.
+    ``supported`` is :func:`supported_voxels`' answer when the caller already has it."""
     n_views = popcount64(stats.view_mask)
-    supported = supported_voxels(stats, settings, visibility, counts)
+    if supported is None:
+        supported = supported_voxels(stats, settings, visibility, counts)
     if also_keys is not None and also_keys.size and len(stats) and settings.arm_support_from_fused > 0:
         pos = np.minimum(np.searchsorted(also_keys, stats.keys), also_keys.size - 1)
         confirmed = (also_keys[pos] == stats.keys) & (stats.n_frames >= settings.arm_support_from_fused)
@@ -519,11 +521,10 @@ class VoxelFusion:
 
         c: dict[str, int] = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
         all_stats = merge_stats(list(self._state.values()))
-        fused = cloud_from_stats(all_stats, self.settings, arms, c, visibility(0xFF))
+        fused_supported = supported_voxels(all_stats, self.settings, visibility(0xFF), c)
+        fused = cloud_from_stats(all_stats, self.settings, arms, c, supported=fused_supported)
         counts["fused"] = c
-        fused_keys = None
-        if self.settings.arm_support_from_fused > 0:
-            fused_keys = all_stats.keys[supported_voxels(all_stats, self.settings, visibility(0xFF))]
+        fused_keys = all_stats.keys[fused_supported] if self.settings.arm_support_from_fused > 0 else None
         for bit, arm in enumerate(arms):
             c = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
             per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
