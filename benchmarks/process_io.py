@@ -14,7 +14,9 @@ the outputs byte-identical.
 
     .venv/bin/python benchmarks/process_io.py SURVEY [SURVEY ...] --out DIR [--warm] [--json out.json] [--hash]
 
-Wall-clock figures are only meaningful on an idle machine; CPU-seconds and bytes are the robust ones.
+The modules a Ray worker's forkserver preloads (``darp.batch.fresh.PRELOAD``) are imported first, so
+the figures are a survey's own, as in a batch. Wall-clock figures are only meaningful on an idle
+machine; CPU-seconds and bytes are the robust ones.
 """
 
 from __future__ import annotations
@@ -205,6 +207,12 @@ def main() -> None:
     parser.add_argument("--hash", action="store_true", help="print the sha256 of every output (timings stripped)")
     args = parser.parse_args()
     limit_threads(1)
+    import importlib
+
+    from darp.batch.fresh import PRELOAD
+
+    for module in PRELOAD:  # as a Ray worker's forkserver does: a survey's CPU without darp's lazy imports
+        importlib.import_module(module)
     _install_counters()
     results = []
     for survey in args.surveys:
