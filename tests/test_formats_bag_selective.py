@@ -15,7 +15,7 @@ import pytest
 from darp.formats.realsense.bag.reader import BagRecording
 from darp.reconstruction.keyframe_io import frameset_at
 from helpers.bag_samples import write_sample
-from test_formats_bag import playback
+from helpers.realsense_playback import play_back
 
 IMAGES = ("depth", "color", "ir1", "ir2")
 
@@ -23,21 +23,21 @@ IMAGES = ("depth", "color", "ir1", "ir2")
 @pytest.mark.parametrize("compression", ["none", "lz4"])
 def test_selective_reads_match_streaming_and_pyrealsense2(tmp_path: Path, compression: str) -> None:
     sample = write_sample(tmp_path / "cam.bag", compression=compression, chunk_threshold=20_000, framesets=9)
-    played = playback(sample.path)
+    played = play_back(sample.path)
     with BagRecording(sample.path) as selective, BagRecording(sample.path) as streamed:
         # the frame table alone (headers), against librealsense's playback
         infos = {key: selective.frame_infos(key) for key in IMAGES}
         for key in IMAGES:
             got = played.frames[key]
-            assert [i.frame_number for i in infos[key]] == [f["number"] for f in got], key
-            assert [i.timestamp_ms for i in infos[key]] == [f["ts"] for f in got], key
-            assert [i.timestamp_domain for i in infos[key]] == [f["domain"] for f in got], key
+            assert [i.frame_number for i in infos[key]] == [f.frame_number for f in got], key
+            assert [i.timestamp_ms for i in infos[key]] == [f.timestamp_ms for f in got], key
+            assert [i.timestamp_domain for i in infos[key]] == [f.domain for f in got], key
         # random access, newest first (no streaming state to lean on), against the playback's pixels
         for key in IMAGES:
             for i in reversed(range(len(infos[key]))):
                 frame = selective.read_frame(key, i)
                 assert frame.info == infos[key][i]
-                assert np.array_equal(frame.data, played.frames[key][i]["data"]), (key, i)
+                assert np.array_equal(frame.data, played.frames[key][i].data), (key, i)
         # the streaming path (every frame of every stream, recording order) gives the same frames
         seen = dict.fromkeys(IMAGES, 0)
         for frame in streamed.iter_frames():
