@@ -12,7 +12,9 @@ stream with their payload bytes, LZ4 chunks decoded. ``--hash`` prints the sha25
 (``results.json`` and ``stages.json`` without their timings), to check that a change to the reader leaves
 the outputs byte-identical.
 
-    .venv/bin/python benchmarks/process_io.py SURVEY [SURVEY ...] --out DIR [--warm] [--json out.json] [--hash]
+    .venv/bin/python benchmarks/process_io.py [SURVEY ...] [--out DIR] [--warm] [--json out.json] [--hash]
+
+Without a survey it makes one tiny twin survey (424x240, 6 fps, 2 views per arm) in a temporary folder.
 
 The modules a Ray worker's forkserver preloads (``darp.batch.fresh.PRELOAD``) are imported first, so
 the figures are a survey's own, as in a batch. Wall-clock figures are only meaningful on an idle
@@ -31,13 +33,16 @@ import resource
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-os.environ.update(dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"), "1"))
+if __name__ == "__main__":  # one thread per library, set before numpy loads (not when a test imports this)
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.update(dict.fromkeys(("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"), "1"))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 import psutil
@@ -200,8 +205,9 @@ def output_hashes(folder: Path) -> dict[str, str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("surveys", nargs="+", type=Path)
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("surveys", nargs="*", type=Path,
+                        help="survey folders (default: one tiny twin survey made in a temporary folder)")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: a temporary one)")
     parser.add_argument("--warm", action="store_true", help="read the bags into the page cache first (default: evict)")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--hash", action="store_true", help="print the sha256 of every output (timings stripped)")
@@ -214,6 +220,15 @@ def main() -> None:
     for module in PRELOAD:  # as a Ray worker's forkserver does: a survey's CPU without darp's lazy imports
         importlib.import_module(module)
     _install_counters()
+    work = Path(tempfile.mkdtemp(prefix="darp-process-io-"))
+    if args.out is None:
+        args.out = work / "processed"
+    if not args.surveys:  # `make bench` runs every benchmark without arguments: a tiny twin survey
+        from darp.batch.generate import plan_surveys, record_generated
+
+        (spec,) = plan_surveys(1, 0, ["mug"], views=2, fps=6, width=424, height=240)
+        record_generated(spec, str(work / "surveys"))
+        args.surveys = [work / "surveys" / spec.name]
     results = []
     for survey in args.surveys:
         out = args.out / survey.name
@@ -230,6 +245,7 @@ def main() -> None:
             print(f"  sha256 {digest[:16]} {name}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
+    shutil.rmtree(work, ignore_errors=True)  # only what this run made (a default survey or output)
 
 
 if __name__ == "__main__":
