@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from pathlib import Path
 from types import ModuleType
 
 import pytest
@@ -60,3 +61,26 @@ def test_a_real_child_is_counted_alive_and_after_it_exits(cputree: ModuleType) -
         child.wait()
     after = cputree.delta(s0, tree.snapshot())
     assert after.get("driver's children", 0.0) >= 0.3  # reaped: in this process's children times
+
+
+def test_process_io_hashes_outputs_without_their_timings(tmp_path: Path) -> None:
+    """benchmarks/process_io.py's byte-identity check: timings are ignored, anything else is not."""
+    import json
+
+    process_io = load_benchmark("process_io")
+    runs = []
+    for k, seconds in enumerate((1.5, 9.25)):
+        folder = tmp_path / f"run{k}"
+        (folder / "keyframes").mkdir(parents=True)
+        (folder / "keyframes" / "a.npz").write_bytes(b"\x00\x01pixels")
+        (folder / "results.json").write_text(json.dumps({"stages": {"poses": seconds, "mesh": seconds / 2},
+                                                         "metrics": {"accuracy_mm": 1.25}}))
+        (folder / "stages.json").write_text(json.dumps({"stages": {"poses": {"seconds": seconds, "summary": {}}}}))
+        runs.append(folder)
+    first, second = (process_io.output_hashes(folder) for folder in runs)
+    assert set(first) == {"keyframes/a.npz", "results.json", "stages.json"} and first == second
+    (runs[1] / "results.json").write_text(json.dumps({"stages": {"poses": 1.5, "mesh": 0.75},
+                                                      "metrics": {"accuracy_mm": 1.26}}))
+    (runs[1] / "keyframes" / "a.npz").write_bytes(b"\x00\x02pixels")
+    changed = process_io.output_hashes(runs[1])
+    assert {k for k in first if first[k] != changed[k]} == {"results.json", "keyframes/a.npz"}

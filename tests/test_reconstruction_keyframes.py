@@ -15,6 +15,8 @@ from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.camera_poses import POSED, CameraPoses
 from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb, project_points
 from darp.reconstruction.keyframe_io import (
+    DEPTH_ONLY,
+    FOR_FUSION,
     Keyframe,
     KeyframeIndex,
     KeyframeInfo,
@@ -313,6 +315,41 @@ def test_keyframe_round_trip_and_index(tmp_path: Path) -> None:
     assert pd.frame_id == 7 and pd.colour is back[0].rgb and pd.depth_scale == 0.001
     with np.load(tmp_path / infos[0].file) as data:  # plain numpy can read it
         assert data["depth"].shape == (12, 16) and str(data["split"]) == "fuse"
+
+
+def test_keyframes_read_without_the_images_a_stage_does_not_use(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+                                                                  ) -> None:
+    """Fusion reads no IR nor mask, evaluation only depth: those members are not decompressed, come back empty,
+    and what is read equals a full read."""
+    import zipfile
+
+    rng = np.random.default_rng(1)
+    kf = make_keyframe(rng, "arm110", 7, "fuse")
+    write_keyframe(tmp_path / "arm110/000007.npz", kf)
+    write_keyframe_index(KeyframeIndex(tmp_path, "mug", "mug", "calibration", KeyframeSettings().to_dict(),
+                                       {"arm110": {"keyframes": 1}}, [kf.index_entry("arm110/000007.npz")]))
+    opened: list[str] = []
+    original = zipfile.ZipFile.open
+
+    def spy(self: zipfile.ZipFile, name: str | zipfile.ZipInfo, *args: object, **kwargs: object) -> object:
+        opened.append(name if isinstance(name, str) else name.filename)
+        return original(self, name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(zipfile.ZipFile, "open", spy)
+    for skip in (FOR_FUSION, DEPTH_ONLY):
+        opened.clear()
+        (part,) = list(iter_keyframes(tmp_path, "fuse", skip=skip))
+        assert not {f"{name}.npy" for name in skip} & set(opened) and "depth.npy" in opened
+        for name in ("rgb", "depth", "ir_left", "ir_right", "support_mask"):
+            got = getattr(part, name)
+            if name in skip:
+                assert got.shape == (0,) and got.dtype == getattr(kf, name).dtype, name
+            else:
+                assert np.array_equal(got, getattr(kf, name)), name
+        assert np.array_equal(part.posed_depth(colour=False).depth, kf.depth)
+    assert part.posed_depth(colour=False).colour is None
+    with pytest.raises(ValueError, match="cannot skip depth"):
+        read_keyframe(tmp_path / "arm110/000007.npz", skip=("depth",))
 
 
 def test_bad_keyframe_files_are_refused(tmp_path: Path) -> None:

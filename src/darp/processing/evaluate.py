@@ -27,7 +27,7 @@ from darp.evaluation.truth_metrics import (
 from darp.formats.atomic import atomic_path
 from darp.processing.pipeline import FIGURES_DIR, FUSED_FILE, MESH_FILE, SurveyJob
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
-from darp.reconstruction.keyframe_io import iter_keyframes, posed_frames, read_keyframe_index
+from darp.reconstruction.keyframe_io import DEPTH_ONLY, iter_keyframes, posed_frames, read_keyframe_index
 from darp.reconstruction.keyframes import FUSE, HELDOUT
 
 EVALUATION_DIR = "evaluation"
@@ -136,7 +136,7 @@ def _truth(job: SurveyJob, fused: np.ndarray,
     total = len(read_keyframe_index(job.keyframes_dir).select(FUSE))
 
     def frames() -> Any:
-        for k, frame in enumerate(posed_frames(iter_keyframes(job.keyframes_dir, FUSE), colour=False)):
+        for k, frame in enumerate(posed_frames(iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY), colour=False)):
             yield frame
             job.report("evaluation", k + 1, total)
 
@@ -180,7 +180,7 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
     if not isinstance(by_arm, dict) or not by_arm:
         return None
     poses = [np.asarray(p, np.float64).reshape(3, 4) for arm_poses in by_arm.values() for p in arm_poses]
-    first = next(iter_keyframes(job.keyframes_dir, FUSE), None)
+    first = next(iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY), None)
     if first is None or not poses:
         return None
     intr = first.posed_depth().intrinsics
@@ -204,8 +204,8 @@ def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:
     v, t = read_mesh_ply(out / MESH_FILE)
     job.report("evaluation", 0, None)
 
-    heldout = evaluate_heldout(posed_frames(iter_keyframes(job.keyframes_dir, HELDOUT), colour=False),
-                               MeshDistance(v, t), object_name=index.object_name or job.survey.name,
+    heldout_frames = posed_frames(iter_keyframes(job.keyframes_dir, HELDOUT, skip=DEPTH_ONLY), colour=False)
+    heldout = evaluate_heldout(heldout_frames, MeshDistance(v, t), object_name=index.object_name or job.survey.name,
                                settings=settings.fusion, region=crop,
                                region_of=(lambda f: job.table_region(f)[0]) if settings.corrections.table else None)
     _save_arrays(folder / HELDOUT_DISTANCES, heldout.distances)

@@ -62,6 +62,7 @@ from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.envelope_estimate import envelope_record, estimate_survey_envelope
 from darp.reconstruction.fusion import VoxelFusion, calibration_uncertainty_m, write_voxel_cloud
 from darp.reconstruction.keyframe_io import (
+    FOR_FUSION,
     KeyframeIndex,
     export_arm_keyframes,
     iter_keyframes,
@@ -518,7 +519,7 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
     total = len(index.select(FUSE))
     fusion = VoxelFusion(job.settings.fusion, job.crop())
     table_records: list[dict[str, Any]] = []
-    for k, keyframe in enumerate(iter_keyframes(job.keyframes_dir, FUSE)):
+    for k, keyframe in enumerate(iter_keyframes(job.keyframes_dir, FUSE, skip=FOR_FUSION)):
         frame = keyframe.posed_depth()
         if job.settings.corrections.table:  # issue 16: each keyframe above its own fitted table plane
             region, record = job.table_region(frame)

@@ -183,15 +183,29 @@ def save_npz(path: str | Path, arrays: Mapping[str, np.ndarray | np.generic],
     return Path(path)
 
 
-def read_keyframe(path: str | Path) -> Keyframe:
-    """Read one keyframe ``.npz``; FormatError names the file and what is missing."""
+SKIPPABLE = {"rgb": np.uint8, "ir_left": np.uint8, "ir_right": np.uint8, "support_mask": np.bool_}
+"""Images a reader may leave undecoded (:func:`read_keyframe`'s ``skip``): they come back empty, shape (0,)."""
+DEPTH_ONLY = ("rgb", "ir_left", "ir_right", "support_mask")  # what a posed depth without colour does not use
+FOR_FUSION = ("ir_left", "ir_right", "support_mask")  # what a coloured posed depth does not use
+
+
+def read_keyframe(path: str | Path, skip: Iterable[str] = ()) -> Keyframe:
+    """Read one keyframe ``.npz``; FormatError names the file and what is missing.
+
+    ``skip``: images of :data:`SKIPPABLE` not to decompress (a ``.npz`` member is decoded only when read):
+    they come back as empty arrays (shape ``(0,)``), so a use of one fails rather than sees zeros.
+    Fusion reads :data:`FOR_FUSION`-less keyframes, evaluation :data:`DEPTH_ONLY` ones."""
     path = Path(path)
+    skipped = set(skip)
+    unknown = skipped - set(SKIPPABLE)
+    if unknown:
+        raise ValueError(f"cannot skip {', '.join(sorted(unknown))} (skippable: {', '.join(SKIPPABLE)})")
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [name for name in KEYFRAME_ARRAYS if name not in data.files]
             if missing:
                 raise FormatError(f"not a darp keyframe: missing array(s) {', '.join(missing)}", path)
-            a = {name: data[name] for name in KEYFRAME_ARRAYS}
+            a = {name: np.empty(0, SKIPPABLE[name]) if name in skipped else data[name] for name in KEYFRAME_ARRAYS}
     except FileNotFoundError:
         raise FormatError("no such keyframe file", path) from None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
@@ -253,11 +267,14 @@ def read_keyframe_index(folder: str | Path) -> KeyframeIndex:
     )
 
 
-def iter_keyframes(folder: str | Path, split: str | None = None, arm: str | None = None) -> Iterator[Keyframe]:
-    """Keyframes of a folder one at a time (lazy: one keyframe's pixels in memory at once)."""
+def iter_keyframes(folder: str | Path, split: str | None = None, arm: str | None = None,
+                   skip: Iterable[str] = ()) -> Iterator[Keyframe]:
+    """Keyframes of a folder one at a time (lazy: one keyframe's pixels in memory at once); ``skip``: images
+    left undecoded (:func:`read_keyframe`)."""
     index = read_keyframe_index(folder)
+    skip = tuple(skip)
     for info in index.select(split, arm):
-        yield read_keyframe(index.folder / info.file)
+        yield read_keyframe(index.folder / info.file, skip)
 
 
 def load_keyframes(folder: str | Path, split: str | None = None, arm: str | None = None) -> list[Keyframe]:
@@ -385,6 +402,9 @@ def posed_frames(keyframes: Iterable[Keyframe], colour: bool = True) -> Iterator
 
 
 __all__ = [
+    "DEPTH_ONLY",
+    "FOR_FUSION",
+    "SKIPPABLE",
     "INDEX_FILE",
     "KEYFRAME_ARRAYS",
     "OBSERVATIONS_DIR",

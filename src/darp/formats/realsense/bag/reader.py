@@ -53,6 +53,20 @@ def _advise(handle: BinaryIO, advice: str) -> None:
         os.posix_fadvise(handle.fileno(), 0, 0, getattr(os, advice))
 
 
+def _map_advice(mm: mmap.mmap | None, advice: str, start: int = 0, length: int = 0) -> bool:
+    """``madvise`` on (a range of) the mapping; False where the platform lacks it or refuses."""
+    if mm is None or not hasattr(mm, "madvise") or not hasattr(mmap, advice):
+        return False
+    try:
+        if length:
+            mm.madvise(getattr(mmap, advice), start, length)
+        else:
+            mm.madvise(getattr(mmap, advice))
+    except (OSError, ValueError):
+        return False
+    return True
+
+
 def _default_threads() -> int:
     """LZ4 decoding workers: one per core, at most four (none on a single core). Decoding dominates an
     LZ4 read, so a single worker would only overlap the consumer's (small) share."""
@@ -103,7 +117,12 @@ class BagRecording(Recording):
                 self._index = load_index(ByteSource(self._view, handle.fileno()), self.path)
                 _advise(handle, "POSIX_FADV_NORMAL")
                 threads = _default_threads() if decode_threads is None else max(0, int(decode_threads))
-                self._chunks = ChunkStore(self._view, self._index.chunks, self.path, verify_checksums, threads)
+                # No read-ahead on page faults: the frame table reads a few bytes per message, and read-ahead
+                # (8 MB on some disks) made it read the whole file. What is read in full is asked for
+                # explicitly (ChunkStore's willneed: a chunk before it is decoded or its frames are read).
+                self._random = _map_advice(self._mm, "MADV_RANDOM")
+                self._chunks = ChunkStore(self._view, self._index.chunks, self.path, verify_checksums, threads,
+                                          willneed=self._willneed if self._random else None)
                 self._describe()
             except BaseException as err:
                 self.close()
@@ -127,6 +146,11 @@ class BagRecording(Recording):
         if self._index.truncated:
             self.salvage = Salvage(self._index.problems, {key: self.frame_count(key) for key in self.streams},
                                    self.duration_s, len(self._index.chunks), self._index.truncated_at)
+
+    def _willneed(self, offset: int, length: int) -> None:
+        """Ask the kernel to read bytes ``offset .. offset + length`` of the file now (they are about to be read)."""
+        start = offset - offset % mmap.PAGESIZE
+        _map_advice(self._mm, "MADV_WILLNEED", start, min(length + offset - start, self._size - start))
 
     def _message(self, chunk: int, offset: int) -> tuple[memoryview, int, int]:
         """(chunk bytes, start, end) of the data of the message record at ``offset`` in chunk ``chunk``."""
@@ -213,12 +237,17 @@ class BagRecording(Recording):
 
     def _frame_table(self, keys: list[str]) -> dict[str, dict[str, np.ndarray]]:
         """Frame number, timestamp and domain of every frame of ``keys``: one pass over their chunks in
-        file order, built on first use and kept. Other streams whose messages lie (nearly) all in those
-        chunks come along: their chunks are being read anyway."""
+        file order, built on first use and kept. Only the bytes of each message's header and metadata are
+        read from uncompressed chunks (:attr:`ChunkStore.headers_only`: no image is paged in). Where those
+        chunks are LZ4-compressed they are decoded in full, so other streams whose messages lie (nearly) all
+        in them come along."""
         missing = [key for key in keys if key not in self._tables]
         if missing:
             chunks = self._chunk_numbers(missing)
+            compressed = any(self._index.chunks[c].compression != "none" for c in chunks.tolist())
             for key in self.streams:
+                if not compressed:
+                    break
                 extra = np.setdiff1d(self._chunk_numbers([key]), chunks)
                 if key not in self._tables and key not in missing and extra.size <= max(2, chunks.size // 20):
                     missing.append(key)
@@ -237,6 +266,8 @@ class BagRecording(Recording):
                     raise self._corrupt(missing[visit.code], visit.position, visit.chunk, err) from err
 
             walk = self._walk(missing, [np.arange(n) for n in sizes], file_order=True)
+            store = self._check_open()
+            store.headers_only = True
             try:
                 if self._inline:
                     bag_stream.table(walk, columns, general)
@@ -246,6 +277,7 @@ class BagRecording(Recording):
             except CorruptMessage as err:
                 raise self._bad_record(err) from err
             finally:
+                store.headers_only = False
                 if self._chunks is not None:
                     self._chunks.cancel()
             for key, (numbers, stamps, domains) in zip(missing, columns, strict=True):
