@@ -1,0 +1,114 @@
+"""Backlash in the richer calibration model (issue 16): a rig whose ONLY unmodelled error is backlash.
+
+Synthetic corner observations through the twin's ``realistic`` rig (joint zeros, mounts and bases off;
+no link-side errors) whose links sit half a 0.22 deg dead band behind the direction each joint last
+moved in, as :class:`darp.twin.arm_errors.LinkDeflection` does. The captures record that direction
+(``extra.move_direction``, as :func:`darp.calibration.capture_run.run_capture_plan` writes it).
+``kinematic+compliance+backlash`` must recover the half dead band and predict new views far better than
+the model without it; without directions the term is "not estimated"; the paper model is unchanged by
+the directions being there.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from darp.calibration.board import DEFAULT_BOARD
+from darp.calibration.evaluate import corner_errors
+from darp.calibration.model import build_observations
+from darp.calibration.solve import calibrate_observations
+from darp.kinematics.kinematic_model import KinematicParams, fk_batch_params, link_angles
+from helpers.calibration_synthetic import board_pose, random_poses, synthetic_detections, true_rig
+
+ARMS = ("arm110", "arm111")
+HALF_BAND = np.radians(0.11)  # the paper profile's 0.22 deg dead band
+
+
+class _BacklashRig:
+    """A true rig whose links lag the motor by HALF_BAND against each joint's last move direction."""
+
+    def __init__(self, truth, directions: dict[str, np.ndarray]) -> None:
+        self.truth, self.arms = truth, truth.arms
+        self._queue = {a: list(d) for a, d in directions.items()}  # consumed in capture order
+
+    def T_world_cam(self, arm: str, q_true: np.ndarray) -> np.ndarray:
+        d = self._queue[arm].pop(0)
+        return self.truth.T_world_cam(arm, np.asarray(q_true) - HALF_BAND * d)
+
+
+def _directions(poses: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Each capture's move direction when the poses are visited in order from ``start``."""
+    prev = np.vstack([start, poses[:-1]])
+    return np.sign(poses - prev)
+
+
+def _detections(truth, poses: dict[str, np.ndarray], T_wb: np.ndarray, seed: int, with_direction: bool):
+    start = {a: poses[a].mean(axis=0) for a in ARMS}
+    dirs = {a: _directions(poses[a], start[a]) for a in ARMS}
+    dets = synthetic_detections(_BacklashRig(truth, dirs), poses, T_wb, noise_px=0.1, encoder_noise_deg=0.002,
+                                seed=seed)
+    if with_direction:
+        count = dict.fromkeys(ARMS, 0)
+        for d in dets:
+            d.record.extra["move_direction"] = dirs[d.record.arm][count[d.record.arm]].astype(int).tolist()
+            count[d.record.arm] += 1
+    return dets
+
+
+@pytest.fixture(scope="module")
+def data():
+    truth, _ = true_rig(5, "realistic")
+    rig = truth.nominal
+    T_wb = board_pose(rig)
+    train = {a: random_poses(rig, a, 16, T_wb, 5) for a in ARMS}
+    test = {a: random_poses(rig, a, 8, T_wb, 105) for a in ARMS}
+    obs = build_observations(_detections(truth, train, T_wb, 5, True), DEFAULT_BOARD, ARMS)
+    obs_plain = build_observations(_detections(truth, train, T_wb, 5, False), DEFAULT_BOARD, ARMS)
+    obs_test = build_observations(_detections(truth, test, T_wb, 6, True), DEFAULT_BOARD, ARMS)
+    return obs, obs_plain, obs_test
+
+
+def test_backlash_term_moves_the_link_behind_the_last_move() -> None:
+    Q = np.array([[0.1, 1.0, -1.0, 0.3, 0.2, 0.1]])
+    d = np.array([[1, -1, 1, 0, 1, -1]])
+    params = KinematicParams(backlash_rad=np.full(6, 0.002))
+    assert np.allclose(link_angles(Q, params, d), Q - 0.002 * d)
+    assert np.array_equal(link_angles(Q, params, None), Q)  # no direction: no backlash
+    assert np.allclose(fk_batch_params(Q, params, direction=d), fk_batch_params(Q - 0.002 * d, KinematicParams()))
+    back = KinematicParams.from_dict(params.to_dict())
+    assert np.array_equal(back.backlash_rad, params.backlash_rad)
+    assert "backlash_rad" not in KinematicParams().to_dict()  # files of the models without it are unchanged
+    assert np.array_equal(KinematicParams.from_vector(params.to_vector()).backlash_rad, params.backlash_rad)
+
+
+@pytest.mark.slow
+def test_backlash_is_recovered_and_predicts_new_views(data) -> None:
+    obs, _, obs_test = data
+    assert obs.move_dir is not None and obs.move_dir.shape == (obs.n_captures, 6)
+    cores = {m: calibrate_observations(obs, model=m) for m in ("kinematic+compliance", "kinematic+compliance+backlash")}
+    held = {m: float(np.median(corner_errors(c.params, obs_test)["corner_3d_mm"])) for m, c in cores.items()}
+    rich = cores["kinematic+compliance+backlash"]
+    assert held["kinematic+compliance+backlash"] < 0.5 * held["kinematic+compliance"], held
+    for arm in ARMS:
+        table = {r["parameter"]: r for r in rich.kin_ident.table[arm]}
+        est = [j for j in range(6) if table[f"joint{j + 1}.backlash"]["status"] == "estimated"]
+        assert len(est) >= 4, table
+        b = rich.params.kin[arm].backlash_rad
+        assert np.all(np.abs(b[est] - HALF_BAND) < 0.25 * HALF_BAND), np.degrees(b)
+
+
+@pytest.mark.slow
+def test_without_directions_backlash_is_not_estimated_and_paper_mode_is_unchanged(data) -> None:
+    obs, obs_plain, _ = data
+    assert obs_plain.move_dir is None
+    core = calibrate_observations(obs_plain, model="kinematic+compliance+backlash")
+    rows = [r for r in core.kin_ident.table["arm110"] if r["parameter"].endswith("backlash")]
+    assert len(rows) == 6 and all(r["status"] == "not estimated" and "move direction" in r["reason"] for r in rows)
+    assert not core.params.kin["arm110"].has_backlash
+    # the paper model ignores the directions: identical solutions with and without them
+    a = calibrate_observations(obs, model="paper").params
+    b = calibrate_observations(obs_plain, model="paper").params
+    for arm in ARMS:
+        assert np.array_equal(a.T_flange_cam[arm], b.T_flange_cam[arm])
+        assert np.array_equal(a.dq[arm], b.dq[arm])
