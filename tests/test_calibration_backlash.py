@@ -112,3 +112,18 @@ def test_without_directions_backlash_is_not_estimated_and_paper_mode_is_unchange
     for arm in ARMS:
         assert np.array_equal(a.T_flange_cam[arm], b.T_flange_cam[arm])
         assert np.array_equal(a.dq[arm], b.dq[arm])
+
+
+def test_motion_directions_from_a_noisy_joint_log() -> None:
+    from darp.reconstruction.poses import motion_directions
+
+    rng = np.random.default_rng(0)
+    ramp = np.r_[np.zeros(50), np.linspace(0, 0.3, 100), np.full(80, 0.3), np.linspace(0.3, 0.1, 100), np.full(80, 0.1)]
+    Q = np.zeros((ramp.size, 6))
+    Q[:, 1] = ramp
+    Q[:, 2] = -ramp
+    Q += rng.normal(0.0, np.radians(0.01), Q.shape)  # the paper profile's encoder noise
+    d = motion_directions(Q)
+    assert np.all(d[:50, 1] == 0) and np.all(d[:, 0] == 0)  # not moved yet / never moved
+    assert np.all(d[160:230, 1] == 1) and np.all(d[160:230, 2] == -1)  # held after moving up: still +1
+    assert np.all(d[260:, 1] == -1) and np.all(d[260:, 2] == 1)  # after the way back

@@ -33,6 +33,7 @@ from darp.reconstruction.keyframes import joint_speed_noise
 _log = logging.getLogger(__name__)
 
 HOST_TIME_DOMAINS = ("Global Time", "System Time")
+BACKLASH_HYSTERESIS_RAD = float(np.radians(0.05))  # a joint's direction flips after this much travel back
 SUMMARY_FILE = "summary.json"
 FIGURE_FILE = "trajectories.png"
 
@@ -180,6 +181,10 @@ def recover_survey_poses(
         T_world_base, T_wrist_cam, joint_offsets, fk, info = eq1_model(
             cal, arm, calibration_path=calibration_path, kinematics=result.kinematics is not None,
             wrist_frame=wrist_frame, warnings=result.warnings)
+        if info.get("backlash_rad") is not None:  # the richer model's backlash: behind each joint's last move
+            direction = motion_directions(log_q)
+            log_q = log_q - np.asarray(info["backlash_rad"], dtype=float) * direction
+            info["backlash_direction_changes"] = int(np.count_nonzero(np.diff(direction, axis=0)))
         if result.kinematics is not None:
             result.kinematics[arm] = info
         poses = camera_poses(
@@ -232,9 +237,13 @@ def _kinematic_fk(cal: ArmCalibration, arm: str, calibration_path: Path | None, 
         params = KinematicParams.from_dict(cal.kinematics, f"arms.{arm}.kinematics")
     except FormatError as err:
         raise FormatError(err.message, calibration_path) from None
-    info = {"applied": True, "model": cal.kinematics.get("model"),
-            "estimated": list(cal.kinematics.get("estimated", [])),
-            "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
+    info: dict[str, Any] = {"applied": True, "model": cal.kinematics.get("model"),
+                            "estimated": list(cal.kinematics.get("estimated", [])),
+                            "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
+    if params.has_backlash:  # applied to the joint log by the caller (it needs the log's history)
+        info["backlash_rad"] = params.backlash_rad.tolist()
+        params = KinematicParams(params.origin_m, params.axis_tilt_rad, params.compliance_rad_per_nm,
+                                 params.payload_kg)
     return (lambda Q: fk_batch_params(Q, params, wrist_frame)), info
 
 
@@ -249,6 +258,34 @@ def _kinematic_transforms(kin: dict[str, Any], arm: str, calibration_path: Path 
             raise FormatError(f"arms.{arm}.kinematics.{key}: expected finite {shape} values", calibration_path)
         out.append(value)
     return out[0], out[1], out[2]
+
+
+def motion_directions(log_q: np.ndarray, hysteresis_rad: float = BACKLASH_HYSTERESIS_RAD) -> np.ndarray:
+    """Each joint's last motion direction (-1 / 0 / +1) at every row of a joint log (N, 6).
+
+    A joint's direction changes once it has moved more than ``hysteresis_rad`` back from its extreme in
+    the current direction (encoder noise, 0.005-0.01 deg, never flips it); 0 until it first moves.
+    The backlash term of the richer model (:func:`darp.kinematics.kinematic_model.link_angles`) puts
+    the link that far behind the motor: ``q_link = q - b * direction``.
+    """
+    Q = np.asarray(log_q, dtype=float)
+    out = np.zeros(Q.shape)
+    if Q.shape[0] == 0:
+        return out
+    direction = np.zeros(Q.shape[1])
+    extreme = Q[0].copy()
+    for i in range(Q.shape[0]):
+        q = Q[i]
+        up = q - extreme
+        rising = (direction >= 0) & (up > 0) & (direction != 0)
+        falling = (direction <= 0) & (up < 0) & (direction != 0)
+        extreme = np.where(rising | falling, q, extreme)
+        flip_up = (direction <= 0) & (up > hysteresis_rad)
+        flip_down = (direction >= 0) & (up < -hysteresis_rad)
+        direction = np.where(flip_up, 1.0, np.where(flip_down, -1.0, direction))
+        extreme = np.where(flip_up | flip_down, q, extreme)
+        out[i] = direction
+    return out
 
 
 # -- TUM trajectories ----------------------------------------------------------------------------
@@ -325,6 +362,7 @@ __all__ = [
     "CameraTrajectory",
     "SurveyPoses",
     "format_tum",
+    "motion_directions",
     "read_tum",
     "recover_survey_poses",
     "write_survey_poses",
