@@ -127,3 +127,18 @@ def test_motion_directions_from_a_noisy_joint_log() -> None:
     assert np.all(d[:50, 1] == 0) and np.all(d[:, 0] == 0)  # not moved yet / never moved
     assert np.all(d[160:230, 1] == 1) and np.all(d[160:230, 2] == -1)  # held after moving up: still +1
     assert np.all(d[260:, 1] == -1) and np.all(d[260:, 2] == 1)  # after the way back
+
+
+def test_eq1_model_hands_the_backlash_to_the_log_and_paper_mode_ignores_it() -> None:
+    from darp.formats.calibration import ArmCalibration
+    from darp.kinematics import z1
+    from darp.reconstruction.poses import eq1_model
+
+    kin = {"model": "kinematic+compliance+backlash", **KinematicParams(backlash_rad=np.full(6, 0.002)).to_dict()}
+    cal = ArmCalibration("s", np.eye(4), np.eye(4), kinematics=kin)
+    _, _, _, fk, info = eq1_model(cal, "arm110", kinematics=True)
+    assert info["applied"] and np.allclose(info["backlash_rad"], 0.002)
+    Q = z1.random_configurations(3, 1)
+    assert fk is not None and np.allclose(fk(Q), z1.fk_batch(Q), atol=1e-12)  # the log carries the backlash
+    *_, fk_paper, info_paper = eq1_model(cal, "arm110", kinematics=False)
+    assert fk_paper is None and info_paper == {}
