@@ -142,3 +142,37 @@ def test_eq1_model_hands_the_backlash_to_the_log_and_paper_mode_ignores_it() -> 
     assert fk is not None and np.allclose(fk(Q), z1.fk_batch(Q), atol=1e-12)  # the log carries the backlash
     *_, fk_paper, info_paper = eq1_model(cal, "arm110", kinematics=False)
     assert fk_paper is None and info_paper == {}
+
+
+@pytest.mark.slow
+def test_twin_captures_record_the_direction_of_the_move_that_brought_the_arm(tmp_path) -> None:
+    from darp.cli._calib_twin import capture_twin
+    from darp.kinematics.rig import load_rig
+
+    caps = capture_twin(tmp_path / "caps", seed=2, profile="ideal", n_per_arm=4, resolution=(424, 240))
+    rig = load_rig()
+    for arm in ARMS:
+        park = np.asarray(rig.arms[arm].park_q_rad, float)
+        prev = park
+        for k, rec in enumerate(caps.for_arm(arm)):
+            d = np.asarray(rec.extra["move_direction"], float)
+            target = np.asarray(rec.extra["planned_q_rad"], float)
+            assert set(np.unique(d)) <= {-1.0, 0.0, 1.0}
+            direct, via_park = np.sign(target - prev), np.sign(target - park)
+            assert np.array_equal(d, direct) or np.array_equal(d, via_park), (arm, k, d, direct, via_park)
+            if k == 0:
+                assert np.array_equal(d, via_park)  # the arms start at park
+            prev = target
+    obs = build_observations([_Ok(r) for r in caps.captures], caps.board, ARMS)
+    assert obs.move_dir is not None and obs.move_dir.shape == (8, 6)
+
+
+class _Ok:
+    """A stand-in detection (every capture accepted) for building observations from records alone."""
+
+    def __init__(self, record) -> None:
+        self.record, self.arm, self.capture_id, self.ok = record, record.arm, record.capture_id, True
+        self.ids = np.arange(4)
+        self.K = np.eye(3)
+        self.corners_ideal_px = np.zeros((4, 2))
+        self.T_depth_board = np.eye(4)

@@ -61,14 +61,13 @@ def _grab_image(frameset: Any, stream: str) -> tuple[np.ndarray, Any, np.ndarray
 
 def _move(rig: RigBackend, arm: str, q: np.ndarray, s: CaptureRunSettings,
           last: dict[str, np.ndarray] | None = None) -> None:
-    """Command ``arm`` to ``q`` and wait until still; ``last`` tracks each arm's last commanded target and the
-    direction each joint last moved in (``last[arm + ":dir"]``, -1 / 0 / +1: what backlash depends on)."""
+    """Command ``arm`` to ``q`` and wait until still; ``last`` tracks each arm's last commanded target (it
+    starts at the park pose, where the arms are assumed to start) and the direction each joint last moved in
+    (``last[arm + ":dir"]``, -1 / 0 / +1: what backlash depends on). No extra joint reading is taken, so a
+    run's readings (and the twin's noise draws) are those of a run without the tracking."""
     q = np.asarray(q, dtype=float)
-    if last is not None:
-        start = last.get(arm)
-        if start is None:
-            start = np.asarray(rig.arms[arm].read_state().q_rad, dtype=float)
-        step = q - start
+    if last is not None and arm in last:
+        step = q - last[arm]
         previous = last.get(arm + ":dir", np.zeros(6))
         last[arm + ":dir"] = np.where(np.abs(step) > MOVED_RAD, np.sign(step), previous)
         last[arm] = q.copy()
@@ -87,7 +86,7 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
     """
     s = settings or CaptureRunSettings()
     count = 0
-    last: dict[str, np.ndarray] = {}
+    last: dict[str, np.ndarray] = {a: np.asarray(q, dtype=float).copy() for a, q in park_q.items()}
     for arm, poses in plan.poses.items():
         if arm not in rig.arms or arm not in rig.cameras:
             raise CalibrationError(f"the plan names arm {arm!r} but the rig has {', '.join(rig.arms)}")
@@ -113,7 +112,7 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
                        q_rad=q.mean(axis=0), q_std_rad=q.std(axis=0), image=image, intrinsics=intr,
                        T_depth_stream=T_depth_stream, stream=s.stream,
                        extra={"planned_q_rad": pose.q_rad.tolist(), "frame_time_s": float(frameset.timestamp_s),
-                              "move_direction": last[arm + ":dir"].astype(int).tolist()})
+                              "move_direction": last.get(arm + ":dir", np.zeros(6)).astype(int).tolist()})
             count += 1
             if on_capture is not None:
                 on_capture(arm, k)
