@@ -122,11 +122,15 @@ def test_motion_directions_from_a_noisy_joint_log() -> None:
     Q = np.zeros((ramp.size, 6))
     Q[:, 1] = ramp
     Q[:, 2] = -ramp
+    Q[:, 3] = ramp * 0.0008 / 0.3  # a 0.05 deg move with joint 2 ...
+    Q[230:330, 3] = 0.0008 - np.linspace(0, 0.0016, 100)  # ... and one back, under the noise per row
+    Q[330:, 3] = -0.0008
     Q += rng.normal(0.0, np.radians(0.01), Q.shape)  # the paper profile's encoder noise
     d = motion_directions(Q)
     assert np.all(d[:50, 1] == 0) and np.all(d[:, 0] == 0)  # not moved yet / never moved
     assert np.all(d[160:230, 1] == 1) and np.all(d[160:230, 2] == -1)  # held after moving up: still +1
     assert np.all(d[260:, 1] == -1) and np.all(d[260:, 2] == 1)  # after the way back
+    assert np.all(d[160:230, 3] == 1) and np.all(d[340:, 3] == -1)  # small moves count (backlash takes up)
 
 
 def test_eq1_model_hands_the_backlash_to_the_log_and_paper_mode_ignores_it() -> None:

@@ -33,7 +33,6 @@ from darp.reconstruction.keyframes import joint_speed_noise
 _log = logging.getLogger(__name__)
 
 HOST_TIME_DOMAINS = ("Global Time", "System Time")
-BACKLASH_HYSTERESIS_RAD = float(np.radians(0.05))  # a joint's direction flips after this much travel back
 SUMMARY_FILE = "summary.json"
 FIGURE_FILE = "trajectories.png"
 
@@ -260,31 +259,43 @@ def _kinematic_transforms(kin: dict[str, Any], arm: str, calibration_path: Path 
     return out[0], out[1], out[2]
 
 
-def motion_directions(log_q: np.ndarray, hysteresis_rad: float = BACKLASH_HYSTERESIS_RAD) -> np.ndarray:
+def motion_directions(log_q: np.ndarray, min_rows: int = 3, k_sigma: float = 4.0) -> np.ndarray:
     """Each joint's last motion direction (-1 / 0 / +1) at every row of a joint log (N, 6).
 
-    A joint's direction changes once it has moved more than ``hysteresis_rad`` back from its extreme in
-    the current direction (encoder noise, 0.005-0.01 deg, never flips it); 0 until it first moves.
-    The backlash term of the richer model (:func:`darp.kinematics.kinematic_model.link_angles`) puts
-    the link that far behind the motor: ``q_link = q - b * direction``.
+    The log is cut into settled runs (at least ``min_rows`` rows between which no joint steps by more
+    than ``k_sigma`` x the encoder noise, measured from the log's second differences) and the moves
+    between them. A joint's direction at a move and the run after it is the sign of the change of its
+    mean from the previous run to this one, when that change exceeds ``k_sigma`` x its standard error
+    (a smaller one keeps the previous direction); 0 before the first detected move. Small moves count:
+    the link takes up its backlash on the side of any commanded move, however small. The richer
+    model's backlash (:func:`darp.kinematics.kinematic_model.link_angles`) puts the link ``b`` behind:
+    ``q_link = q - b * direction``.
     """
     Q = np.asarray(log_q, dtype=float)
+    n = Q.shape[0]
     out = np.zeros(Q.shape)
-    if Q.shape[0] == 0:
+    if n < 2 * min_rows:
         return out
+    d2 = Q[2:] - 2.0 * Q[1:-1] + Q[:-2]
+    noise = np.maximum(1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0), 1e-7)
+    moving = np.any(np.abs(np.diff(Q, axis=0)) > k_sigma * np.sqrt(2.0) * noise, axis=1)  # (n - 1,) steps
+    still = np.ones(n, bool)
+    still[:-1] &= ~moving
+    still[1:] &= ~moving
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0]))
+    runs = [(a, b) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= min_rows]
     direction = np.zeros(Q.shape[1])
-    extreme = Q[0].copy()
-    for i in range(Q.shape[0]):
-        q = Q[i]
-        up = q - extreme
-        rising = (direction >= 0) & (up > 0) & (direction != 0)
-        falling = (direction <= 0) & (up < 0) & (direction != 0)
-        extreme = np.where(rising | falling, q, extreme)
-        flip_up = (direction <= 0) & (up > hysteresis_rad)
-        flip_down = (direction >= 0) & (up < -hysteresis_rad)
-        direction = np.where(flip_up, 1.0, np.where(flip_down, -1.0, direction))
-        extreme = np.where(flip_up | flip_down, q, extreme)
-        out[i] = direction
+    prev: tuple[int, int] | None = None
+    for a, b in runs:
+        if prev is not None:
+            delta = Q[a:b].mean(axis=0) - Q[prev[0]:prev[1]].mean(axis=0)
+            limit = k_sigma * noise * np.sqrt(1.0 / (prev[1] - prev[0]) + 1.0 / (b - a))
+            direction = np.where(np.abs(delta) > limit, np.sign(delta), direction)
+            out[prev[1]:a] = direction  # the move itself
+        out[a:b] = direction
+        prev = (a, b)
+    if prev is not None:
+        out[prev[1]:] = direction
     return out
 
 
