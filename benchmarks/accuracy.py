@@ -3,7 +3,7 @@
 
 On the twin's ``paper`` error profile, per seed: the rig is calibrated from simulated ChArUco images
 (``darp calib capture --twin --profile paper`` then ``darp calib solve``; a mode that needs the richer
-calibration model also gets ``darp calib solve --model kinematic+compliance`` when this darp's CLI offers
+calibration model also gets ``darp calib solve --model kinematic+compliance+backlash`` when this darp's CLI offers
 ``--model``), each object is surveyed once (``darp collect --twin``, placements seeded as in ``darp demo``)
 and the SAME surveys are processed once per mode (``darp process --corrections SPEC``). Every step is a darp
 command in its own interpreter (the helpers of benchmarks/robustness.py), timed.
@@ -49,7 +49,8 @@ from robustness import ROOT, darp, fmt, last_error, placements, print_aligned  #
 
 MODES = ("paper", "kinematics", "time", "depth", "refine", "table", "all")
 CORRECTION_NAMES = ("kinematics", "time", "depth", "refine", "table")
-KINEMATIC_MODEL = "kinematic+compliance"
+# the richest model darp solves (its backlash needs captures that record their move directions)
+KINEMATIC_MODEL = "kinematic+compliance+backlash"
 NEEDS_MODEL = {"kinematics", "all"}
 TARGETS = {"handeye_mm": 1.5, "median_mm": 1.0, "within_10mm_pct": 99.0, "truth_accuracy_median_mm": 1.0}
 PAPER = {"handeye_mm": (3.58, 3.93), "median_mm": 2.13, "within_10mm_pct": 96.56}
@@ -218,7 +219,7 @@ def run_seed(seed: int, objects: list[str], modes: list[str], args: argparse.Nam
             return [{"seed": seed, "mode": m, "error": last_error(log) or f"exit {code}"} for m in modes]
     calibrations: dict[str | None, Path] = {None: calibration}
     if any(mode_model(m, supported) for m in modes):
-        kinematic = case / "calibration-kinematic.json"
+        kinematic = case / f"calibration-{KINEMATIC_MODEL.replace('+', '-')}.json"
         t0 = time.monotonic()
         if not kinematic.exists():
             code = darp(["calib", "solve", str(captures), "-o", str(kinematic), "--model", KINEMATIC_MODEL,

@@ -15,7 +15,7 @@ richer model, then N pool captures per arm are added either by the greedy D-opti
 (:mod:`darp.calibration.plan_model`, which sees only the pool's joint configurations) or at random
 (``--random-draws`` draws), and each calibration is scored on the test set (median 3-D corner error).
 
-    .venv/bin/python benchmarks/calib_model.py CAPTURES [--models paper,kinematic,kinematic+compliance]
+    .venv/bin/python benchmarks/calib_model.py CAPTURES [--models paper,kinematic,kinematic+compliance+backlash]
         [--plan 6 --base 8 --test 12 --random-draws 3] [--json out.json]
 """
 
@@ -132,7 +132,7 @@ def plan_experiment(obs: Observations, board: Any, n_extra: int, n_base: int, n_
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("captures", type=Path)
-    ap.add_argument("--models", default="paper,kinematic,kinematic+compliance")
+    ap.add_argument("--models", default="paper,kinematic,kinematic+compliance,kinematic+compliance+backlash")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--plan", type=int, default=0, help="extra captures per arm (0: no plan experiment)")
     ap.add_argument("--base", type=int, default=8)

@@ -27,6 +27,8 @@ from darp.calibration.captures import CaptureWriter
 from darp.calibration.plan import CapturePlan
 from darp.errors import CalibrationError
 
+MOVED_RAD = 1e-6  # a joint commanded further than this moved (its direction is recorded)
+
 
 @dataclass(frozen=True)
 class CaptureRunSettings:
@@ -57,8 +59,19 @@ def _grab_image(frameset: Any, stream: str) -> tuple[np.ndarray, Any, np.ndarray
     raise CalibrationError(f"unknown capture stream {stream!r} (color, ir1)")
 
 
-def _move(rig: RigBackend, arm: str, q: np.ndarray, s: CaptureRunSettings) -> None:
-    rig.arms[arm].move_to(np.asarray(q, dtype=float), s.max_speed_rad_s)
+def _move(rig: RigBackend, arm: str, q: np.ndarray, s: CaptureRunSettings,
+          last: dict[str, np.ndarray] | None = None) -> None:
+    """Command ``arm`` to ``q`` and wait until still; ``last`` tracks each arm's last commanded target (it
+    starts at the park pose, where the arms are assumed to start) and the direction each joint last moved in
+    (``last[arm + ":dir"]``, -1 / 0 / +1: what backlash depends on). No extra joint reading is taken, so a
+    run's readings (and the twin's noise draws) are those of a run without the tracking."""
+    q = np.asarray(q, dtype=float)
+    if last is not None and arm in last:
+        step = q - last[arm]
+        previous = last.get(arm + ":dir", np.zeros(6))
+        last[arm + ":dir"] = np.where(np.abs(step) > MOVED_RAD, np.sign(step), previous)
+        last[arm] = q.copy()
+    rig.arms[arm].move_to(q, s.max_speed_rad_s)
     if not rig.wait_until_still(arm, s.move_timeout_s):
         rig.arms[arm].stop()
         raise CalibrationError(f"{arm} did not reach its capture pose within {s.move_timeout_s} s")
@@ -73,17 +86,18 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
     """
     s = settings or CaptureRunSettings()
     count = 0
+    last: dict[str, np.ndarray] = {a: np.asarray(q, dtype=float).copy() for a, q in park_q.items()}
     for arm, poses in plan.poses.items():
         if arm not in rig.arms or arm not in rig.cameras:
             raise CalibrationError(f"the plan names arm {arm!r} but the rig has {', '.join(rig.arms)}")
         for other in rig.arms:
             if other != arm:
-                _move(rig, other, park_q[other], s)
+                _move(rig, other, park_q[other], s, last)
         camera = rig.cameras[arm]
         for k, pose in enumerate(poses):
             if pose.via_park:
-                _move(rig, arm, park_q[arm], s)
-            _move(rig, arm, pose.q_rad, s)
+                _move(rig, arm, park_q[arm], s, last)
+            _move(rig, arm, pose.q_rad, s, last)
             rig.clock.sleep(s.settle_s)
             reads = []
             for _ in range(max(1, s.joint_reads)):
@@ -97,11 +111,12 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
                        arm=arm, camera_serial=camera.serial, time_s=float(np.mean([r.time_s for r in reads])),
                        q_rad=q.mean(axis=0), q_std_rad=q.std(axis=0), image=image, intrinsics=intr,
                        T_depth_stream=T_depth_stream, stream=s.stream,
-                       extra={"planned_q_rad": pose.q_rad.tolist(), "frame_time_s": float(frameset.timestamp_s)})
+                       extra={"planned_q_rad": pose.q_rad.tolist(), "frame_time_s": float(frameset.timestamp_s),
+                              "move_direction": last.get(arm + ":dir", np.zeros(6)).astype(int).tolist()})
             count += 1
             if on_capture is not None:
                 on_capture(arm, k)
-        _move(rig, arm, park_q[arm], s)
+        _move(rig, arm, park_q[arm], s, last)
     return count
 
 

@@ -29,6 +29,11 @@ A capture record holds what the solver needs and nothing it has to guess::
                    gave it, not aligned to the stream; 0 = no depth), with ``depth_unit_m`` (metres per
                    unit) and ``depth_intrinsics``. Folders without it still solve; the depth correction
                    (``darp.calibration.depth_fit``) needs it.
+    extra          optional, free-form; captures taken by darp (``capture_run``) carry
+                   ``planned_q_rad``, ``frame_time_s`` and ``move_direction`` (6 x -1 / 0 / +1: the direction
+                   each joint last moved in before the capture, which side of its backlash the link sits on;
+                   the ``kinematic+compliance+backlash`` model needs it, folders without it solve without
+                   the backlash term)
 """
 
 from __future__ import annotations

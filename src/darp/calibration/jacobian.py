@@ -12,7 +12,8 @@ its start value; with ``R(w)`` its rotation and ``Jr(w)`` the right Jacobian of 
 - richer model (:mod:`darp.kinematics.kinematic_model`): an origin offset of joint j along its parent
   link's axis e translates the downstream chain by ``R_j e``; a tilt of joint j's axis about e turns it
   by ``(R_j - R_{j+1}) e`` about p_j (first order; exact at zero tilt); a compliance moves link angle j
-  by ``tau_j(q)`` (the joint column times the gravity torque).
+  by ``tau_j(q)`` (the joint column times the gravity torque); a backlash moves it by ``-d_j`` (the joint
+  column times minus the capture's move direction; the sag's change with it, ~1e-3 of it, is neglected).
 
 Then the pinhole derivative ``du/dP = [fx/Z, 0, -fx X/Z^2]`` (and v alike), divided by the pixel noise.
 Exact at any parameter value, so the solver's steps are Gauss-Newton steps; checked against central
@@ -27,7 +28,7 @@ import numpy as np
 
 from darp.calibration.model import ChainParams, Observations
 from darp.kinematics import z1
-from darp.kinematics.kinematic_model import SAG_JOINTS, gravity_torques, links_params
+from darp.kinematics.kinematic_model import SAG_JOINTS, backlash_angles, gravity_torques, links_params
 from darp.kinematics.transforms import invert_transform, rotvec_to_rotation
 
 
@@ -64,6 +65,7 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
     X = np.empty((M, 4, 4))
     axes_child = np.broadcast_to(z1.JOINT_AXES, (M, 6, 3)).copy()  # joint axes in their child link
     tau = np.zeros((M, 6))  # gravity torques (richer model only)
+    move_dir = obs.move_dir if obs.move_dir is not None else np.zeros((M, 6))
     tool = np.eye(4)
     tool[0, 3] = z1.frame_offset_m(wrist_frame)
     free_kin: dict[str, np.ndarray] = getattr(layout, "free_kin", {})
@@ -73,8 +75,8 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
             if obs.T_base_flange is not None:  # measured flange poses (any arm): no joint offsets
                 F[sel] = obs.T_base_flange[sel]
             elif arm in p.kin:  # the richer model: perturbed origins, tilted axes, compliance
-                Q = obs.q_rad[sel] + p.dq[arm]
-                links[sel] = links_params(Q, p.kin[arm])
+                Q = backlash_angles(obs.q_rad[sel] + p.dq[arm], p.kin[arm], move_dir[sel])
+                links[sel] = links_params(Q, p.kin[arm])  # the backlash is already in Q
                 F[sel] = links[sel, 6] @ tool
                 axes_child[sel] = p.kin[arm].axes()
                 tau[sel] = gravity_torques(Q, p.kin[arm].payload_kg)
@@ -160,9 +162,12 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
                     omega = links[c, j, :3, e] - links[c, j + 1, :3, e]
                     point = links[c, j + 1, :3, 3]
                     blk[mine, :, k] = -np.einsum("cij,cj->ci", R_SXF[c], np.cross(omega, V_base[mine] - point))
-                else:  # compliance of joint j: its link angle moves by tau_j(q)
+                elif n < 39:  # compliance of joint j: its link angle moves by tau_j(q)
                     j = SAG_JOINTS[n - 36]
                     blk[mine, :, k] = joint_column(j, c, mine) * tau[c, j][:, None]
+                else:  # backlash of joint j: its link angle moves by -d_j (sag's change with it neglected)
+                    j = n - 39
+                    blk[mine, :, k] = -joint_column(j, c, mine) * move_dir[c, j][:, None]
             put(f"kin:{arm}", blk)
     return r, J.reshape(2 * C, -1)
 

@@ -2,7 +2,8 @@
 
 The candidates of a model (:data:`MODEL_CANDIDATES`) are each arm's joint origin offsets (18), the two
 tilt components of each joint axis across the axis (12; a tilt about the axis itself changes nothing)
-and, with compliance, one compliance per gravity-loaded joint (joints 2-4). The Jacobian of the
+and, with compliance, one compliance per gravity-loaded joint (joints 2-4), and with backlash one half dead band
+per joint (only when the captures record their move directions; else "not estimated"). The Jacobian of the
 residuals (noise units) is computed with every candidate free, its columns are normalised and
 projected onto the orthogonal complement of everything the paper's model estimates anyway (board,
 bases, hand-eyes, identifiable joint zeros). Then, greedily (a QR with column pivoting that may skip):
@@ -34,7 +35,10 @@ from darp.errors import CalibrationError
 from darp.kinematics import z1
 from darp.kinematics.kinematic_model import N_PARAMS, PARAM_NAMES, SAG_JOINTS
 
-MODELS = ("paper", "kinematic", "kinematic+compliance")
+MODELS = ("paper", "kinematic", "kinematic+compliance", "kinematic+compliance+backlash")
+BACKLASH_MODELS = ("kinematic+compliance+backlash",)
+NO_DIRECTION = ("not estimated: the captures record no move direction (extra.move_direction; older or real "
+                "capture files), so the link's side of the dead band is unknown")
 
 
 def _candidates(model: str) -> np.ndarray:
@@ -45,9 +49,11 @@ def _candidates(model: str) -> np.ndarray:
     for j in range(6):
         for e in range(3):
             mask[18 + 3 * j + e] = e != z1.JOINT_AXIS_INDEX[j]  # no tilt about the axis itself
-    if model == "kinematic+compliance":
-        mask[36:] = True
-    elif model != "kinematic":
+    if model in ("kinematic+compliance", *BACKLASH_MODELS):
+        mask[36:39] = True
+    if model in BACKLASH_MODELS:
+        mask[39:45] = True
+    if model not in MODELS:
         raise CalibrationError(f"unknown calibration model {model!r} (choose from {', '.join(MODELS)})")
     return mask
 
@@ -81,7 +87,10 @@ def analyse_kinematics(p0: ChainParams, obs: Observations, free_joints: dict[str
                        sigma_px: float, settings: KinIdentSettings | None = None) -> KinIdentifiability:
     """The identifiability table (module doc) of ``model``'s candidates at the parameters ``p0``."""
     s = settings or KinIdentSettings()
-    cand = MODEL_CANDIDATES[model] if model in MODEL_CANDIDATES else _candidates(model)
+    cand = (MODEL_CANDIDATES[model] if model in MODEL_CANDIDATES else _candidates(model)).copy()
+    no_direction = model in BACKLASH_MODELS and obs.move_dir is None
+    if no_direction:  # backlash needs each capture's move direction: not a candidate without it
+        cand[39:45] = False
     arms = p0.arms
     free_out = {a: np.zeros(N_PARAMS, bool) for a in arms}
     table: dict[str, list[dict[str, Any]]] = {a: [] for a in arms}
@@ -139,8 +148,11 @@ def analyse_kinematics(p0: ChainParams, obs: Observations, free_joints: dict[str
         for k, name in enumerate(PARAM_NAMES):
             if k in cols:
                 table[a].append({"parameter": name, **status[cols[k]]})
-            elif model == "kinematic" and k >= 36:
+            elif (model == "kinematic" and k >= 36) or (model not in BACKLASH_MODELS and k >= 39):
                 continue
+            elif k >= 39:
+                table[a].append({"parameter": name, "status": "not estimated", "rho": 0.0, "std_data": None,
+                                 "prior_std": float(KIN_PRIOR_STD[k]), "reason": NO_DIRECTION})
             else:
                 j = k // 3 if k < 18 else (k - 18) // 3 if k < 36 else SAG_JOINTS[k - 36]
                 table[a].append({"parameter": name, "status": "no effect", "rho": 0.0, "std_data": None,
@@ -149,4 +161,5 @@ def analyse_kinematics(p0: ChainParams, obs: Observations, free_joints: dict[str
     return KinIdentifiability(model, free_out, table)
 
 
-__all__ = ["MODELS", "MODEL_CANDIDATES", "KinIdentSettings", "KinIdentifiability", "analyse_kinematics"]
+__all__ = ["BACKLASH_MODELS", "MODELS", "MODEL_CANDIDATES", "KinIdentSettings", "KinIdentifiability",
+           "analyse_kinematics"]

@@ -65,6 +65,9 @@ class Observations:
     # (M, 4, 4) measured base-from-flange poses of an arm darp has no model of (any arm,
     # :mod:`darp.calibration.anyarm`); when set they replace ``fk(q + dq)`` and no joint offset applies.
     T_base_flange: np.ndarray | None = None
+    # (M, 6) direction (-1 / 0 / +1) each joint last moved in before the capture (the capture record's
+    # ``extra.move_direction``); None when any capture lacks it (older or real files): no backlash term.
+    move_dir: np.ndarray | None = None
 
     @property
     def n_captures(self) -> int:
@@ -82,7 +85,8 @@ class Observations:
                             corner_capture=remap[self.corner_capture[keep]], corner_id=self.corner_id[keep],
                             P_board=self.P_board[keep], uv=self.uv[keep],
                             T_depth_board_pnp=self.T_depth_board_pnp[idx],
-                            T_base_flange=None if self.T_base_flange is None else self.T_base_flange[idx])
+                            T_base_flange=None if self.T_base_flange is None else self.T_base_flange[idx],
+                            move_dir=None if self.move_dir is None else self.move_dir[idx])
 
     def for_arm(self, arm: str) -> np.ndarray:
         """Boolean capture mask of ``arm``."""
@@ -101,6 +105,7 @@ def build_observations(detections: Sequence[Detection], board: CharucoBoardSpec,
     arm_index = np.array([arm_order.index(d.arm) for d in good])
     counts = np.array([len(d.ids) for d in good])
     return Observations(
+        move_dir=move_directions(good),
         arms=arm_order,
         capture_ids=[d.capture_id for d in good],
         arm_index=arm_index,
@@ -115,14 +120,31 @@ def build_observations(detections: Sequence[Detection], board: CharucoBoardSpec,
     )
 
 
+def move_directions(detections: Sequence[Detection]) -> np.ndarray | None:
+    """(M, 6) joint move directions of the captures (``extra.move_direction``), or None when any lacks it."""
+    rows = []
+    for d in detections:
+        value = d.record.extra.get("move_direction")
+        try:
+            row = np.sign(np.asarray(value, dtype=float)).reshape(6) if value is not None else None
+        except (TypeError, ValueError):
+            row = None
+        if row is None or not np.all(np.isfinite(row)):
+            return None
+        rows.append(row)
+    return np.array(rows, dtype=float).reshape(-1, 6)
+
+
 def flange_poses(obs: Observations, sel: np.ndarray, dq: np.ndarray, wrist_frame: str = "flange",
                  kin: KinematicParams | None = None) -> np.ndarray:
     """``T_base_flange`` (n, 4, 4) of the selected captures: measured poses when given, else ``fk(q + dq)``
-    (with the richer model's parameter errors ``kin`` when given)."""
+    (with the richer model's parameter errors ``kin`` when given, its backlash with the captures' move
+    directions)."""
     if obs.T_base_flange is not None:
         return cast(np.ndarray, obs.T_base_flange[sel])
     if kin is not None:
-        return fk_batch_params(obs.q_rad[sel] + dq, kin, wrist_frame)
+        direction = None if obs.move_dir is None else obs.move_dir[sel]
+        return fk_batch_params(obs.q_rad[sel] + dq, kin, wrist_frame, direction)
     return cast(np.ndarray, z1.fk_batch(obs.q_rad[sel] + dq, wrist_frame))
 
 
@@ -181,4 +203,4 @@ def pnp_pixels(obs: Observations) -> np.ndarray:
 
 
 __all__ = ["ChainParams", "Observations", "board_in_stream", "build_observations", "camera_poses", "flange_poses",
-           "per_capture", "pnp_pixels", "predict_pixels", "predict_points", "reprojection_errors"]
+           "move_directions", "per_capture", "pnp_pixels", "predict_pixels", "predict_points", "reprojection_errors"]

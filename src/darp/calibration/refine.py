@@ -44,8 +44,8 @@ from darp.kinematics.kinematic_model import KinematicParams
 
 # Prior std of the richer model's parameters ("vendor tolerances", docs/accuracy.md): joint origins 1 mm
 # per axis (machined links and bearing seats), axis tilts 0.2 deg, compliance 2e-3 rad/N m (a harmonic
-# drive joint of about 500 N m/rad or stiffer).
-KIN_PRIOR_STD = np.array([1e-3] * 18 + [np.radians(0.2)] * 18 + [2e-3] * 3)
+# drive joint of about 500 N m/rad or stiffer), backlash (half the dead band) 0.2 deg.
+KIN_PRIOR_STD = np.array([1e-3] * 18 + [np.radians(0.2)] * 18 + [2e-3] * 3 + [np.radians(0.2)] * 6)
 
 POSE_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
 DEGENERACY_DECIMALS = 9  # projection coefficients (O(1)) equal to this many decimals rank as ties

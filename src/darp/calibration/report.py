@@ -161,7 +161,8 @@ def summary_markdown(outcome: SolveOutcome) -> str:
             k = entry.kinematics or {}
             values = np.concatenate([np.ravel(k.get("joint_origin_offsets_m", np.zeros(18))),
                                      np.ravel(k.get("joint_axis_tilts_rad", np.zeros(18))),
-                                     np.ravel(k.get("compliance_rad_per_nm", np.zeros(6)))[1:4]])
+                                     np.ravel(k.get("compliance_rad_per_nm", np.zeros(6)))[1:4],
+                                     np.ravel(k.get("backlash_rad", np.zeros(6)))])
             for i, row in enumerate(kin["table"].get(arm, [])):
                 if row["status"] == "no effect":
                     continue
@@ -169,8 +170,8 @@ def summary_markdown(outcome: SolveOutcome) -> str:
                 lines.append(f"| {arm} | {row['parameter']} | {row['status']} | {values[i]:.3g} | "
                              f"{'-' if std is None else f'{std:.2g}'} | {row['prior_std']:.2g} | {row['rho']:.3f} | "
                              f"{row.get('reason', '')} |")
-        lines += ["", "Units: origins m, tilts rad, compliance rad/N m. Tilts about a joint's own axis change "
-                  "nothing and are not listed."]
+        lines += ["", "Units: origins m, tilts rad, compliance rad/N m, backlash rad. Tilts about a joint's own "
+                  "axis change nothing and are not listed."]
     held = rep.get("heldout", {})
     if held:
         lines += ["", "## Methods: held-out 3-D corner error (median mm)", "", "| method | "

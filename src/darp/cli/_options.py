@@ -43,6 +43,7 @@ class CalibModel(StrEnum):
     paper = "paper"
     kinematic = "kinematic"
     kinematic_compliance = "kinematic+compliance"
+    kinematic_compliance_backlash = "kinematic+compliance+backlash"
 
 
 class CaptureStream(StrEnum):

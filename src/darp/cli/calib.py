@@ -212,7 +212,9 @@ def solve_command(
                                           "comparison table.")] = True,
     model: Annotated[CalibModel, typer.Option("--model", help="Arm model: paper (joint zeros), kinematic (+ joint "
                                               "origins and axis tilts), kinematic+compliance (+ gravity sag of "
-                                              "joints 2-4); the paper model is solved beside a richer one.")]
+                                              "joints 2-4), kinematic+compliance+backlash (+ backlash, from the "
+                                              "captures' move directions); the paper model is solved beside a "
+                                              "richer one.")]
     = CalibModel.paper,
     quiet: Quiet = False,
 ) -> None:

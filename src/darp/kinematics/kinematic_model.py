@@ -12,6 +12,11 @@ and by the twin (to simulate the true arm), is
 - ``c_i`` (6,): compliance, rad per N m; ``tau(q)`` is the gravity torque of the links plus the camera
   payload about each joint, from the nominal mass model :data:`LINK_MASSES` (only joints 2-4 are loaded
   with the base level, z up). Link angle = motor angle + ``c * tau``: the encoders do not see the sag.
+- ``b_i`` (6,): backlash, half the dead band of joint i in radians: the link sits ``b_i`` behind the
+  direction ``d_i`` (-1, 0, +1) of the joint's last motion, so the link angle is ``q_i - b_i d_i``
+  before the sag is added (``q - b d + c tau(q - b d)``). The direction is data (the move that brought
+  the arm to a capture pose, or the joint log's history), passed beside the joints; without it
+  (``direction=None``) the term is left out.
 
 All zero is the nominal Z1, bit for bit the same as :func:`darp.kinematics.z1.fk_batch` up to rounding.
 """
@@ -48,11 +53,13 @@ AXES = ("x", "y", "z")
 PARAM_NAMES: tuple[str, ...] = tuple(
     [f"joint{j + 1}.origin.{a}" for j in range(6) for a in AXES]
     + [f"joint{j + 1}.tilt.{a}" for j in range(6) for a in AXES]
-    + [f"joint{j + 1}.compliance" for j in SAG_JOINTS])
-N_PARAMS = len(PARAM_NAMES)  # 39
+    + [f"joint{j + 1}.compliance" for j in SAG_JOINTS]
+    + [f"joint{j + 1}.backlash" for j in range(6)])
+N_PARAMS = len(PARAM_NAMES)  # 45
 ORIGIN_SLICE = slice(0, 18)
 TILT_SLICE = slice(18, 36)
 COMPLIANCE_SLICE = slice(36, 39)
+BACKLASH_SLICE = slice(39, 45)
 
 
 @dataclass(eq=False)
@@ -63,10 +70,15 @@ class KinematicParams:
     axis_tilt_rad: np.ndarray = field(default_factory=lambda: np.zeros((6, 3)))
     compliance_rad_per_nm: np.ndarray = field(default_factory=lambda: np.zeros(6))
     payload_kg: float = DEFAULT_PAYLOAD_KG
+    backlash_rad: np.ndarray = field(default_factory=lambda: np.zeros(6))  # half dead band per joint
 
     def copy(self) -> KinematicParams:
         return KinematicParams(self.origin_m.copy(), self.axis_tilt_rad.copy(), self.compliance_rad_per_nm.copy(),
-                               self.payload_kg)
+                               self.payload_kg, self.backlash_rad.copy())
+
+    @property
+    def has_backlash(self) -> bool:
+        return bool(np.any(self.backlash_rad != 0))
 
     @property
     def has_compliance(self) -> bool:
@@ -84,18 +96,23 @@ class KinematicParams:
     def to_vector(self) -> np.ndarray:
         """The flat parameter vector (:data:`PARAM_NAMES` order)."""
         return np.concatenate([self.origin_m.ravel(), self.axis_tilt_rad.ravel(),
-                               self.compliance_rad_per_nm[list(SAG_JOINTS)]])
+                               self.compliance_rad_per_nm[list(SAG_JOINTS)], self.backlash_rad])
 
     @classmethod
     def from_vector(cls, v: np.ndarray, payload_kg: float = DEFAULT_PAYLOAD_KG) -> KinematicParams:
         v = np.asarray(v, float)
         c = np.zeros(6)
         c[list(SAG_JOINTS)] = v[COMPLIANCE_SLICE]
-        return cls(v[ORIGIN_SLICE].reshape(6, 3).copy(), v[TILT_SLICE].reshape(6, 3).copy(), c, payload_kg)
+        b = v[BACKLASH_SLICE].copy() if v.size >= N_PARAMS else np.zeros(6)
+        return cls(v[ORIGIN_SLICE].reshape(6, 3).copy(), v[TILT_SLICE].reshape(6, 3).copy(), c, payload_kg, b)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"joint_origin_offsets_m": self.origin_m.tolist(), "joint_axis_tilts_rad": self.axis_tilt_rad.tolist(),
-                "compliance_rad_per_nm": self.compliance_rad_per_nm.tolist(), "payload_kg": self.payload_kg}
+        out: dict[str, Any] = {
+            "joint_origin_offsets_m": self.origin_m.tolist(), "joint_axis_tilts_rad": self.axis_tilt_rad.tolist(),
+            "compliance_rad_per_nm": self.compliance_rad_per_nm.tolist(), "payload_kg": self.payload_kg}
+        if self.has_backlash:  # optional: files of the models without it are unchanged
+            out["backlash_rad"] = self.backlash_rad.tolist()
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "kinematics") -> KinematicParams:
@@ -104,17 +121,19 @@ class KinematicParams:
             tilt = np.asarray(d["joint_axis_tilts_rad"], float)
             comp = np.asarray(d.get("compliance_rad_per_nm", np.zeros(6)), float)
             payload = float(d.get("payload_kg", DEFAULT_PAYLOAD_KG))
+            backlash = np.asarray(d.get("backlash_rad", np.zeros(6)), float)
         except (KeyError, TypeError, ValueError) as err:
             raise FormatError(f"{where}: expected joint_origin_offsets_m (6x3), joint_axis_tilts_rad (6x3), "
-                              f"compliance_rad_per_nm (6) ({err})") from None
-        if origin.shape != (6, 3) or tilt.shape != (6, 3) or comp.shape != (6,):
-            raise FormatError(f"{where}: shapes must be 6x3, 6x3 and 6")
-        if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(tilt)) and np.all(np.isfinite(comp))):
+                              f"compliance_rad_per_nm (6), optional backlash_rad (6) ({err})") from None
+        if origin.shape != (6, 3) or tilt.shape != (6, 3) or comp.shape != (6,) or backlash.shape != (6,):
+            raise FormatError(f"{where}: shapes must be 6x3, 6x3, 6 and 6")
+        if not all(np.all(np.isfinite(v)) for v in (origin, tilt, comp, backlash)):
             raise FormatError(f"{where}: non-finite values")
-        if np.max(np.abs(origin)) > 0.01 or np.max(np.abs(tilt)) > np.radians(2.0) or np.max(np.abs(comp)) > 0.05:
+        if (np.max(np.abs(origin)) > 0.01 or np.max(np.abs(tilt)) > np.radians(2.0) or np.max(np.abs(comp)) > 0.05
+                or np.max(np.abs(backlash)) > np.radians(1.0)):
             raise FormatError(f"{where}: parameters beyond plausible ranges (origin 10 mm, tilt 2 deg, "
-                              "compliance 0.05 rad/N m)")
-        return cls(origin, tilt, comp, payload)
+                              "compliance 0.05 rad/N m, backlash 1 deg)")
+        return cls(origin, tilt, comp, payload, backlash)
 
 
 def tilted_axes(axis_tilt_rad: np.ndarray) -> np.ndarray:
@@ -177,25 +196,37 @@ def gravity_torques(Q: np.ndarray, payload_kg: float) -> np.ndarray:
     return tau
 
 
-def link_angles(Q: np.ndarray, params: KinematicParams) -> np.ndarray:
-    """Link-side angles (N, 6) for motor-side joints Q (N, 6) (joint zeros already added): ``Q + c tau(Q)``."""
+def backlash_angles(Q: np.ndarray, params: KinematicParams, direction: np.ndarray | None) -> np.ndarray:
+    """Motor-side joints Q (N, 6) moved by the backlash: ``Q - b d`` (``direction`` d (N, 6) or None: Q)."""
     Qa = np.atleast_2d(np.asarray(Q, dtype=float))
+    if direction is None or not params.has_backlash:
+        return Qa
+    out: np.ndarray = Qa - params.backlash_rad * np.asarray(direction, dtype=float)
+    return out
+
+
+def link_angles(Q: np.ndarray, params: KinematicParams, direction: np.ndarray | None = None) -> np.ndarray:
+    """Link-side angles (N, 6) for motor-side joints Q (N, 6) (joint zeros already added):
+    ``Q' + c tau(Q')`` with ``Q' = Q - b d`` (backlash behind each joint's last motion direction d)."""
+    Qa = backlash_angles(Q, params, direction)
     if not params.has_compliance:
         return Qa
     out: np.ndarray = Qa + params.compliance_rad_per_nm * gravity_torques(Qa, params.payload_kg)
     return out
 
 
-def fk_batch_params(Q: np.ndarray, params: KinematicParams, frame: str = "flange") -> np.ndarray:
-    """``T_base_frame`` (N, 4, 4) of the richer chain for motor-side joints Q (N, 6) (joint zeros added)."""
-    return chain_fk(link_angles(Q, params), params.origins(), params.axes(), frame)
+def fk_batch_params(Q: np.ndarray, params: KinematicParams, frame: str = "flange",
+                    direction: np.ndarray | None = None) -> np.ndarray:
+    """``T_base_frame`` (N, 4, 4) of the richer chain for motor-side joints Q (N, 6) (joint zeros added);
+    ``direction`` (N, 6): each joint's last motion direction, for the backlash (None: left out)."""
+    return chain_fk(link_angles(Q, params, direction), params.origins(), params.axes(), frame)
 
 
-def links_params(Q: np.ndarray, params: KinematicParams) -> np.ndarray:
+def links_params(Q: np.ndarray, params: KinematicParams, direction: np.ndarray | None = None) -> np.ndarray:
     """Link transforms (N, 7, 4, 4) of the richer chain for motor-side joints Q (N, 6)."""
-    return chain_links(link_angles(Q, params), params.origins(), params.axes())
+    return chain_links(link_angles(Q, params, direction), params.origins(), params.axes())
 
 
-__all__ = ["COMPLIANCE_SLICE", "DEFAULT_PAYLOAD_KG", "LINK_MASSES", "N_PARAMS", "ORIGIN_SLICE", "PARAM_NAMES",
-           "SAG_JOINTS", "TILT_SLICE", "KinematicParams", "chain_fk", "chain_links", "fk_batch_params",
-           "gravity_torques", "link_angles", "links_params", "tilted_axes"]
+__all__ = ["BACKLASH_SLICE", "COMPLIANCE_SLICE", "DEFAULT_PAYLOAD_KG", "LINK_MASSES", "N_PARAMS", "ORIGIN_SLICE",
+           "PARAM_NAMES", "SAG_JOINTS", "TILT_SLICE", "KinematicParams", "backlash_angles", "chain_fk", "chain_links",
+           "fk_batch_params", "gravity_torques", "link_angles", "links_params", "tilted_axes"]

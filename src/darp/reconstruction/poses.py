@@ -180,6 +180,10 @@ def recover_survey_poses(
         T_world_base, T_wrist_cam, joint_offsets, fk, info = eq1_model(
             cal, arm, calibration_path=calibration_path, kinematics=result.kinematics is not None,
             wrist_frame=wrist_frame, warnings=result.warnings)
+        if info.get("backlash_rad") is not None:  # the richer model's backlash: behind each joint's last move
+            direction = motion_directions(log_q)
+            log_q = log_q - np.asarray(info["backlash_rad"], dtype=float) * direction
+            info["backlash_direction_changes"] = int(np.count_nonzero(np.diff(direction, axis=0)))
         if result.kinematics is not None:
             result.kinematics[arm] = info
         poses = camera_poses(
@@ -232,9 +236,13 @@ def _kinematic_fk(cal: ArmCalibration, arm: str, calibration_path: Path | None, 
         params = KinematicParams.from_dict(cal.kinematics, f"arms.{arm}.kinematics")
     except FormatError as err:
         raise FormatError(err.message, calibration_path) from None
-    info = {"applied": True, "model": cal.kinematics.get("model"),
-            "estimated": list(cal.kinematics.get("estimated", [])),
-            "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
+    info: dict[str, Any] = {"applied": True, "model": cal.kinematics.get("model"),
+                            "estimated": list(cal.kinematics.get("estimated", [])),
+                            "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
+    if params.has_backlash:  # applied to the joint log by the caller (it needs the log's history)
+        info["backlash_rad"] = params.backlash_rad.tolist()
+        params = KinematicParams(params.origin_m, params.axis_tilt_rad, params.compliance_rad_per_nm,
+                                 params.payload_kg)
     return (lambda Q: fk_batch_params(Q, params, wrist_frame)), info
 
 
@@ -249,6 +257,46 @@ def _kinematic_transforms(kin: dict[str, Any], arm: str, calibration_path: Path 
             raise FormatError(f"arms.{arm}.kinematics.{key}: expected finite {shape} values", calibration_path)
         out.append(value)
     return out[0], out[1], out[2]
+
+
+def motion_directions(log_q: np.ndarray, min_rows: int = 3, k_sigma: float = 4.0) -> np.ndarray:
+    """Each joint's last motion direction (-1 / 0 / +1) at every row of a joint log (N, 6).
+
+    The log is cut into settled runs (at least ``min_rows`` rows between which no joint steps by more
+    than ``k_sigma`` x the encoder noise, measured from the log's second differences) and the moves
+    between them. A joint's direction at a move and the run after it is the sign of the change of its
+    mean from the previous run to this one, when that change exceeds ``k_sigma`` x its standard error
+    (a smaller one keeps the previous direction); 0 before the first detected move. Small moves count:
+    the link takes up its backlash on the side of any commanded move, however small. The richer
+    model's backlash (:func:`darp.kinematics.kinematic_model.link_angles`) puts the link ``b`` behind:
+    ``q_link = q - b * direction``.
+    """
+    Q = np.asarray(log_q, dtype=float)
+    n = Q.shape[0]
+    out = np.zeros(Q.shape)
+    if n < 2 * min_rows:
+        return out
+    d2 = Q[2:] - 2.0 * Q[1:-1] + Q[:-2]
+    noise = np.maximum(1.4826 * np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0) / np.sqrt(6.0), 1e-7)
+    moving = np.any(np.abs(np.diff(Q, axis=0)) > k_sigma * np.sqrt(2.0) * noise, axis=1)  # (n - 1,) steps
+    still = np.ones(n, bool)
+    still[:-1] &= ~moving
+    still[1:] &= ~moving
+    edges = np.flatnonzero(np.diff(np.r_[0, still.astype(int), 0]))
+    runs = [(a, b) for a, b in zip(edges[::2], edges[1::2], strict=True) if b - a >= min_rows]
+    direction = np.zeros(Q.shape[1])
+    prev: tuple[int, int] | None = None
+    for a, b in runs:
+        if prev is not None:
+            delta = Q[a:b].mean(axis=0) - Q[prev[0]:prev[1]].mean(axis=0)
+            limit = k_sigma * noise * np.sqrt(1.0 / (prev[1] - prev[0]) + 1.0 / (b - a))
+            direction = np.where(np.abs(delta) > limit, np.sign(delta), direction)
+            out[prev[1]:a] = direction  # the move itself
+        out[a:b] = direction
+        prev = (a, b)
+    if prev is not None:
+        out[prev[1]:] = direction
+    return out
 
 
 # -- TUM trajectories ----------------------------------------------------------------------------
@@ -325,6 +373,7 @@ __all__ = [
     "CameraTrajectory",
     "SurveyPoses",
     "format_tum",
+    "motion_directions",
     "read_tum",
     "recover_survey_poses",
     "write_survey_poses",
