@@ -447,3 +447,56 @@ def test_a_sensor_fixed_depth_field_is_the_same_every_frame_and_leaves_the_other
     for name in ("ideal", "realistic"):
         assert TwinSettings.from_profile(name).depth_errors.static_field_px == 0.0
     assert paper.scaled(2.0).depth_errors.static_field_px == pytest.approx(2 * paper.depth_errors.static_field_px)
+
+
+def test_each_arm_is_a_typical_draw_of_what_a_calibration_cannot_absorb() -> None:
+    """The drawn geometry's unabsorbable part (after the best joint-zero, base and hand-eye correction) is
+    within TYPICAL_BAND of its expectation for every seed; the expectation agrees with Monte Carlo, and the
+    linearised residual with a nonlinear least-squares fit (scipy) of the same corrections."""
+    from scipy.optimize import least_squares
+
+    from darp.kinematics.kinematic_model import chain_fk, tilted_axes
+    from darp.kinematics.transforms import make_transform, rotvec_to_rotation
+    from darp.twin import arm_errors as ae
+
+    s = TwinSettings.from_profile("paper").arm_errors
+    length, angle = np.sqrt(3.0) * s.link_origin_std_mm * 1e-3, np.sqrt(2.0) * np.deg2rad(s.axis_tilt_std_deg)
+    expected = ae.expected_unabsorbed_m(length, angle)
+    assert 0.5e-3 < expected < 5e-3
+    rng = np.random.default_rng(11)
+    axes = np.asarray(z1.JOINT_AXES, float)
+    squares = []
+    for _ in range(400):
+        raw = rng.normal(size=(6, 3))
+        raw -= np.sum(raw * axes, axis=1, keepdims=True) * axes
+        squares.append(ae.unabsorbed_m(ae._fixed_length(rng.normal(size=(6, 3)), length),
+                                       ae._fixed_length(raw, angle)) ** 2)
+    assert np.sqrt(np.mean(squares)) == pytest.approx(expected, rel=0.08)
+    sizes = []
+    for seed in range(8):
+        settings = TwinSettings.from_profile("paper", seed=seed)
+        for arm in ("arm110", "arm111"):
+            k = KinematicErrors.draw(settings.arm_errors, settings.rng(f"kinematics:{arm}"))
+            assert k is not None
+            sizes.append(ae.unabsorbed_m(k.origin_m, k.axis_tilt_rad) / expected)
+    assert max(abs(np.array(sizes) - 1.0)) <= ae.TYPICAL_BAND + 1e-12
+    # oracle for one draw: fit the 18 corrections to the true chain's probe points, nonlinear
+    k = KinematicErrors.draw(s, np.random.default_rng(3))
+    assert k is not None
+    Q = np.random.default_rng(0).uniform(*ae.TYPICAL_Q_RANGE, (48, 6))
+
+    def probes(F: np.ndarray) -> np.ndarray:
+        return np.einsum("nij,pj->npi", F[:, :3, :3], ae._PROBE_FLANGE) + F[:, None, :3, 3]
+
+    target = probes(chain_fk(Q, k.origins(), k.axes(), "flange"))
+    nominal_o = np.asarray(z1.JOINT_ORIGINS_M, float)
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        F = chain_fk(Q + p[6:12], nominal_o, tilted_axes(np.zeros((6, 3))), "flange")
+        base = make_transform(rotvec_to_rotation(p[:3]), p[3:6])
+        tool = make_transform(rotvec_to_rotation(p[12:15]), p[15:18])
+        return (probes(np.einsum("ij,njk,kl->nil", base, F, tool)) - target).ravel()
+
+    fit = least_squares(residual, np.zeros(18), x_scale=0.01)
+    rms = float(np.sqrt(np.mean(fit.fun.reshape(-1, 3) ** 2) * 3))
+    assert rms == pytest.approx(ae.unabsorbed_m(k.origin_m, k.axis_tilt_rad), rel=0.05)
