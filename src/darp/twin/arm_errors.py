@@ -20,7 +20,6 @@ With all magnitudes zero nothing here is used: the twin's files are byte-identic
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,67 +29,6 @@ from darp.kinematics.kinematic_model import LINK_MASSES, chain_fk, gravity_torqu
 from darp.twin.settings import ArmErrorSettings
 
 REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repeatability to joint angles
-
-
-TYPICAL_BAND = 0.1
-"""How far (relative) a drawn arm's unabsorbable geometric error may be from its expected size."""
-MAX_REDRAWS = 200
-TYPICAL_Q_RANGE = (np.array([-0.6, 1.4, -2.6, 0.3, -0.75, -1.6]), np.array([0.6, 2.5, -1.2, 1.4, 0.75, 1.6]))
-"""Box of joint angles (rad) of the arm's typical views of the table (5-95 % of calibration captures)."""
-_PROBE_FLANGE = np.array([[0.4, 0.0, 0.0], [0.4, 0.1, 0.0], [0.4, -0.1, 0.0], [0.4, 0.0, 0.1], [0.4, 0.0, -0.1]])
-"""Points in the flange frame (metres) where the error is measured: a board-sized patch 0.4 m ahead."""
-
-
-@functools.lru_cache(maxsize=1)
-def _unabsorbed_operator() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear map from geometric errors (origins (18,), tilts (18,)) to the probe points' errors (P,) that are
-    left after the best joint-zero, base and flange-side (hand-eye) correction, over 48 typical views."""
-    from darp.kinematics.transforms import make_transform, rotvec_to_rotation
-
-    Q = np.random.default_rng(0).uniform(*TYPICAL_Q_RANGE, (48, 6))  # fixed: the same for every seed
-    origins0 = np.asarray(z1.JOINT_ORIGINS_M, dtype=float)
-
-    def points(p: np.ndarray) -> np.ndarray:
-        origins = origins0 + p[:18].reshape(6, 3)
-        F = chain_fk(Q + p[42:48], origins, tilted_axes(p[18:36].reshape(6, 3)), "flange")
-        base = make_transform(rotvec_to_rotation(p[36:39]), p[39:42])
-        tool = make_transform(rotvec_to_rotation(p[48:51]), p[51:54])
-        F = np.einsum("ij,njk,kl->nil", base, F, tool)
-        out: np.ndarray = (np.einsum("nij,pj->npi", F[:, :3, :3], _PROBE_FLANGE) + F[:, None, :3, 3]).ravel()
-        return out
-
-    p0 = np.zeros(54)
-    f0 = points(p0)
-    eps = 1e-6
-    J = np.empty((f0.size, 54))
-    for k in range(54):
-        dp = p0.copy()
-        dp[k] = eps
-        J[:, k] = (points(dp) - f0) / eps
-    absorb = J[:, 36:]
-    M = J[:, :36] - absorb @ np.linalg.lstsq(absorb, J[:, :36], rcond=None)[0]
-    gram = M.T @ M / (f0.size // 3)  # mean squared point error per unit error
-    nominal = np.asarray(z1.JOINT_AXES, dtype=float)
-    return M, gram, nominal
-
-
-def unabsorbed_m(origin_m: np.ndarray, axis_tilt_rad: np.ndarray) -> float:
-    """RMS point error (m) at typical views that joint zeros, base and hand-eye cannot absorb (linearised)."""
-    M, _, _ = _unabsorbed_operator()
-    r = M @ np.concatenate([np.ravel(origin_m), np.ravel(axis_tilt_rad)])
-    return float(np.sqrt(np.mean(r.reshape(-1, 3) ** 2) * 3))
-
-
-def expected_unabsorbed_m(origin_length_m: float, tilt_angle_rad: float) -> float:
-    """:func:`unabsorbed_m`'s root mean square over random directions of the given fixed sizes."""
-    _, gram, nominal = _unabsorbed_operator()
-    total = 0.0
-    for j in range(6):
-        o, t = slice(3 * j, 3 * j + 3), slice(18 + 3 * j, 18 + 3 * j + 3)
-        total += origin_length_m**2 / 3.0 * float(np.trace(gram[o, o]))
-        perp = np.eye(3) - np.outer(nominal[j], nominal[j])
-        total += tilt_angle_rad**2 / 2.0 * float(np.trace(gram[t, t] @ perp))
-    return float(np.sqrt(total))
 
 
 def _fixed_length(vectors: np.ndarray, length: float) -> np.ndarray:
@@ -111,31 +49,17 @@ class KinematicErrors:
         """Draw one arm's errors, or None when both magnitudes are zero."""
         if settings.link_origin_std_mm <= 0 and settings.axis_tilt_std_deg <= 0:
             return None
-        # Fixed size, random direction: every arm gets errors of the stated size (a Gaussian draw of 36
+        # Fixed size, random direction: every arm gets errors of the stated size (a Gaussian draw of 18
         # components made the unabsorbable part, and so the hand-eye figure, vary by +-30 % between seeds).
         # Origins: length sqrt(3) x the per-axis std (the same mean square as N(0, std) per axis).
+        origin = _fixed_length(rng.normal(0.0, 1.0, (6, 3)), np.sqrt(3.0) * settings.link_origin_std_mm * 1e-3)
         # Tilts: perpendicular to the nominal axis (a rotation about the axis itself leaves the axis as it
         # is), angle sqrt(2) x the std (the mean square of the two perpendicular Gaussian components).
-        # The directions are drawn again (same generator) until the part no calibration of darp's model can
-        # absorb is within TYPICAL_BAND of its expected size: a typical unit, neither a lucky nor an
-        # unlucky one (at most MAX_REDRAWS tries, then the closest).
-        length = np.sqrt(3.0) * settings.link_origin_std_mm * 1e-3
-        angle = np.sqrt(2.0) * np.deg2rad(settings.axis_tilt_std_deg)
         nominal = np.asarray(z1.JOINT_AXES, dtype=float)
-        expected = expected_unabsorbed_m(length, angle)
-        best: tuple[float, np.ndarray, np.ndarray] | None = None
-        for _ in range(MAX_REDRAWS):
-            origin = _fixed_length(rng.normal(0.0, 1.0, (6, 3)), length)
-            raw = rng.normal(0.0, 1.0, (6, 3))
-            raw -= np.sum(raw * nominal, axis=1, keepdims=True) * nominal
-            tilt = _fixed_length(raw, angle)
-            miss = abs(unabsorbed_m(origin, tilt) / expected - 1.0) if expected > 0 else 0.0
-            if best is None or miss < best[0]:
-                best = (miss, origin, tilt)
-            if miss <= TYPICAL_BAND:
-                break
-        assert best is not None
-        return cls(best[1], best[2])
+        raw = rng.normal(0.0, 1.0, (6, 3))
+        raw -= np.sum(raw * nominal, axis=1, keepdims=True) * nominal
+        tilt = _fixed_length(raw, np.sqrt(2.0) * np.deg2rad(settings.axis_tilt_std_deg))
+        return cls(origin, tilt)
 
     def origins(self) -> np.ndarray:
         """True joint origins (6, 3) in their parent link."""
