@@ -363,3 +363,87 @@ def test_frame_disparity_field_is_seeded_zero_draws_nothing_and_is_in_the_paper_
     assert paper.scaled(2.0).depth_errors.frame_field_px == pytest.approx(2 * paper.depth_errors.frame_field_px)
     for name in ("ideal", "realistic"):
         assert TwinSettings.from_profile(name).depth_errors.frame_field_px == 0.0
+
+
+def test_kinematic_errors_have_their_stated_size_in_a_random_direction() -> None:
+    """Every arm's joint origins are off by exactly sqrt(3) x the per-axis std and its axes tilted by exactly
+    sqrt(2) x the std, perpendicular to the nominal axis (so no seed draws a nearly exact or a 3-sigma arm)."""
+    s = ArmErrorSettings(link_origin_std_mm=1.0, axis_tilt_std_deg=0.2)
+    directions = []
+    for seed in range(5):
+        errors = KinematicErrors.draw(s, np.random.default_rng(seed))
+        assert errors is not None
+        assert np.allclose(np.linalg.norm(errors.origin_m, axis=1), np.sqrt(3.0) * 1e-3, rtol=1e-12)
+        assert np.allclose(np.linalg.norm(errors.axis_tilt_rad, axis=1), np.sqrt(2.0) * np.deg2rad(0.2), rtol=1e-12)
+        assert np.allclose(np.sum(errors.axis_tilt_rad * z1.JOINT_AXES, axis=1), 0.0, atol=1e-15)
+        # the true axes really are tilted by that angle
+        cos = np.sum(errors.axes() * z1.JOINT_AXES, axis=1)
+        assert np.allclose(np.rad2deg(np.arccos(np.clip(cos, -1, 1))), np.sqrt(2.0) * 0.2, rtol=1e-6)
+        directions.append(errors.origin_m[1] / np.linalg.norm(errors.origin_m[1]))
+    assert min(np.linalg.norm(a - b) for i, a in enumerate(directions) for b in directions[i + 1:]) > 0.05
+
+
+def test_per_unit_depth_errors_have_their_stated_size_and_a_random_sign() -> None:
+    from darp.twin.camera.sensor import TwinCameraSettings
+    from darp.twin.camera.spec import make_camera_spec
+    from darp.twin.rig_backend import camera_unit_errors
+
+    spec = make_camera_spec(serial="1")
+    base = TwinCameraSettings.from_profile("realistic")
+    paper = TwinSettings.from_profile("paper", seed=5)
+    d = paper.depth_errors
+    signs = []
+    for serial in range(12):
+        cam, factory = camera_unit_errors(paper, str(serial), spec, base)
+        e = cam.errors
+        assert abs(e.depth_scale) == pytest.approx(d.scale_std_pct / 100)
+        assert abs(e.depth_offset_m) == pytest.approx(d.offset_std_mm * 1e-3)
+        assert abs(e.depth_bias_per_m) == pytest.approx(d.bias_std_mm_per_m2 * 1e-3)
+        assert abs(factory.color.fx / spec.color.fx - 1.0) == pytest.approx(d.focal_std_pct / 100)
+        assert np.hypot(factory.color.ppx - spec.color.ppx, factory.color.ppy - spec.color.ppy) == pytest.approx(
+            np.sqrt(2.0) * d.centre_std_px)
+        signs.append(np.sign(e.depth_scale))
+    assert -12 < sum(signs) < 12  # both signs occur
+
+
+def test_a_sensor_fixed_depth_field_is_the_same_every_frame_and_leaves_the_other_draws_alone() -> None:
+    """The static field: RMS of its nodes exactly as stated, the same depth error in every frame (no rng
+    needed), z^2 growth, varying across the image, and drawn from its own stream (the unit's other errors,
+    hence its colour images and the calibration, are the same with or without it)."""
+    from darp.twin.camera.sensor import STATIC_FIELD_GRID, TwinCameraSettings, sensor_field_nodes
+    from darp.twin.camera.spec import make_camera_spec
+    from darp.twin.rig_backend import camera_unit_errors
+
+    nodes = sensor_field_nodes(np.random.default_rng(1), 0.15)
+    arr = np.asarray(nodes)
+    assert arr.shape == STATIC_FIELD_GRID and float(np.sqrt(np.mean(arr**2))) == pytest.approx(0.15)
+    fb = 383.0 * 0.05
+    e = UnitErrors(static_field_px=nodes, focal_baseline_px_m=fb)
+    for z0 in (0.4, 0.8):
+        z = np.full((480, 640), z0, np.float32)
+        z[0, 0] = 0.0
+        a, b = e.depth(z, 1.0), e.depth(z, 2.0, np.random.default_rng(9))
+        assert np.array_equal(a, b) and a[0, 0] == 0.0  # fixed to the sensor: every frame alike
+        err = (a - z0)[z > 0]
+        expected = z0 * z0 * 0.9 * 0.15 / fb  # depth std of the disparity field (bicubic: ~0.9 x the nodes' RMS)
+        assert 0.5 * expected < float(np.std(err)) < 1.5 * expected
+        # it varies across the image: one eighth of the width apart, the errors differ
+        assert float(np.std(a[:, 80:] - a[:, :-80])) > 0.5 * expected
+    # the camera's draw: own stream, other unit errors unchanged
+    spec = make_camera_spec(serial="1")
+    base = TwinCameraSettings.from_profile("realistic")
+    paper = TwinSettings.from_profile("paper", seed=3)
+    assert paper.depth_errors.static_field_px > 0
+    without = dataclasses.replace(paper, depth_errors=dataclasses.replace(paper.depth_errors, static_field_px=0.0))
+    with_cam, with_factory = camera_unit_errors(paper, "7", spec, base)
+    without_cam, without_factory = camera_unit_errors(without, "7", spec, base)
+    assert without_cam.errors.static_field_px == ()
+    for stream in ("color", "depth"):
+        a_i, b_i = getattr(with_factory, stream), getattr(without_factory, stream)
+        assert (a_i.fx, a_i.fy, a_i.ppx, a_i.ppy) == (b_i.fx, b_i.fy, b_i.ppx, b_i.ppy)
+    assert dataclasses.replace(with_cam.errors, static_field_px=()) == without_cam.errors
+    other, _ = camera_unit_errors(paper, "8", spec, base)
+    assert other.errors.static_field_px != with_cam.errors.static_field_px  # one field per unit
+    for name in ("ideal", "realistic"):
+        assert TwinSettings.from_profile(name).depth_errors.static_field_px == 0.0
+    assert paper.scaled(2.0).depth_errors.static_field_px == pytest.approx(2 * paper.depth_errors.static_field_px)

@@ -4,7 +4,8 @@ The twin's true arm differs from darp's Z1 model (:mod:`darp.kinematics.z1`) in 
 drawn from :class:`darp.twin.settings.ArmErrorSettings` and the settings' seed:
 
 - **geometry** (:class:`KinematicErrors`, per arm, fixed): each joint's origin in its parent link is off
-  by a small vector (link lengths and offsets) and each joint's axis is tilted by a small rotation. The
+  by a small vector (link lengths and offsets) and each joint's axis is tilted by a small rotation, each of
+  a fixed size in a random direction (a unit's errors are one draw of about the stated size). The
   true chain is ``T = prod_i Trans(o_i + do_i) Rot(a_i, q_i)``; :func:`fk_batch_with_errors` computes it
   and :class:`darp.twin.world.TwinWorld` builds the MuJoCo arm with the same origins and axes, so the
   rendered views and ``truth/`` agree.
@@ -29,6 +30,13 @@ from darp.twin.settings import ArmErrorSettings
 
 REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repeatability to joint angles
 
+
+def _fixed_length(vectors: np.ndarray, length: float) -> np.ndarray:
+    """Each row of ``vectors`` (N, 3) scaled to exactly ``length`` (its direction kept)."""
+    norms = np.linalg.norm(vectors, axis=1, keepdims=True)
+    out: np.ndarray = vectors / np.maximum(norms, 1e-12) * length
+    return out
+
 @dataclass(frozen=True, eq=False)
 class KinematicErrors:
     """Per-joint origin errors (6, 3) in metres and axis tilts (6, 3) as rotation vectors in radians."""
@@ -41,8 +49,16 @@ class KinematicErrors:
         """Draw one arm's errors, or None when both magnitudes are zero."""
         if settings.link_origin_std_mm <= 0 and settings.axis_tilt_std_deg <= 0:
             return None
-        origin = rng.normal(0.0, settings.link_origin_std_mm * 1e-3, (6, 3))
-        tilt = rng.normal(0.0, np.deg2rad(settings.axis_tilt_std_deg), (6, 3))
+        # Fixed size, random direction: every arm gets errors of the stated size (a Gaussian draw of 18
+        # components made the unabsorbable part, and so the hand-eye figure, vary by +-30 % between seeds).
+        # Origins: length sqrt(3) x the per-axis std (the same mean square as N(0, std) per axis).
+        origin = _fixed_length(rng.normal(0.0, 1.0, (6, 3)), np.sqrt(3.0) * settings.link_origin_std_mm * 1e-3)
+        # Tilts: perpendicular to the nominal axis (a rotation about the axis itself leaves the axis as it
+        # is), angle sqrt(2) x the std (the mean square of the two perpendicular Gaussian components).
+        nominal = np.asarray(z1.JOINT_AXES, dtype=float)
+        raw = rng.normal(0.0, 1.0, (6, 3))
+        raw -= np.sum(raw * nominal, axis=1, keepdims=True) * nominal
+        tilt = _fixed_length(raw, np.sqrt(2.0) * np.deg2rad(settings.axis_tilt_std_deg))
         return cls(origin, tilt)
 
     def origins(self) -> np.ndarray:

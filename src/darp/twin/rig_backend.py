@@ -280,17 +280,23 @@ def camera_unit_errors(settings: TwinSettings, serial: str, spec: CameraSpec,
 
     Returns ``cam_settings`` unchanged and None when the settings hold no such errors (the default profiles).
     """
-    from darp.twin.camera.sensor import UnitErrors
+    from darp.twin.camera.sensor import UnitErrors, sensor_field_nodes
 
     d, im = settings.depth_errors, settings.images
     if d == type(d)() and im == type(im)():
         return cam_settings, None
     g = settings.rng(f"unit_errors:{serial}")
+
+    def sign() -> float:
+        return float(g.choice([-1.0, 1.0]))
+
+    # Each per-unit error has its stated size (the std) and a random sign: one unit is one draw of about the
+    # spec size, so that no seed gets a nearly perfect camera or one at three sigma.
     errors = UnitErrors(
-        depth_scale=float(g.normal(0.0, d.scale_std_pct / 100.0)),
-        depth_offset_m=float(g.normal(0.0, d.offset_std_mm * 1e-3)),
-        depth_bias_per_m=float(g.normal(0.0, d.bias_std_mm_per_m2 * 1e-3)),
-        thermal_drift=d.thermal_drift_pct / 100.0 * float(g.choice([-1.0, 1.0])),
+        depth_scale=d.scale_std_pct / 100.0 * sign(),
+        depth_offset_m=d.offset_std_mm * 1e-3 * sign(),
+        depth_bias_per_m=d.bias_std_mm_per_m2 * 1e-3 * sign(),
+        thermal_drift=d.thermal_drift_pct / 100.0 * sign(),
         thermal_tau_s=d.thermal_tau_s,
         session_start_s=settings.timing.start_time_s,
         blur_sigma_px=im.blur_sigma_px,
@@ -298,14 +304,18 @@ def camera_unit_errors(settings: TwinSettings, serial: str, spec: CameraSpec,
         noise_dn=im.noise_dn,
         field_disparity_px=d.frame_field_px,
         focal_baseline_px_m=spec.depth.fx * spec.baseline_m,
+        static_field_px=(sensor_field_nodes(settings.rng(f"static_field:{serial}"), d.static_field_px)
+                         if d.static_field_px > 0 else ()),
     )
     factory = None
     if d.focal_std_pct > 0 or d.centre_std_px > 0:
         def off(i: Any) -> Any:
-            scale = 1.0 + float(g.normal(0.0, d.focal_std_pct / 100.0))
+            scale = 1.0 + d.focal_std_pct / 100.0 * sign()
+            angle = float(g.uniform(0.0, 2.0 * np.pi))  # principal point: sqrt(2) x the per-axis std
+            shift = np.sqrt(2.0) * d.centre_std_px
             return dataclasses.replace(i, fx=i.fx * scale, fy=i.fy * scale,
-                                       ppx=i.ppx + float(g.normal(0.0, d.centre_std_px)),
-                                       ppy=i.ppy + float(g.normal(0.0, d.centre_std_px)))
+                                       ppx=i.ppx + shift * float(np.cos(angle)),
+                                       ppy=i.ppy + shift * float(np.sin(angle)))
         factory = dataclasses.replace(spec, depth=off(spec.depth), color=off(spec.color))
     return dataclasses.replace(cam_settings, errors=errors), factory
 

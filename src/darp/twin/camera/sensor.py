@@ -43,10 +43,20 @@ from darp.twin.camera.stereo import StereoMatcher, StereoSettings
 PROFILES = ("ideal", "realistic")
 FIELD_GRID = (3, 4)
 """Rows x columns of the per-frame disparity error field's nodes: it varies over about a third of the image."""
+STATIC_FIELD_GRID = (6, 8)
+"""Rows x columns of the sensor-fixed disparity error field's nodes: it varies over about an eighth of the image."""
 FIELD_STREAM = 0xF1E1D
 """Third seed word of the per-frame disparity field's generator (``(seed, frame, FIELD_STREAM)``)."""
 CAPTURE_STAGES = ("render", "ir", "depth_noise", "colour", "z16")
 DEPTH_MODES = ("model", "sgbm")
+
+
+def sensor_field_nodes(rng: np.random.Generator, std_px: float) -> tuple[tuple[float, ...], ...]:
+    """One unit's sensor-fixed disparity field: :data:`STATIC_FIELD_GRID` node values, scaled so that their
+    RMS is exactly ``std_px`` (a unit's non-flatness is one draw of the stated size)."""
+    nodes = rng.normal(0.0, 1.0, STATIC_FIELD_GRID)
+    nodes *= std_px / max(float(np.sqrt(np.mean(nodes * nodes))), 1e-12)
+    return tuple(tuple(float(v) for v in row) for row in nodes)
 
 
 @dataclass(frozen=True)
@@ -58,7 +68,9 @@ class UnitErrors:
     with ``field_disparity_px`` > 0 each frame also gets its own smooth disparity error field ``e(u, v)``
     (node values ``N(0, field_disparity_px)`` on a coarse :data:`FIELD_GRID` grid, bicubically
     interpolated), applied in the disparity domain: ``z -> z / (1 + z e / focal_baseline_px_m)``, so its
-    depth effect grows as ``z^2``, as a stereo matcher's error does; the colour image is blurred
+    depth effect grows as ``z^2``, as a stereo matcher's error does; ``static_field_px`` (nodes of a finer
+    :data:`STATIC_FIELD_GRID`, drawn once per unit) is a disparity error fixed to the sensor, added to ``e``
+    in every frame; the colour image is blurred
     (``blur_sigma_px``), lit unevenly (a gradient in a random direction per frame plus vignetting, each up
     to ``shading`` of the brightness) and gets ``noise_dn`` more noise.
     """
@@ -74,6 +86,13 @@ class UnitErrors:
     noise_dn: float = 0.0
     field_disparity_px: float = 0.0
     focal_baseline_px_m: float = 0.0  # the unit's fx * baseline (px m): disparity = focal_baseline / z
+    static_field_px: tuple[tuple[float, ...], ...] = ()  # sensor-fixed field nodes (px), () = none
+
+    def sensor_field(self, shape: tuple[int, int]) -> np.ndarray:
+        """The unit's sensor-fixed disparity error field (px, float64, ``shape``; bicubic between the nodes)."""
+        nodes = np.asarray(self.static_field_px, dtype=np.float32)
+        h, w = shape
+        return cv2.resize(nodes, (w, h), interpolation=cv2.INTER_CUBIC).astype(np.float64)
 
     def disparity_field(self, shape: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
         """One frame's smooth disparity error field (px, float64, ``shape``) drawn from ``rng``."""
@@ -91,12 +110,18 @@ class UnitErrors:
         t = 0.0 if timestamp_s is None else max(0.0, timestamp_s - self.session_start_s)
         scale = 1.0 + self.depth_scale + self.thermal_drift * (1.0 - np.exp(-t / self.thermal_tau_s))
         field = self.field_disparity_px > 0 and self.focal_baseline_px_m > 0 and rng is not None
-        if scale == 1.0 and self.depth_offset_m == 0.0 and self.depth_bias_per_m == 0.0 and not field:
+        static = len(self.static_field_px) > 0 and self.focal_baseline_px_m > 0
+        if (scale == 1.0 and self.depth_offset_m == 0.0 and self.depth_bias_per_m == 0.0 and not field
+                and not static):
             return depth_m
         z = np.asarray(depth_m, dtype=np.float64)
-        if field:
-            assert rng is not None
-            e = self.disparity_field(z.shape, rng)
+        if field or static:
+            e = np.zeros(z.shape)
+            if field:
+                assert rng is not None
+                e = self.disparity_field(z.shape, rng)
+            if static:
+                e = e + self.sensor_field(z.shape)
             z = z / np.maximum(1.0 + z * e / self.focal_baseline_px_m, 0.5)
         out = z * scale + self.depth_offset_m + self.depth_bias_per_m * z * z
         return np.where(z > 0, np.maximum(out, 0.0), 0.0).astype(np.float32)
