@@ -424,9 +424,10 @@ def paper_profile(seed: int = 0) -> TwinSettings:
 
     Tuned toward the paper's real-rig figures (hand-eye held-out 3.58 / 3.93 mm, held-out point-to-mesh
     median 2.13 mm ...). Kinematic and per-unit camera errors are drawn at exactly their stated size in a
-    random direction or sign; part of the smooth depth error is fixed to each sensor (``static_field_px``).
-    Calibration on seeds 0-4 puts arm110's hand-eye figure in the band on all five and arm111's on two;
-    the per-seed tables and the demo's figures (seeds 0 and 3) are in docs/twin.md.
+    random direction or sign; the kinematic directions are chosen so that the part darp's calibration model
+    cannot absorb is 2.5 mm (``unabsorbed_mm``: which unit of those sizes, not a larger size); part of the
+    smooth depth error is fixed to each sensor (``static_field_px``). Per-seed tables and the demo's figures
+    are in docs/twin.md.
     """
     return TwinSettings(
         profile="paper",
