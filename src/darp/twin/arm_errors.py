@@ -34,7 +34,7 @@ REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repe
 
 # Typical calibration configurations (rad): every second pose of `darp calib plan` at seeds 1000 and 1001
 # (both arms, the default board and rig; 60 rows). The unabsorbable size of a kinematic draw is measured here
-# (:func:`unabsorbable_mm`); it predicts the size at a capture plan of other seeds with correlation 0.95.
+# (:func:`unabsorbable_mm`); it predicts the size at the capture plans of seeds 0-8 with correlation 0.91.
 CALIBRATION_Q_RAD = np.array([
     [-0.421, 1.261, -1.104, 0.619, 0.328, -1.143],
     [-0.164, 1.975, -1.476, 0.384, 0.108, -0.780],
