@@ -447,3 +447,67 @@ def test_a_sensor_fixed_depth_field_is_the_same_every_frame_and_leaves_the_other
     for name in ("ideal", "realistic"):
         assert TwinSettings.from_profile(name).depth_errors.static_field_px == 0.0
     assert paper.scaled(2.0).depth_errors.static_field_px == pytest.approx(2 * paper.depth_errors.static_field_px)
+
+
+def test_unabsorbable_size_matches_a_nonlinear_fit_of_the_calibration_model() -> None:
+    """Oracle: scipy's nonlinear least squares of joint offsets, base and hand-eye corrections (18
+    unknowns) to the true chain's camera points at the reference configurations."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    from darp.kinematics.kinematic_model import chain_fk, tilted_axes
+    from darp.twin.arm_errors import CALIBRATION_Q_RAD, unabsorbable_mm
+
+    errors = KinematicErrors.draw(ArmErrorSettings(link_origin_std_mm=1.0, axis_tilt_std_deg=0.2),
+                                  np.random.default_rng(3))
+    assert errors is not None
+    Q = CALIBRATION_Q_RAD
+    T_fc = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.055], [0, 0, 0, 1.0]])
+    pts = np.array([[0.0, 0.0, 0.4], [0.1, 0.0, 0.4], [-0.1, 0.0, 0.4], [0.0, 0.1, 0.4], [0.0, -0.1, 0.4]])
+
+    def points(F: np.ndarray) -> np.ndarray:
+        C = F @ T_fc
+        return np.einsum("nij,pj->npi", C[:, :3, :3], pts) + C[:, None, :3, 3]
+
+    def small(v: np.ndarray) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_rotvec(v[:3]).as_matrix()
+        T[:3, 3] = v[3:]
+        return T
+
+    target = points(fk_batch_with_errors(Q, errors))
+    nominal_o, nominal_a = np.asarray(z1.JOINT_ORIGINS_M, float), tilted_axes(np.zeros((6, 3)))
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        F = small(p[:6])[None] @ chain_fk(Q + p[6:12], nominal_o, nominal_a) @ small(p[12:])[None]
+        return (points(F) - target).ravel()
+
+    fit = least_squares(residual, np.zeros(18), x_scale=0.01)
+    nonlinear_mm = 1e3 * float(np.median(np.linalg.norm(fit.fun.reshape(-1, 3), axis=1)))
+    assert nonlinear_mm > 0.3  # the draw is not absorbable
+    assert unabsorbable_mm(errors) == pytest.approx(nonlinear_mm, rel=0.05)
+
+
+def test_an_unabsorbed_target_picks_directions_of_that_size_and_keeps_every_magnitude() -> None:
+    from darp.twin.arm_errors import unabsorbable_mm
+
+    base = ArmErrorSettings(link_origin_std_mm=1.0, axis_tilt_std_deg=0.2)
+    free = [KinematicErrors.draw(base, np.random.default_rng(s)) for s in range(8)]
+    sizes = [unabsorbable_mm(e) for e in free if e is not None]
+    assert max(sizes) - min(sizes) > 0.5  # without a target the unabsorbable part spreads widely
+    aimed = dataclasses.replace(base, unabsorbed_mm=2.5)
+    for s in range(8):
+        e = KinematicErrors.draw(aimed, np.random.default_rng(s))
+        assert e is not None
+        assert unabsorbable_mm(e) == pytest.approx(2.5, rel=0.05)
+        assert np.allclose(np.linalg.norm(e.origin_m, axis=1), np.sqrt(3.0) * 1e-3)
+        assert np.allclose(np.linalg.norm(e.axis_tilt_rad, axis=1), np.sqrt(2.0) * np.deg2rad(0.2))
+        assert np.allclose(np.sum(e.axis_tilt_rad * np.asarray(z1.JOINT_AXES, float), axis=1), 0.0, atol=1e-12)
+    # no target: the first draw, as before the setting existed
+    e0, f0 = KinematicErrors.draw(base, np.random.default_rng(0)), free[0]
+    assert e0 is not None and f0 is not None and np.array_equal(e0.origin_m, f0.origin_m)
+    paper = TwinSettings.from_profile("paper", seed=11)
+    for arm in draw_true_rig(load_rig(), paper).arms.values():
+        assert arm.kinematic_errors is not None
+        assert unabsorbable_mm(arm.kinematic_errors) == pytest.approx(paper.arm_errors.unabsorbed_mm, rel=0.05)
+    assert TwinSettings.from_profile("paper").scaled(2.0).arm_errors.unabsorbed_mm == pytest.approx(5.0)

@@ -8,6 +8,7 @@ board is warped by the exact plane-to-image homography (a pinhole view of a plan
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -30,8 +31,13 @@ COLOR = Intrinsics(640, 480, 611.0, 609.5, 318.2, 243.1, "Inverse Brown Conrady"
 T_DEPTH_COLOR = make_transform(axis_angle_to_rotation([0.3, 1.0, 0.2], np.radians(0.3)), [-0.0149, 0.0001, -0.0004])
 
 
-def true_rig(seed: int = 0, profile: str = "realistic", rig: Rig | None = None) -> tuple[TrueRig, TwinSettings]:
+def true_rig(seed: int = 0, profile: str = "realistic", rig: Rig | None = None,
+             unabsorbed_mm: float | None = None) -> tuple[TrueRig, TwinSettings]:
+    """The twin's true rig for ``profile`` and ``seed`` (``unabsorbed_mm``: override the arm-error setting)."""
     settings = TwinSettings.from_profile(profile, seed=seed)
+    if unabsorbed_mm is not None:
+        settings = dataclasses.replace(settings, arm_errors=dataclasses.replace(settings.arm_errors,
+                                                                                unabsorbed_mm=unabsorbed_mm))
     return draw_true_rig(rig or load_rig(), settings), settings
 
 

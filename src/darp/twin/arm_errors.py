@@ -21,14 +21,89 @@ With all magnitudes zero nothing here is used: the twin's files are byte-identic
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from darp.kinematics import z1
 from darp.kinematics.kinematic_model import LINK_MASSES, chain_fk, gravity_torques, tilted_axes
+from darp.kinematics.transforms import rotvec_to_rotation
 from darp.twin.settings import ArmErrorSettings
 
 REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repeatability to joint angles
+
+# Typical calibration configurations (rad): every second pose of `darp calib plan` at seeds 1000 and 1001
+# (both arms, the default board and rig; 60 rows). The unabsorbable size of a kinematic draw is measured here
+# (:func:`unabsorbable_mm`); it predicts the size at the capture plans of seeds 0-8 with correlation 0.91.
+CALIBRATION_Q_RAD = np.array([
+    [-0.421, 1.261, -1.104, 0.619, 0.328, -1.143],
+    [-0.164, 1.975, -1.476, 0.384, 0.108, -0.780],
+    [-0.468, 2.094, -1.567, 0.504, 0.586, -1.415],
+    [-0.773, 1.968, -1.879, 1.227, 0.787, -2.006],
+    [-0.036, 1.743, -1.228, 0.270, 0.181, 0.989],
+    [0.003, 1.722, -0.974, -0.048, 0.051, 1.329],
+    [0.356, 1.703, -1.585, 0.795, -0.375, 0.826],
+    [0.715, 1.821, -1.592, 1.038, -0.773, 0.753],
+    [0.317, 1.928, -2.016, 1.113, -0.508, -0.801],
+    [-0.065, 1.920, -1.979, 1.074, -0.057, -1.098],
+    [-0.252, 2.220, -2.047, 0.897, 0.427, 0.493],
+    [0.018, 2.119, -2.019, 0.993, 0.080, 0.747],
+    [0.364, 2.424, -2.565, 1.389, -0.638, -0.523],
+    [-0.200, 2.401, -2.523, 1.287, 0.258, -1.182],
+    [-0.496, 1.678, -1.689, 0.951, 0.638, 1.344],
+    [-0.165, 1.453, -1.242, 0.527, 0.110, -1.060],
+    [0.095, 1.560, -1.100, 0.309, -0.070, 0.418],
+    [0.566, 1.530, -1.649, 1.066, -0.487, 1.803],
+    [0.460, 1.646, -1.587, 0.954, -0.475, -0.479],
+    [0.226, 2.075, -2.096, 1.081, -0.345, -0.168],
+    [0.615, 2.432, -2.518, 1.412, -0.751, 1.185],
+    [-0.276, 2.258, -2.495, 1.434, 0.467, 0.756],
+    [-0.424, 2.279, -2.164, 1.172, 0.829, 1.109],
+    [-0.352, 2.245, -2.420, 1.323, 0.414, -0.643],
+    [-0.550, 2.417, -2.352, 1.353, 0.763, -1.010],
+    [-0.169, 1.951, -2.139, 1.210, 0.104, -1.387],
+    [-0.603, 1.740, -1.289, 0.602, 0.734, -0.846],
+    [-0.016, 1.964, -1.143, -0.066, 0.057, -0.656],
+    [0.475, 2.154, -1.839, 0.827, -0.606, 1.516],
+    [0.234, 2.524, -2.788, 1.396, -0.482, -0.824],
+    [0.164, 1.368, -1.283, 0.681, -0.181, -0.175],
+    [0.008, 1.901, -1.379, 0.366, 0.039, -0.019],
+    [-0.401, 2.082, -1.868, 0.846, 0.545, -0.101],
+    [-0.757, 2.199, -2.235, 1.374, 0.825, -1.504],
+    [-0.357, 2.267, -2.415, 1.261, 0.439, -0.887],
+    [0.159, 2.110, -2.213, 1.188, -0.337, -1.530],
+    [0.281, 1.996, -1.832, 0.890, -0.423, -0.913],
+    [0.497, 2.287, -2.149, 1.253, -0.769, 0.245],
+    [0.475, 2.254, -2.023, 0.858, -0.625, 1.673],
+    [-0.030, 1.749, -2.155, 1.360, 0.026, 0.376],
+    [0.129, 1.793, -1.352, 0.306, -0.061, 1.559],
+    [0.058, 1.885, -0.957, -0.224, 0.024, 1.071],
+    [0.540, 1.753, -1.209, 0.461, -0.678, 0.686],
+    [-0.322, 2.083, -1.572, 0.336, 0.348, -1.462],
+    [-0.229, 2.393, -2.481, 1.223, 0.543, 1.011],
+    [-0.077, 1.259, -1.435, 0.987, 0.050, -0.592],
+    [0.167, 1.807, -1.624, 0.799, -0.154, 0.820],
+    [-0.155, 2.149, -1.729, 0.539, 0.268, -0.079],
+    [-0.379, 2.154, -1.798, 0.655, 0.544, -1.166],
+    [-0.488, 1.761, -1.387, 0.590, 0.653, 0.063],
+    [0.015, 1.928, -1.258, 0.052, 0.174, 1.376],
+    [0.531, 1.859, -1.680, 0.873, -0.647, -0.216],
+    [0.441, 2.264, -2.081, 1.131, -0.693, 0.029],
+    [0.540, 2.511, -2.477, 1.365, -0.701, 0.855],
+    [0.054, 2.418, -2.791, 1.428, 0.007, 0.989],
+    [-0.400, 2.310, -2.267, 1.207, 0.749, 1.416],
+    [-0.044, 2.038, -2.431, 1.440, 0.028, -0.860],
+    [-0.582, 1.577, -1.414, 0.776, 0.588, -1.726],
+    [0.590, 1.829, -1.609, 0.730, -0.586, 1.737],
+    [0.886, 1.955, -1.798, 1.256, -0.843, 1.311],
+])
+# Points in the camera frame whose positions the unabsorbable size measures (the board's distance, +-0.1 m).
+_TEST_POINTS_CAM_M = np.array([[0.0, 0.0, 0.4], [0.1, 0.0, 0.4], [-0.1, 0.0, 0.4], [0.0, 0.1, 0.4], [0.0, -0.1, 0.4]])
+# The rig's nominal camera mount (camera z along the flange's x, 55 mm above it).
+_NOMINAL_FLANGE_CAM = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.055],
+                                [0.0, 0.0, 0.0, 1.0]])
+MAX_DRAWS = 400  # direction draws tried for ``unabsorbed_mm``
+UNABSORBED_TOLERANCE = 0.05  # accept a draw within 5 % of ``unabsorbed_mm``
 
 
 def _fixed_length(vectors: np.ndarray, length: float) -> np.ndarray:
@@ -46,9 +121,30 @@ class KinematicErrors:
 
     @classmethod
     def draw(cls, settings: ArmErrorSettings, rng: np.random.Generator) -> KinematicErrors | None:
-        """Draw one arm's errors, or None when both magnitudes are zero."""
+        """Draw one arm's errors, or None when both magnitudes are zero.
+
+        With ``settings.unabsorbed_mm`` > 0 the directions are drawn again (sizes unchanged) until the
+        draw's unabsorbable size (:func:`unabsorbable_mm`) is within 5 % of it; after ``MAX_DRAWS`` the
+        closest draw is kept. With 0 the first draw is used (as before the setting existed).
+        """
         if settings.link_origin_std_mm <= 0 and settings.axis_tilt_std_deg <= 0:
             return None
+        first = cls._draw_once(settings, rng)
+        target = settings.unabsorbed_mm
+        if target <= 0:
+            return first
+        best, best_gap = first, abs(unabsorbable_mm(first) - target)
+        for _ in range(MAX_DRAWS - 1):
+            if best_gap <= UNABSORBED_TOLERANCE * target:
+                break
+            candidate = cls._draw_once(settings, rng)
+            gap = abs(unabsorbable_mm(candidate) - target)
+            if gap < best_gap:
+                best, best_gap = candidate, gap
+        return best
+
+    @classmethod
+    def _draw_once(cls, settings: ArmErrorSettings, rng: np.random.Generator) -> KinematicErrors:
         # Fixed size, random direction: every arm gets errors of the stated size (a Gaussian draw of 18
         # components made the unabsorbable part, and so the hand-eye figure, vary by +-30 % between seeds).
         # Origins: length sqrt(3) x the per-axis std (the same mean square as N(0, std) per axis).
@@ -75,6 +171,58 @@ def fk_batch_with_errors(Q: np.ndarray, errors: KinematicErrors, frame: str = "f
     """``T_base_frame`` (N, 4, 4) of the true chain (perturbed origins and axes) for joint rows Q (N, 6)
     (the chain of :func:`darp.kinematics.kinematic_model.chain_fk`, shared with calibration and processing)."""
     return chain_fk(Q, errors.origins(), errors.axes(), frame)
+
+
+def _points(Q: np.ndarray, origins: np.ndarray, axes: np.ndarray, dq: np.ndarray,
+            base: np.ndarray, hand_eye: np.ndarray) -> np.ndarray:
+    """Test points (N * P * 3,) in the base frame through a chain with small base / hand-eye corrections
+    (rotation vector and translation, 6 each) and joint offsets ``dq``."""
+    T = chain_fk(Q + dq, origins, axes, "flange")
+    T = _small(base)[None] @ T @ _small(hand_eye)[None] @ _NOMINAL_FLANGE_CAM[None]
+    P = np.einsum("nij,pj->npi", T[:, :3, :3], _TEST_POINTS_CAM_M) + T[:, None, :3, 3]
+    out: np.ndarray = P.ravel()
+    return out
+
+
+def _small(v: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = rotvec_to_rotation(v[:3])
+    T[:3, 3] = v[3:]
+    return T
+
+
+@lru_cache(maxsize=1)
+def _unabsorbable_map() -> np.ndarray:
+    """Linear map (N * P * 3, 36) from origin errors (6 x 3, m) and axis tilts (6 x 3, rad) to the part of
+    the test points' displacement that joint offsets, a base and a hand-eye correction cannot absorb."""
+    Q = CALIBRATION_Q_RAD
+    o0, a0 = np.asarray(z1.JOINT_ORIGINS_M, float), tilted_axes(np.zeros((6, 3)))
+    zero6 = np.zeros(6)
+    p0 = _points(Q, o0, a0, zero6, zero6, zero6)
+    h = 1e-6
+    err_cols, abs_cols = [], []
+    for k in range(36):
+        d = np.zeros(36)
+        d[k] = h
+        o, t = o0 + d[:18].reshape(6, 3), d[18:].reshape(6, 3)
+        err_cols.append((_points(Q, o, tilted_axes(t), zero6, zero6, zero6) - p0) / h)
+    for k in range(18):
+        d = np.zeros(18)
+        d[k] = h
+        abs_cols.append((_points(Q, o0, a0, d[12:], d[:6], d[6:12]) - p0) / h)
+    J_err, A = np.stack(err_cols, 1), np.stack(abs_cols, 1)
+    U, sv, _ = np.linalg.svd(A, full_matrices=False)
+    U = U[:, sv > 1e-9 * sv[0]]
+    out: np.ndarray = J_err - U @ (U.T @ J_err)
+    return out
+
+
+def unabsorbable_mm(errors: KinematicErrors) -> float:
+    """The part of ``errors`` that darp's calibration model (joint offsets, base, hand-eye) cannot absorb at
+    typical calibration configurations (:data:`CALIBRATION_Q_RAD`): median displacement (mm) of points 0.4 m
+    in front of the camera after the best linearised fit of those 18 parameters."""
+    r = _unabsorbable_map() @ np.concatenate([errors.origin_m.ravel(), errors.axis_tilt_rad.ravel()])
+    return 1e3 * float(np.median(np.linalg.norm(r.reshape(-1, 3), axis=1)))
 
 
 class LinkDeflection:
@@ -112,4 +260,5 @@ class LinkDeflection:
         return sag
 
 
-__all__ = ["LINK_MASSES", "KinematicErrors", "LinkDeflection", "fk_batch_with_errors", "gravity_torques"]
+__all__ = ["CALIBRATION_Q_RAD", "LINK_MASSES", "KinematicErrors", "LinkDeflection", "fk_batch_with_errors",
+           "gravity_torques", "unabsorbable_mm"]
