@@ -17,8 +17,10 @@ Each survey runs the whole acquisition (localise, confirm, plan, record both cam
 processing) on the cheapest camera the twin offers (424x240 depth and colour at 6 fps, no IMU). The
 contacts are the twin's collision monitor's (:attr:`TwinRig.contact_events`: whenever an arm moves,
 the moving arms' true geometry against the table, the object and the other arm, at
-``collision_check_hz``; the first one stops both arms and latches a fault). ``--self-check`` first
-drives arm110 through the object outside any check and refuses to run unless that move is counted.
+``collision_check_hz``, 60 Hz; the first one stops both arms and latches a fault) and, independently, a
+dense check at ``--dense-hz`` (1 kHz simulated, while any arm moves; it only records) that a shallow
+contact entered and left between two of the monitor's ticks cannot slip through. ``--self-check``
+first drives arm110 through a cup outside any check and refuses to run unless both count it.
 
 **Invalid placements.** ``--invalid`` draws per kind (non-finite, off the table, inside a robot base,
 against a robot (closer than the clearance), outside the workspace, too tall) go through the real
@@ -30,7 +32,10 @@ Prints one line per survey and a summary; ``--json`` writes every row.
 
     MUJOCO_GL=egl .venv/bin/python benchmarks/safety.py [--surveys 100] [--invalid 3] [--seed 0]
         [--start 0] [--fps 6] [--resolution 424x240] [--profile realistic] [--json safety.json]
-        [--out DIR] [--self-check]
+        [--out DIR] [--self-check] [--dense-hz 1000] [--resume]
+
+``--resume`` keeps the rows already in ``--json`` and goes on with the next survey (a campaign cut
+short, or split over sessions, adds up to the same draws).
 """
 
 from __future__ import annotations
@@ -134,8 +139,33 @@ def contacts_of(twin: Any) -> dict[str, Any]:
             "fault": None if fault is None else fault.message}
 
 
+def add_dense_check(twin: Any, hz: float = 1000.0) -> dict[str, Any]:
+    """A second, independent contact check at ``hz`` (simulated) while any arm moves: the twin's monitor samples
+    at 60 Hz, so a shallow contact entered and left between two of its ticks would go unseen. Records
+    only (it never stops an arm); returns the record it fills (samples checked, samples in contact, first)."""
+    record: dict[str, Any] = {"dense_samples": 0, "dense_contacts": 0, "dense_first": None}
+    period_ns = max(1, round(1e9 / hz))
+
+    def tick(now_ns: int) -> int:
+        moving = {a for a, arm in twin.arms.items() if arm.is_moving()}
+        if moving:
+            record["dense_samples"] += 1
+            found = [c for c in twin.contacts() if c.arm_id in moving or c.other in moving]
+            if found:
+                record["dense_contacts"] += 1
+                if record["dense_first"] is None:
+                    c = found[0]
+                    record["dense_first"] = {"time_s": twin.clock.host_time_s(now_ns), "arm": c.arm_id,
+                                             "arm_geom": c.arm_geom, "other": c.other, "other_geom": c.other_geom,
+                                             "depth_mm": round(-c.distance_m * 1000, 2)}
+        return now_ns + period_ns
+
+    twin.clock.add_process("dense-contact-check", tick, first_due_ns=twin.clock.elapsed_ns)
+    return record
+
+
 def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: int, size: tuple[int, int],
-              profile: str, keep: bool) -> dict[str, Any]:
+              profile: str, keep: bool, dense_hz: float = 1000.0) -> dict[str, Any]:
     """One survey on a fresh twin; the row of the table."""
     from darp.acquisition.episode import read_events
     from darp.acquisition.survey import SurveySettings, run_survey
@@ -153,6 +183,7 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
     row: dict[str, Any] = dict(draw)
     t0 = time.perf_counter()
     with TwinRig(settings, rig=rig, obj=obj, placement=place) as twin:
+        dense = add_dense_check(twin) if dense_hz > 0 else {}
         cal = twin.true_rig.calibration(settings) if draw["calibration"] == "truth" else None
         try:
             outcome = run_survey(twin, rig, out, name, calibration=cal, overwrite=True, object_name=obj.name,
@@ -170,6 +201,7 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
                        executed_views={})
             folder = None
         row.update(contacts_of(twin))
+        row.update(dense)
         row["sim_s"] = round(twin.clock.now() - settings.timing.start_time_s, 2)
     row["wall_s"] = round(time.perf_counter() - t0, 2)
     if not keep and folder is not None:
@@ -295,7 +327,8 @@ def run_invalid(draw: dict[str, Any], meshes: dict[str, Path], out: Path) -> dic
 
 # -- the self-check -----------------------------------------------------------------------------------------
 def self_check(fps: int, size: tuple[int, int]) -> dict[str, Any]:
-    """Drive arm110 through a cup outside any motion check: the monitor must count it and latch a fault."""
+    """Drive arm110 through a cup outside any motion check: the monitor must count it and latch a fault, and the
+    dense check must count it too."""
     from darp.kinematics.rig import load_rig
     from darp.twin.objects.model import ObjectPlacement, make_object
     from darp.twin.rig_backend import TwinRig
@@ -304,9 +337,10 @@ def self_check(fps: int, size: tuple[int, int]) -> dict[str, Any]:
     rig = load_rig()
     settings = TwinSettings.from_profile("ideal", seed=5).with_camera(width=size[0], height=size[1], fps=fps, imu=False)
     with TwinRig(settings, rig=rig, obj=make_object("cup"), placement=ObjectPlacement(-0.2, 0.0, 0.0)) as twin:
+        dense = add_dense_check(twin)
         twin.arms["arm110"].move_to(np.array([0.0, 2.4, -1.5, 0.0, 0.0, 0.0]))
         twin.wait_until_still("arm110", timeout_s=20.0)
-        return contacts_of(twin)
+        return {**contacts_of(twin), **dense}
 
 
 # -- report -------------------------------------------------------------------------------------------------
@@ -320,6 +354,9 @@ def summary(valid: list[dict[str, Any]], invalid: list[dict[str, Any]]) -> dict[
     return {"surveys": n, "outcomes": by_status,
             "surveys_with_contacts": sum(1 for r in valid if r["contacts"]),
             "contact_samples": sum(r["contacts"] for r in valid),
+            "dense_checked_surveys": sum(1 for r in valid if "dense_samples" in r),
+            "dense_contact_samples": sum(r.get("dense_contacts", 0) for r in valid),
+            "dense_samples": sum(r.get("dense_samples", 0) for r in valid),
             "views_executed": sum(sum(r["executed_views"].values()) for r in valid),
             "wall_s_mean": float(np.mean(wall)) if wall else math.nan,
             "wall_s_total": float(np.sum(wall)) if wall else 0.0,
@@ -362,6 +399,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None, help="where surveys are written (default: a temp folder)")
     p.add_argument("--keep", action="store_true", help="keep the survey folders")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--dense-hz", type=float, default=1000.0, help="the independent contact check's rate (0: off)")
+    p.add_argument("--resume", action="store_true", help="keep the rows already in --json and go on after them")
     p.add_argument("--self-check", action="store_true", help="first show that a colliding move is counted")
     args = p.parse_args(argv)
     size = tuple(int(v) for v in args.resolution.lower().split("x"))
@@ -369,32 +408,36 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path(tempfile.mkdtemp(prefix="darp-safety-"))
     meshes = write_user_meshes(out / "meshes")
     rig = load_rig()
-    check = None
-    if args.self_check:
+    check, valid, invalid = None, [], []
+    if args.resume and args.json is not None and args.json.is_file():
+        prior = json.loads(args.json.read_text())
+        check, valid, invalid = prior["self_check"], prior["valid"], prior["invalid"]
+        args.start = max((r["index"] for r in valid), default=args.start - 1) + 1
+        print(f"resuming after {len(valid)} surveys and {len(invalid)} invalid placements, at survey {args.start}")
+    if args.self_check and check is None:
         check = self_check(args.fps, size)  # type: ignore[arg-type]
         print(f"self-check (arm110 driven through a cup, no checks): {check['contacts']} contact samples, "
-              f"fault: {check['fault']}")
-        if not check["contacts"] or check["fault"] is None:
+              f"dense check {check['dense_contacts']} samples, fault: {check['fault']}")
+        if not check["contacts"] or not check["dense_contacts"] or check["fault"] is None:
             print("the collision monitor did not count a deliberate collision: refusing to run", file=sys.stderr)
             return 1
-    invalid: list[dict[str, Any]] = []
     for kind in INVALID_KINDS:
-        for j in range(args.invalid):
+        for j in range(args.invalid if not invalid else 0):
             r = run_invalid(draw_invalid(kind, j, args.seed, objects, meshes, rig), meshes, out)
             invalid.append(r)
             print(f"invalid {kind:18s} {r['object']:14s} ({r['x_m']:+.3f},{r['y_m']:+.3f}) exit {r['exit']} "
                   f"commands {r['joint_commands']} {'REFUSED' if r['refused_before_motion'] else 'NOT REFUSED'}: "
                   f"{r['message'][:150]}", flush=True)
-    valid: list[dict[str, Any]] = []
-    t0 = time.perf_counter()
-    for i in range(args.start, args.start + args.surveys):
+    t0, first = time.perf_counter(), len(valid)
+    for i in range(args.start, args.start + args.surveys - first):
         draw = draw_valid(i, args.seed, objects, meshes, rig)
         row = run_valid(draw, meshes, out, fps=args.fps, size=size, profile=args.profile,  # type: ignore[arg-type]
-                        keep=args.keep)
+                        keep=args.keep, dense_hz=args.dense_hz)
         valid.append(row)
         print(f"[{len(valid)}/{args.surveys} {time.perf_counter() - t0:6.0f} s] {valid_line(row)}", flush=True)
-        if row["contacts"]:
-            print(f"      CONTACT: {row['first_contact']}; fault: {row['fault']}", flush=True)
+        if row["contacts"] or row.get("dense_contacts"):
+            print(f"      CONTACT: {row['first_contact']}; dense: {row.get('dense_first')}; fault: {row['fault']}",
+                  flush=True)
         write_json(args.json, args, valid, invalid, check)  # after every survey: a cut-short campaign keeps its rows
     s = summary(valid, invalid)
     write_json(args.json, args, valid, invalid, check)
@@ -402,10 +445,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"outcomes: {json.dumps(s['outcomes'])}")
     print(f"contacts during motion: {s['contact_samples']} samples in {s['surveys_with_contacts']} surveys "
           f"(target 0); views executed: {s['views_executed']}")
+    print(f"dense check (1 kHz while moving, {s['dense_checked_surveys']} surveys, {s['dense_samples']} samples): "
+          f"{s['dense_contact_samples']} samples in contact (target 0)")
     print(f"wall time per survey: mean {s['wall_s_mean']:.1f} s, total {s['wall_s_total']:.0f} s")
     print(f"invalid placements refused before motion with exit 2: {s['invalid_refused_before_motion']}/{s['invalid']} "
           + ", ".join(f"{k} {a}/{b}" for k, (a, b) in s["invalid_by_kind"].items()))
-    ok = s["contact_samples"] == 0 and s["invalid_refused_before_motion"] == s["invalid"]
+    ok = (s["contact_samples"] == 0 and s["dense_contact_samples"] == 0
+          and s["invalid_refused_before_motion"] == s["invalid"])
     return 0 if ok else 1
 
 

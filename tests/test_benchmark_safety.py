@@ -40,10 +40,12 @@ def test_a_deliberate_collision_is_counted_and_a_clear_move_is_not(safety: Modul
     with safety.counting_motion() as counts, TwinRig(settings, rig=RIG, obj=make_object("cup"),
                                                      placement=ObjectPlacement(-0.2, 0.0, 0.0)) as twin:
         assert counts == {"move_to": 0, "twins": 1}
+        dense = safety.add_dense_check(twin)
         clear = np.array(RIG.arms["arm111"].park_q_rad) + [0.3, 0.0, 0.0, 0.0, 0.0, 0.0]
         twin.arms["arm111"].move_to(clear)  # a small joint-1 turn in the air
         assert twin.wait_until_still("arm111", timeout_s=10.0)
         assert safety.contacts_of(twin)["contacts"] == 0 and twin.fault() is None
+        assert dense["dense_samples"] > 100 and dense["dense_contacts"] == 0  # 1 kHz over a ~0.5 s move
         twin.arms["arm110"].move_to(np.array([0.0, 2.4, -1.5, 0.0, 0.0, 0.0]))  # the wrist through the cup, unchecked
         twin.wait_until_still("arm110", timeout_s=20.0)
         record = safety.contacts_of(twin)
@@ -51,6 +53,7 @@ def test_a_deliberate_collision_is_counted_and_a_clear_move_is_not(safety: Modul
     assert record["contacts"] >= 1 and record["first_contact"]["arm"] == "arm110"
     assert record["first_contact"]["other"] == "object" and record["first_contact"]["depth_mm"] > 0
     assert "contact during motion" in record["fault"]
+    assert dense["dense_contacts"] >= record["contacts"] and dense["dense_first"]["arm"] == "arm110"
 
 
 def test_valid_draws_cover_the_workspace_and_pass_the_placement_check(safety: ModuleType,
