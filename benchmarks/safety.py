@@ -143,7 +143,7 @@ def add_dense_check(twin: Any, hz: float = 1000.0) -> dict[str, Any]:
     """A second, independent contact check at ``hz`` (simulated) while any arm moves: the twin's monitor samples
     at 60 Hz, so a shallow contact entered and left between two of its ticks would go unseen. Records
     only (it never stops an arm); returns the record it fills (samples checked, samples in contact, first)."""
-    record: dict[str, Any] = {"dense_samples": 0, "dense_contacts": 0, "dense_first": None}
+    record: dict[str, Any] = {"dense_hz": hz, "dense_samples": 0, "dense_contacts": 0, "dense_first": None}
     period_ns = max(1, round(1e9 / hz))
 
     def tick(now_ns: int) -> int:
@@ -369,7 +369,8 @@ def valid_line(r: dict[str, Any]) -> str:
     views = "/".join(f"{r['executed_views'].get(a, 0)}of{n}" for a, n in r["planned_views"].items()) or "-"
     status = r["status"] if r["status"] == "accepted" else f"{r['status']}({r['reason']})"
     return (f"{r['index']:4d} {r['object']:14s} ({r['x_m']:+.3f},{r['y_m']:+.3f}) {r['yaw_deg']:+7.1f}deg "
-            f"{r['viewpoints']:8s} {r['calibration']:7s} {status:28s} views {views:12s} contacts {r['contacts']:3d} "
+            f"{r['viewpoints']:8s} {r['calibration']:7s} {status:28s} views {views:12s} "
+            f"contacts {r['contacts']:3d}/{r.get('dense_contacts', '-')} "
             f"{r['wall_s']:6.1f} s")
 
 
