@@ -422,8 +422,9 @@ def main(argv: list[str] | None = None) -> int:
         if not check["contacts"] or not check["dense_contacts"] or check["fault"] is None:
             print("the collision monitor did not count a deliberate collision: refusing to run", file=sys.stderr)
             return 1
+    per_kind = 0 if invalid else args.invalid  # resumed: the invalid placements were run already
     for kind in INVALID_KINDS:
-        for j in range(args.invalid if not invalid else 0):
+        for j in range(per_kind):
             r = run_invalid(draw_invalid(kind, j, args.seed, objects, meshes, rig), meshes, out)
             invalid.append(r)
             print(f"invalid {kind:18s} {r['object']:14s} ({r['x_m']:+.3f},{r['y_m']:+.3f}) exit {r['exit']} "
@@ -446,7 +447,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"outcomes: {json.dumps(s['outcomes'])}")
     print(f"contacts during motion: {s['contact_samples']} samples in {s['surveys_with_contacts']} surveys "
           f"(target 0); views executed: {s['views_executed']}")
-    print(f"dense check (1 kHz while moving, {s['dense_checked_surveys']} surveys, {s['dense_samples']} samples): "
+    print(f"dense check ({args.dense_hz:g} Hz while moving, {s['dense_checked_surveys']} surveys, "
+          f"{s['dense_samples']} samples): "
           f"{s['dense_contact_samples']} samples in contact (target 0)")
     print(f"wall time per survey: mean {s['wall_s_mean']:.1f} s, total {s['wall_s_total']:.0f} s")
     print(f"invalid placements refused before motion with exit 2: {s['invalid_refused_before_motion']}/{s['invalid']} "
