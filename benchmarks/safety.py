@@ -183,7 +183,7 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
     row: dict[str, Any] = dict(draw)
     t0 = time.perf_counter()
     with TwinRig(settings, rig=rig, obj=obj, placement=place) as twin:
-        dense = add_dense_check(twin) if dense_hz > 0 else {}
+        dense = add_dense_check(twin, dense_hz) if dense_hz > 0 else {}
         cal = twin.true_rig.calibration(settings) if draw["calibration"] == "truth" else None
         try:
             outcome = run_survey(twin, rig, out, name, calibration=cal, overwrite=True, object_name=obj.name,
