@@ -181,7 +181,7 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
         width=size[0], height=size[1], fps=fps, imu=False)
     name = f"s{draw['index']:04d}_{draw['object']}"
     row: dict[str, Any] = dict(draw)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     with TwinRig(settings, rig=rig, obj=obj, placement=place) as twin:
         dense = add_dense_check(twin, dense_hz) if dense_hz > 0 else {}
         cal = twin.true_rig.calibration(settings) if draw["calibration"] == "truth" else None
@@ -204,6 +204,7 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
         row.update(dense)
         row["sim_s"] = round(twin.clock.now() - settings.timing.start_time_s, 2)
     row["wall_s"] = round(time.perf_counter() - t0, 2)
+    row["cpu_s"] = round(time.process_time() - cpu0, 2)  # this process's CPU: wall time on a shared machine is not
     if not keep and folder is not None:
         shutil.rmtree(folder, ignore_errors=True)
     return row
