@@ -42,6 +42,34 @@ def test_invalid_placements_are_refused_before_anything_moves(tmp_path: Path, ca
     assert not any(tmp_path.iterdir())  # no episode folder: nothing was built, nothing moved
 
 
+def test_a_placement_just_inside_the_clearance_names_a_distance_below_it() -> None:
+    # the mushroom-like mesh of benchmarks/safety.py at 19.6 mm from arm111's shoulder motor read "20 mm from"
+    import re
+
+    cup = make_object("cup")
+    base = RIG.arms["arm111"].T_world_base[0, 3]
+    def near(x: float) -> bool:
+        return any(w in _refusal(cup, x) for w in ("mm from", "inside"))
+
+    clear, touching = base - 0.3, base  # bisect for the placement just inside the 20 mm clearance
+    assert not near(clear) and near(touching)
+    for _ in range(20):
+        mid = 0.5 * (clear + touching)
+        clear, touching = (clear, mid) if near(mid) else (mid, touching)
+    x = touching
+    message = _refusal(cup, x)
+    distance = float(re.search(r"is ([0-9.]+) mm from", message).group(1))  # type: ignore[union-attr]
+    assert 19.0 < distance < 20.0 and "must keep 20 mm" in message
+
+
+def _refusal(obj, x: float) -> str:  # type: ignore[no-untyped-def]
+    try:
+        validate_placement(RIG, obj.radius_m, obj.height_m, ObjectPlacement(x, 0.0, 0.0))
+    except TwinError as err:
+        return str(err)
+    return ""
+
+
 def test_valid_placements_pass_and_a_tall_object_is_refused() -> None:
     cup = make_object("cup")
     for x, y in ((0.0, 0.0), (0.2, 0.25), (-0.2, -0.25)):

@@ -54,7 +54,8 @@ def validate_placement(rig: Any, radius_m: float, height_m: float, placement: An
         prims = rig.arm_primitives(arm_id, np.asarray(rig.arms[arm_id].park_q_rad, dtype=float))
         d = min_distance(prims, [envelope])
         if d.distance_m < clear_m:
-            where = "inside" if d.distance_m < 0 else f"{d.distance_m * 1000:.0f} mm from"
+            # rounded down to 0.1 mm: a refusal never reads as if the object kept the clearance
+            where = "inside" if d.distance_m < 0 else f"{math.floor(d.distance_m * 1e4) / 10:.1f} mm from"
             raise TwinError(f"{_where(placement)}: the object is {where} {arm_id}'s {d.name_a} "
                             f"(it must keep {clear_m * 1000:.0f} mm from both robots)")
     ws = rig.workspace
