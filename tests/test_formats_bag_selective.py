@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ import pytest
 from darp.formats.realsense.bag.reader import BagRecording
 from darp.reconstruction.keyframe_io import frameset_at
 from helpers.bag_samples import write_sample
+from helpers.benchmark_modules import load_benchmark
 from helpers.realsense_playback import play_back
 
 IMAGES = ("depth", "color", "ir1", "ir2")
@@ -85,18 +85,11 @@ def test_frame_table_asks_for_no_uncompressed_chunk(tmp_path: Path, compression:
 
 
 def _evict(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
-    finally:
-        os.close(fd)
+    load_benchmark("process_io").evict([path])
 
 
 def _cached_bytes(path: Path) -> int:
-    out = subprocess.run(["fincore", "--bytes", "--noheadings", "--raw", "-o", "RES", str(path)],
-                         capture_output=True, text=True, check=True, env=dict(os.environ)).stdout
-    return int(out.split()[0])
+    return int(load_benchmark("process_io").cached_bytes([path]))
 
 
 @pytest.mark.skipif(shutil.which("fincore") is None or not hasattr(os, "posix_fadvise"), reason="needs fincore")
