@@ -27,7 +27,8 @@ import numpy as np
 
 from darp.kinematics import z1
 from darp.kinematics.kinematic_model import LINK_MASSES, chain_fk, gravity_torques, tilted_axes
-from darp.kinematics.transforms import rotvec_to_rotation
+from darp.kinematics.rig import load_rig
+from darp.kinematics.transforms import make_transform, rotvec_to_rotation
 from darp.twin.settings import ArmErrorSettings
 
 REACH_M = 0.5  # typical flange distance from joint 2 in a survey; converts repeatability to joint angles
@@ -99,9 +100,6 @@ CALIBRATION_Q_RAD = np.array([
 ])
 # Points in the camera frame whose positions the unabsorbable size measures (the board's distance, +-0.1 m).
 _TEST_POINTS_CAM_M = np.array([[0.0, 0.0, 0.4], [0.1, 0.0, 0.4], [-0.1, 0.0, 0.4], [0.0, 0.1, 0.4], [0.0, -0.1, 0.4]])
-# The rig's nominal camera mount (camera z along the flange's x, 55 mm above it).
-_NOMINAL_FLANGE_CAM = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.055],
-                                [0.0, 0.0, 0.0, 1.0]])
 MAX_DRAWS = 400  # direction draws tried for ``unabsorbed_mm``
 UNABSORBED_TOLERANCE = 0.05  # accept a draw within 5 % of ``unabsorbed_mm``
 
@@ -174,21 +172,18 @@ def fk_batch_with_errors(Q: np.ndarray, errors: KinematicErrors, frame: str = "f
 
 
 def _points(Q: np.ndarray, origins: np.ndarray, axes: np.ndarray, dq: np.ndarray,
-            base: np.ndarray, hand_eye: np.ndarray) -> np.ndarray:
+            base: np.ndarray, hand_eye: np.ndarray, flange_cam: np.ndarray) -> np.ndarray:
     """Test points (N * P * 3,) in the base frame through a chain with small base / hand-eye corrections
     (rotation vector and translation, 6 each) and joint offsets ``dq``."""
     T = chain_fk(Q + dq, origins, axes, "flange")
-    T = _small(base)[None] @ T @ _small(hand_eye)[None] @ _NOMINAL_FLANGE_CAM[None]
+    T = _small(base)[None] @ T @ _small(hand_eye)[None] @ flange_cam[None]
     P = np.einsum("nij,pj->npi", T[:, :3, :3], _TEST_POINTS_CAM_M) + T[:, None, :3, 3]
     out: np.ndarray = P.ravel()
     return out
 
 
 def _small(v: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = rotvec_to_rotation(v[:3])
-    T[:3, 3] = v[3:]
-    return T
+    return make_transform(rotvec_to_rotation(v[:3]), v[3:])
 
 
 @lru_cache(maxsize=1)
@@ -196,20 +191,22 @@ def _unabsorbable_map() -> np.ndarray:
     """Linear map (N * P * 3, 36) from origin errors (6 x 3, m) and axis tilts (6 x 3, rad) to the part of
     the test points' displacement that joint offsets, a base and a hand-eye correction cannot absorb."""
     Q = CALIBRATION_Q_RAD
+    rig = load_rig()  # the default rig's nominal camera mount (both arms mount it alike)
+    flange_cam = np.asarray(rig.arms[sorted(rig.arms)[0]].T_flange_cam, dtype=float)
     o0, a0 = np.asarray(z1.JOINT_ORIGINS_M, float), tilted_axes(np.zeros((6, 3)))
     zero6 = np.zeros(6)
-    p0 = _points(Q, o0, a0, zero6, zero6, zero6)
+    p0 = _points(Q, o0, a0, zero6, zero6, zero6, flange_cam)
     h = 1e-6
     err_cols, abs_cols = [], []
     for k in range(36):
         d = np.zeros(36)
         d[k] = h
         o, t = o0 + d[:18].reshape(6, 3), d[18:].reshape(6, 3)
-        err_cols.append((_points(Q, o, tilted_axes(t), zero6, zero6, zero6) - p0) / h)
+        err_cols.append((_points(Q, o, tilted_axes(t), zero6, zero6, zero6, flange_cam) - p0) / h)
     for k in range(18):
         d = np.zeros(18)
         d[k] = h
-        abs_cols.append((_points(Q, o0, a0, d[12:], d[:6], d[6:12]) - p0) / h)
+        abs_cols.append((_points(Q, o0, a0, d[12:], d[:6], d[6:12], flange_cam) - p0) / h)
     J_err, A = np.stack(err_cols, 1), np.stack(abs_cols, 1)
     U, sv, _ = np.linalg.svd(A, full_matrices=False)
     U = U[:, sv > 1e-9 * sv[0]]
