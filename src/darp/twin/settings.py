@@ -188,17 +188,16 @@ class DepthErrorSettings:
     """Per-unit depth and intrinsics errors of the cameras (all zero: depth and intrinsics exact).
 
     Measured depth ``z' = z * (1 + s + d(t)) + o + b * z^2`` on valid pixels, with per-unit scale
-    ``s ~ N(0, scale_std_pct %)``, offset ``o ~ N(0, offset_std_mm)``, distance bias ``b ~
-    N(0, bias_std_mm_per_m2)`` and thermal drift ``d(t) = thermal_drift_pct % * (1 - exp(-t / tau))`` of the
-    session time ``t``. The recording's (factory) intrinsics differ from the rendering's true ones by
-    ``N(0, focal_std_pct %)`` in fx, fy and ``N(0, centre_std_px)`` in cx, cy, per stream.
+    ``s = +-scale_std_pct %``, offset ``o = +-offset_std_mm``, distance bias ``b = +-bias_std_mm_per_m2`` and
+    thermal drift ``d(t) = +-thermal_drift_pct % * (1 - exp(-t / tau))`` of the session time ``t``. The
+    recording's (factory) intrinsics differ from the rendering's true ones by ``+-focal_std_pct %`` in fx, fy
+    and by ``sqrt(2) x centre_std_px`` in a random direction in cx, cy, per stream.
     ``frame_field_px``: std of a smooth, low-frequency disparity error field drawn anew for every frame
     (the D400 depth "breathing" and waves that differ between frames; depth error ``z^2 e / (fx B)``).
     ``static_field_px``: std of a smooth disparity error field fixed to each sensor (drawn once per unit: the
     non-flatness a D400 shows on a flat wall, the same in every frame, so a surface point's depth error
     changes as it moves across the image between views).
-    Scale, offset, bias, drift and focal errors have exactly their stated size with a random sign per unit;
-    the principal point is off by ``sqrt(2)`` x ``centre_std_px`` in a random direction.
+    Each sign is drawn per unit: a unit's errors are one draw of exactly the stated sizes.
     """
 
     scale_std_pct: float = 0.0

@@ -116,10 +116,7 @@ class UnitErrors:
             return depth_m
         z = np.asarray(depth_m, dtype=np.float64)
         if field or static:
-            e = np.zeros(z.shape)
-            if field:
-                assert rng is not None
-                e = self.disparity_field(z.shape, rng)
+            e = self.disparity_field(z.shape, rng) if field and rng is not None else np.zeros(z.shape)
             if static:
                 e = e + self.sensor_field(z.shape)
             z = z / np.maximum(1.0 + z * e / self.focal_baseline_px_m, 0.5)
