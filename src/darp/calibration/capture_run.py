@@ -17,7 +17,7 @@ survey pose uses. ``stream="ir1"`` is available for rigs that switch the emitter
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -59,18 +59,32 @@ def _grab_image(frameset: Any, stream: str) -> tuple[np.ndarray, Any, np.ndarray
     raise CalibrationError(f"unknown capture stream {stream!r} (color, ir1)")
 
 
+@dataclass
+class _MoveDirections:
+    """Each arm's last commanded target (from the park pose, where the arms are assumed to start) and the
+    direction each joint last moved in (-1 / 0 / +1: what backlash depends on)."""
+
+    target: dict[str, np.ndarray]
+    direction: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def command(self, arm: str, q: np.ndarray) -> None:
+        if arm not in self.target:
+            return
+        step = q - self.target[arm]
+        self.direction[arm] = np.where(np.abs(step) > MOVED_RAD, np.sign(step), self.of(arm))
+        self.target[arm] = q.copy()
+
+    def of(self, arm: str) -> np.ndarray:
+        return self.direction.get(arm, np.zeros(6))
+
+
 def _move(rig: RigBackend, arm: str, q: np.ndarray, s: CaptureRunSettings,
-          last: dict[str, np.ndarray] | None = None) -> None:
-    """Command ``arm`` to ``q`` and wait until still; ``last`` tracks each arm's last commanded target (it
-    starts at the park pose, where the arms are assumed to start) and the direction each joint last moved in
-    (``last[arm + ":dir"]``, -1 / 0 / +1: what backlash depends on). No extra joint reading is taken, so a
-    run's readings (and the twin's noise draws) are those of a run without the tracking."""
+          moves: _MoveDirections | None = None) -> None:
+    """Command ``arm`` to ``q`` and wait until still; ``moves`` tracks the joints' move directions. No extra
+    joint reading is taken, so a run's readings (and the twin's noise draws) are those of a run without it."""
     q = np.asarray(q, dtype=float)
-    if last is not None and arm in last:
-        step = q - last[arm]
-        previous = last.get(arm + ":dir", np.zeros(6))
-        last[arm + ":dir"] = np.where(np.abs(step) > MOVED_RAD, np.sign(step), previous)
-        last[arm] = q.copy()
+    if moves is not None:
+        moves.command(arm, q)
     rig.arms[arm].move_to(q, s.max_speed_rad_s)
     if not rig.wait_until_still(arm, s.move_timeout_s):
         rig.arms[arm].stop()
@@ -86,18 +100,18 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
     """
     s = settings or CaptureRunSettings()
     count = 0
-    last: dict[str, np.ndarray] = {a: np.asarray(q, dtype=float).copy() for a, q in park_q.items()}
+    moves = _MoveDirections({a: np.asarray(q, dtype=float).copy() for a, q in park_q.items()})
     for arm, poses in plan.poses.items():
         if arm not in rig.arms or arm not in rig.cameras:
             raise CalibrationError(f"the plan names arm {arm!r} but the rig has {', '.join(rig.arms)}")
         for other in rig.arms:
             if other != arm:
-                _move(rig, other, park_q[other], s, last)
+                _move(rig, other, park_q[other], s, moves)
         camera = rig.cameras[arm]
         for k, pose in enumerate(poses):
             if pose.via_park:
-                _move(rig, arm, park_q[arm], s, last)
-            _move(rig, arm, pose.q_rad, s, last)
+                _move(rig, arm, park_q[arm], s, moves)
+            _move(rig, arm, pose.q_rad, s, moves)
             rig.clock.sleep(s.settle_s)
             reads = []
             for _ in range(max(1, s.joint_reads)):
@@ -112,11 +126,11 @@ def run_capture_plan(rig: RigBackend, plan: CapturePlan, writer: CaptureWriter, 
                        q_rad=q.mean(axis=0), q_std_rad=q.std(axis=0), image=image, intrinsics=intr,
                        T_depth_stream=T_depth_stream, stream=s.stream,
                        extra={"planned_q_rad": pose.q_rad.tolist(), "frame_time_s": float(frameset.timestamp_s),
-                              "move_direction": last.get(arm + ":dir", np.zeros(6)).astype(int).tolist()})
+                              "move_direction": moves.of(arm).astype(int).tolist()})
             count += 1
             if on_capture is not None:
                 on_capture(arm, k)
-        _move(rig, arm, park_q[arm], s, last)
+        _move(rig, arm, park_q[arm], s, moves)
     return count
 
 

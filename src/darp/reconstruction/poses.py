@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping
 from contextlib import AbstractContextManager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -241,8 +241,7 @@ def _kinematic_fk(cal: ArmCalibration, arm: str, calibration_path: Path | None, 
                             "compliance_rad_per_nm": params.compliance_rad_per_nm.tolist()}
     if params.has_backlash:  # applied to the joint log by the caller (it needs the log's history)
         info["backlash_rad"] = params.backlash_rad.tolist()
-        params = KinematicParams(params.origin_m, params.axis_tilt_rad, params.compliance_rad_per_nm,
-                                 params.payload_kg)
+        params = replace(params, backlash_rad=np.zeros(6))
     return (lambda Q: fk_batch_params(Q, params, wrist_frame)), info
 
 
