@@ -131,3 +131,38 @@ def test_time_estimator_uses_the_kinematic_model(monkeypatch: pytest.MonkeyPatch
         assert np.allclose(frames.T_world_base, base_kin if expect_kin else np.eye(4))
         assert (frames.fk_batch is not None) == expect_kin
         assert np.allclose(frames.joint_offsets_rad, 0.001 if expect_kin else 0.0)
+
+
+def test_time_estimator_gets_the_backlash_adjusted_joint_log(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The time-offset estimator re-poses frames from the joint log: with the richer model's backlash, that log
+    must be the link angles the poses stage used (each joint behind its last move), not the raw encoder log."""
+    import types
+
+    import numpy as np
+
+    from darp.formats.calibration import ArmCalibration, Calibration
+    from darp.kinematics.kinematic_model import KinematicParams
+    from darp.processing import pipeline
+    from darp.reconstruction.poses import motion_directions
+
+    backlash = np.full(6, 0.002)
+    kin = {"model": "kinematic+compliance+backlash", **KinematicParams(backlash_rad=backlash).to_dict()}
+    cal = Calibration(epoch="e", date="2026-12-02",
+                      arms={"arm110": ArmCalibration("1", np.eye(4), np.eye(4), kinematics=kin)})
+    ramp = np.r_[np.zeros(20), np.linspace(0.0, 0.3, 40), np.full(30, 0.3)]
+    log_q = np.zeros((ramp.size, 6))
+    log_q[:, 1] = ramp
+    t = np.arange(ramp.size) / 33.0
+    traj = types.SimpleNamespace(speed_noise_rad_s=0.0, poses=types.SimpleNamespace(
+        t_s=t, T_world_cam=np.tile(np.eye(4), (t.size, 1, 1)), joint_speed_rad_s=np.zeros(t.size)))
+    log = types.SimpleNamespace(times=lambda a: t, joints=lambda a: log_q)
+    recording = types.SimpleNamespace(stream=lambda k: types.SimpleNamespace(intrinsics=object()), depth_scale=0.001)
+    expected = log_q - backlash * motion_directions(log_q)
+    assert np.abs(expected - log_q).max() > 0.001  # the log moved, so the backlash shows
+    for spec, want in (("kinematics,time", expected), ("time", log_q)):
+        job = pipeline.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",), arm_poses=lambda: log),
+                                 out=tmp_path, calibration=cal, calibration_path=None,
+                                 settings=ProcessSettings(corrections=CorrectionSettings.parse(spec)))
+        monkeypatch.setattr(job, "recording", lambda a: recording)
+        frames = job._arm_frames("arm110", types.SimpleNamespace(trajectories={"arm110": traj}))
+        assert np.allclose(frames.log_q_rad, want, atol=1e-12)

@@ -272,14 +272,14 @@ class SurveyJob:
         """The time-offset estimator's view of one arm (joint log, eq. 1 inputs, depth decoder)."""
         from darp.reconstruction.keyframe_io import frameset_at
         from darp.reconstruction.keyframes import settled_mask
-        from darp.reconstruction.poses import eq1_model
+        from darp.reconstruction.poses import eq1_model, with_backlash
         from darp.reconstruction.time_align import ArmFrames
 
         traj = poses.trajectories[arm]
         log = self.survey.arm_poses()
         cal = self.calibration.arms[arm]
-        # the same eq. 1 as the poses (the richer model's transforms and kinematics when that switch is on)
-        T_world_base, T_wrist_cam, joint_offsets, fk, _ = eq1_model(
+        # the same eq. 1 as the poses (the richer model's transforms, kinematics and backlash when that switch is on)
+        T_world_base, T_wrist_cam, joint_offsets, fk, info = eq1_model(
             cal, arm, calibration_path=self.calibration_path, kinematics=self.settings.corrections.kinematics)
         recording = self.recording(arm)
         threshold = self.settings.keyframes.still_threshold(traj.speed_noise_rad_s)
@@ -292,7 +292,8 @@ class SurveyJob:
 
         intr = recording.stream("depth").intrinsics
         assert intr is not None
-        return ArmFrames(arm=arm, log_t_s=log.times(arm), log_q_rad=log.joints(arm), frame_t_s=traj.poses.t_s,
+        return ArmFrames(arm=arm, log_t_s=log.times(arm), log_q_rad=with_backlash(log.joints(arm), info),
+                         frame_t_s=traj.poses.t_s,
                          T_world_cam=traj.poses.T_world_cam, joint_speed_rad_s=speed,
                          still=settled_mask(traj.poses.t_s, speed, self.settings.keyframes, threshold),
                          T_world_base=T_world_base, T_wrist_cam=T_wrist_cam,

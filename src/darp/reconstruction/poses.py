@@ -180,10 +180,7 @@ def recover_survey_poses(
         T_world_base, T_wrist_cam, joint_offsets, fk, info = eq1_model(
             cal, arm, calibration_path=calibration_path, kinematics=result.kinematics is not None,
             wrist_frame=wrist_frame, warnings=result.warnings)
-        if info.get("backlash_rad") is not None:  # the richer model's backlash: behind each joint's last move
-            direction = motion_directions(log_q)
-            log_q = log_q - np.asarray(info["backlash_rad"], dtype=float) * direction
-            info["backlash_direction_changes"] = int(np.count_nonzero(np.diff(direction, axis=0)))
+        log_q = with_backlash(log_q, info)
         if result.kinematics is not None:
             result.kinematics[arm] = info
         poses = camera_poses(
@@ -256,6 +253,18 @@ def _kinematic_transforms(kin: dict[str, Any], arm: str, calibration_path: Path 
             raise FormatError(f"arms.{arm}.kinematics.{key}: expected finite {shape} values", calibration_path)
         out.append(value)
     return out[0], out[1], out[2]
+
+
+def with_backlash(log_q: np.ndarray, info: dict[str, Any]) -> np.ndarray:
+    """The joint log as link angles under the richer model's backlash (``info`` from :func:`eq1_model`):
+    each joint ``b`` behind its last move; the log unchanged when the model has no backlash. Records the
+    number of direction changes in ``info``."""
+    if info.get("backlash_rad") is None:
+        return log_q
+    direction = motion_directions(log_q)
+    info["backlash_direction_changes"] = int(np.count_nonzero(np.diff(direction, axis=0)))
+    out: np.ndarray = log_q - np.asarray(info["backlash_rad"], dtype=float) * direction
+    return out
 
 
 def motion_directions(log_q: np.ndarray, min_rows: int = 3, k_sigma: float = 4.0) -> np.ndarray:
@@ -373,6 +382,7 @@ __all__ = [
     "SurveyPoses",
     "format_tum",
     "motion_directions",
+    "with_backlash",
     "read_tum",
     "recover_survey_poses",
     "write_survey_poses",
