@@ -20,6 +20,7 @@ from darp.reconstruction.refine import (
     RefineSettings,
     RefineView,
     displacement_m,
+    information_ratios,
     mean_transform,
     refine_poses,
     rigid_power,
@@ -209,3 +210,46 @@ def test_gate_refuses_what_does_not_validate(many_views: list) -> None:
     # and without the gate (validate_every 0) the same fit is applied
     _, plain = _run(many_views, truth, 0.004, RefineSettings(validate_every=0, per_view=False))
     assert plain["gate"] == {"used": False, "note": "off (validate_every 0)"}
+
+
+
+def test_information_ratios_in_prior_units() -> None:
+    prior = (0.002, 0.005)  # 2 mm, 5 mrad
+    information = np.diag([1e3 / prior[1] ** 2, 1e3 / prior[1] ** 2, 0.1 / prior[1] ** 2] + [1e3 / prior[0] ** 2] * 3)
+    np.testing.assert_allclose(information_ratios(information, prior), [0.1] + [1e3] * 5, rtol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def round_scene_views() -> list[tuple[str, str, int, str, np.ndarray, np.ndarray]]:
+    """The views of :func:`scene_views` on a cylinder on the table: a turn about its axis leaves both unchanged."""
+    import open3d as o3d
+
+    cylinder = o3d.geometry.TriangleMesh.create_cylinder(0.03, 0.08, 96)
+    cylinder.translate(CENTRE)
+    scene = Scene([table(), cylinder])
+    intr = small_intrinsics(320, 240, 192.0)
+    rng = np.random.default_rng(0)
+    views = []
+    for arm, azimuths in (("arm110", (140, 180, 220)), ("arm111", (-40, 0, 40))):
+        for k, T in enumerate(orbit_poses(CENTRE, 0.35, (35, 60), azimuths)):
+            depth, _ = scene.render(T, intr)
+            views.append((f"{arm}/{k}", arm, k, "fuse", T, to_z16(add_depth_noise(depth, rng), SCALE)))
+    return views
+
+
+def test_arm_pair_records_what_its_overlap_constrains(round_scene_views: list, scene_views: list) -> None:
+    """The arm-to-arm fit records its information per direction in prior units and its twist: on a cylinder
+    the turn about its axis is the one direction the overlap does not see (ratio < 1), and the fit leaves it
+    at zero; the box and sphere constrain that turn more."""
+    offset = _rigid((0.0, 0.0, 1.5), (2.0, -1.0, 0.5))
+    settings = RefineSettings(per_view=False, validate_every=0)
+    pairs = {}
+    for name, views in (("round", round_scene_views), ("box", scene_views)):
+        truth = {v[0]: v[4] for v in views}
+        perturbed = {key: (offset @ T if key.startswith("arm111") else T) for key, T in truth.items()}
+        pairs[name] = _run(views, perturbed, 0.004, settings)[1]["arm_pair"]
+    ratios = pairs["round"]["information_ratios"]
+    assert len(ratios) == 6 and ratios[0] < 1.0 < ratios[1] and ratios == sorted(ratios)
+    assert pairs["box"]["information_ratios"][0] > 2 * ratios[0]
+    # the fit's twist: the round object's turn about z stays near zero (the true 1.5 deg is invisible to it)
+    assert abs(pairs["round"]["rotvec_deg"][2]) < 0.3 and len(pairs["round"]["displacement_mm"]) == 3

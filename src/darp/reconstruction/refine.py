@@ -229,6 +229,7 @@ class Alignment:
     overlap: float  # fraction of the source points with a correspondence at the finest scale
     rmse_m: float  # robust-weighted point-to-plane RMS at the finest scale
     points: int
+    information: np.ndarray | None = None  # the data's information about the twist at the end (J^T W J, 6x6)
 
 
 def normal_space_weights(normals: np.ndarray) -> np.ndarray:
@@ -260,7 +261,7 @@ def regularised_icp(source: np.ndarray, target: np.ndarray, target_normals: np.n
     T = np.eye(4) if init is None else np.array(init, np.float64)
     prior = np.diag([1 / prior_sigma[1] ** 2] * 3 + [1 / prior_sigma[0] ** 2] * 3)
     finest = min(settings.max_correspondence_m)
-    overlap, rmse = 0.0, math.inf
+    overlap, rmse, information = 0.0, math.inf, np.zeros((6, 6))
     k = 4 if exclude is not None else 1
     balance = np.ones(len(source)) if source_normals is None else normal_space_weights(source_normals)
     for distance in settings.max_correspondence_m:
@@ -296,9 +297,20 @@ def regularised_icp(source: np.ndarray, target: np.ndarray, target_normals: np.n
             T = twist_transform(delta, centre) @ T
             overlap = float(ok.mean())
             rmse = float(np.sqrt(np.sum(w * r * r) / max(np.sum(w), 1e-12)))
+            information = H - prior
             if np.linalg.norm(delta[:3]) < 1e-7 and np.linalg.norm(delta[3:]) < 1e-7:
                 break
-    return Alignment(T, overlap, rmse, len(source))
+    return Alignment(T, overlap, rmse, len(source), information)
+
+
+def information_ratios(information: np.ndarray, prior_sigma: tuple[float, float]) -> np.ndarray:
+    """The generalised eigenvalues of the data's information against the prior's, ascending (twists about the
+    centre; ``prior_sigma`` = (displacement m, rotation rad)): how many times the prior's information the overlap
+    gives along each direction. A value well below 1 is a direction the overlap does not see (the turn of a round
+    object about its axis); the prior then holds the correction there."""
+    s = np.array([prior_sigma[1]] * 3 + [prior_sigma[0]] * 3)
+    out: np.ndarray = np.linalg.eigvalsh((information * s[:, None]) * s[None, :])
+    return out
 
 
 # -- the refinement -----------------------------------------------------------------------------------------
@@ -412,11 +424,17 @@ def refine_poses(views: Sequence[RefineView], frames: Iterable[PosedDepth | None
                         np.concatenate([clouds[i][1] for i in fuse_idx if views[i].arm == arm])) for arm in arms}
         # the relative correction of two arms has twice the variance of one arm's
         stride = max(1, len(merged[b][0]) // (4 * settings.max_source_points))
-        fit = regularised_icp(merged[b][0][::stride], merged[a][0], merged[a][1], centre,
-                              (prior[0] * math.sqrt(2), prior[1] * math.sqrt(2)), settings,
+        pair_prior = (prior[0] * math.sqrt(2), prior[1] * math.sqrt(2))
+        fit = regularised_icp(merged[b][0][::stride], merged[a][0], merged[a][1], centre, pair_prior, settings,
                               source_normals=merged[b][1][::stride])
+        twist = transform_twist(fit.T, centre)
         pair_record = {"source": b, "target": a, "overlap": round(fit.overlap, 4),
-                       "rmse_mm": round(fit.rmse_m * 1000, 3), **_measure(fit.T, centre)}
+                       "rmse_mm": round(fit.rmse_m * 1000, 3), **_measure(fit.T, centre),
+                       "rotvec_deg": [round(float(x), 4) for x in np.degrees(twist[:3])],
+                       "displacement_mm": [round(float(x), 3) for x in twist[3:] * 1000]}
+        if fit.information is not None:  # how many times the prior's information the overlap gives, per direction
+            pair_record["information_ratios"] = [round(float(x), 2) for x in information_ratios(fit.information,
+                                                                                                pair_prior)]
         if fit.overlap >= settings.min_overlap:
             arm_T[b] = rigid_power(fit.T, 0.5)
             arm_T[a] = np.linalg.inv(arm_T[b])  # the gauge: the arms' corrections cancel
