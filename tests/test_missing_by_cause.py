@@ -13,20 +13,20 @@ from darp.evaluation.truth_metrics import MISSING_CAUSES, missing_by_cause, samp
 
 
 def test_each_missing_sample_gets_the_last_stage_that_had_it() -> None:
-    # seven samples 10 cm apart; sample k is lost at cause k
-    samples = np.column_stack([np.arange(7) * 0.1, np.zeros(7), np.zeros(7)])
-    stages = {"in_envelope": samples[4:] + [0, 0, 0.004], "supported": samples[5:] + [0, 0.003, 0],
-              "after_sor": samples[6:] - [0.004, 0, 0], "fused": np.empty((0, 3))}
-    k = np.arange(7)
-    in_view, in_view_well, measured = k >= 1, k >= 2, k >= 3
-    out = missing_by_cause(samples, np.ones(7, bool), in_view=in_view, in_view_well=in_view_well,
-                           measured=measured, stages=stages, threshold_m=0.005)
-    assert out["missing"] == 7
+    # eight samples 10 cm apart; sample k is lost at cause k
+    samples = np.column_stack([np.arange(8) * 0.1, np.zeros(8), np.zeros(8)])
+    stages = {"in_envelope": samples[5:] + [0, 0, 0.004], "supported": samples[6:] + [0, 0.003, 0],
+              "after_sor": samples[7:] - [0.004, 0, 0], "fused": np.empty((0, 3))}
+    k = np.arange(8)
+    in_view, in_view_well, raw, measured = k >= 1, k >= 2, k >= 3, k >= 4
+    out = missing_by_cause(samples, np.ones(8, bool), in_view=in_view, in_view_well=in_view_well,
+                           measured=measured, measured_raw=raw, stages=stages, threshold_m=0.005)
+    assert out["missing"] == 8
     assert out["count"] == dict.fromkeys(MISSING_CAUSES, 1)
     # a sample that is not missing is not counted; a 6 mm offset is beyond a 5 mm threshold
     far = {name: v + [0, 0, 0.006] for name, v in stages.items()}
-    out = missing_by_cause(samples, np.arange(7) >= 3, in_view=in_view, in_view_well=in_view_well,
-                           measured=measured, stages=far, threshold_m=0.005)
+    out = missing_by_cause(samples, np.arange(8) >= 4, in_view=in_view, in_view_well=in_view_well,
+                           measured=measured, measured_raw=raw, stages=far, threshold_m=0.005)
     assert out["missing"] == 4 and out["count"]["crop"] == 4 and out["share_pct"]["crop"] == 100.0
 
 

@@ -147,28 +147,32 @@ def seeable_from_poses(samples: np.ndarray, normals: np.ndarray, vertices: np.nd
     return seen
 
 
-MISSING_CAUSES = ("not_in_view", "grazing_or_range", "no_depth", "crop", "support", "outlier_removal",
-                  "surface_fit")
+MISSING_CAUSES = ("not_in_view", "grazing_or_range", "no_depth", "depth_filter", "crop", "support",
+                  "outlier_removal", "surface_fit")
 """Where a seeable true-surface sample missing from the fused cloud was lost, in pipeline order (see
 :func:`missing_by_cause`)."""
 
 
 def missing_by_cause(samples: np.ndarray, missing: np.ndarray, *, in_view: np.ndarray, in_view_well: np.ndarray,
-                     measured: np.ndarray, stages: dict[str, np.ndarray], threshold_m: float) -> dict[str, Any]:
+                     measured: np.ndarray, stages: dict[str, np.ndarray], threshold_m: float,
+                     measured_raw: np.ndarray | None = None) -> dict[str, Any]:
     """Why each ``missing`` sample (a seeable true-surface sample farther than ``threshold_m`` from the fused
     cloud) is missing: the last step of the pipeline that still had a point within ``threshold_m`` of it.
 
     - ``not_in_view``: no fused keyframe had it in its image unoccluded (``in_view`` False): planning;
     - ``grazing_or_range``: in view, but only beyond the seeable incidence or depth range (``in_view_well``
       False): planning;
-    - ``no_depth``: in view well, but no frame measured a point near it (``measured`` False: depth holes,
-      the depth filter, or poses that put the measurement elsewhere);
+    - ``no_depth``: in view well, but no frame's depth has a point near it, even unfiltered (``measured_raw``
+      False: depth holes, or poses that put the measurement elsewhere);
+    - ``depth_filter``: the unfiltered depth had a point near it, the per-frame depth filters (edges,
+      incidence, range) left none (``measured`` False);
     - ``crop``: measured, but no voxel inside the envelope/table crop near it (``stages['in_envelope']``);
     - ``support``: a voxel near it, none supported (``stages['supported']``);
     - ``outlier_removal``: supported, removed by statistical outlier removal (``stages['after_sor']``);
     - ``surface_fit``: kept after outlier removal, moved or merged away by the surface fit.
 
-    ``in_view``, ``in_view_well`` and ``measured`` are boolean per sample. Returns counts and shares (of the
+    ``in_view``, ``in_view_well``, ``measured`` and ``measured_raw`` (default: ``measured``) are boolean per
+    sample. Returns counts and shares (of the
     missing samples) per cause."""
     pts = np.asarray(samples, np.float64)
     todo = np.flatnonzero(np.asarray(missing, bool))
@@ -182,10 +186,11 @@ def missing_by_cause(samples: np.ndarray, missing: np.ndarray, *, in_view: np.nd
         return found
 
     # from the end of the pipeline backwards: the first stage that still had the sample is the one that lost it
-    for code, stage in ((6, "after_sor"), (5, "supported"), (4, "in_envelope")):
+    for code, stage in ((7, "after_sor"), (6, "supported"), (5, "in_envelope")):
         open_ = np.flatnonzero(cause < 0)
         cause[open_[near(stages.get(stage), todo[open_])]] = code
-    for code, mask in ((3, measured), (2, in_view_well), (1, in_view)):
+    raw = measured if measured_raw is None else np.asarray(measured_raw, bool) | np.asarray(measured, bool)
+    for code, mask in ((4, measured), (3, raw), (2, in_view_well), (1, in_view)):
         open_ = np.flatnonzero(cause < 0)
         cause[open_[np.asarray(mask, bool)[todo[open_]]]] = code
     cause[cause < 0] = 0

@@ -212,18 +212,21 @@ def missing_causes(job: SurveyJob, samples: np.ndarray, normals: np.ndarray, tru
     in view (unoccluded in the image, any incidence and depth) and in view well (the seeable rules)."""
     from scipy.spatial import cKDTree
 
-    from darp.reconstruction.backproject import backproject
+    from darp.reconstruction.backproject import DepthFilterSettings, backproject
     from darp.reconstruction.fusion import VoxelFusion
 
     idx = np.flatnonzero(missing)
     targets = samples[idx]
     measured_local = np.zeros(idx.size, bool)
+    raw_local = np.zeros(idx.size, bool)
+    unfiltered = DepthFilterSettings(min_depth_m=0.0, max_depth_m=1e3, discontinuity_abs_m=1e3, edge_margin_px=0,
+                                     max_incidence_deg=90.0)
     target_tree = cKDTree(targets) if idx.size else None
     fusion = VoxelFusion(job.settings.fusion, job.crop())
     poses: list[np.ndarray] = []
     intr = None
     for keyframe in iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY):
-        frame = keyframe.posed_depth()
+        frame = keyframe.posed_depth(colour=False)
         intr = frame.intrinsics
         poses.append(np.asarray(frame.T_world_cam, np.float64))
         if job.settings.corrections.table:
@@ -231,11 +234,12 @@ def missing_causes(job: SurveyJob, samples: np.ndarray, normals: np.ndarray, tru
         else:
             fusion.add(frame)
         if target_tree is not None:
-            raw = backproject(frame, job.settings.fusion.depth, None).points
-            if len(raw):
-                hits = target_tree.query_ball_point(np.asarray(raw, np.float64), r=threshold_m)
-                reached = [j for group in hits for j in group]
-                measured_local[np.unique(np.asarray(reached, np.int64))] = True
+            for settings, reached in ((job.settings.fusion.depth, measured_local), (unfiltered, raw_local)):
+                raw = backproject(frame, settings, None).points
+                if len(raw):
+                    hits = target_tree.query_ball_point(np.asarray(raw, np.float64), r=threshold_m)
+                    near = [j for group in hits for j in group]
+                    reached[np.unique(np.asarray(near, np.int64))] = True
     result = fusion.result(keep_stages=True)
     assert result.stages is not None
     view: dict[str, np.ndarray] = {}
@@ -250,10 +254,11 @@ def missing_causes(job: SurveyJob, samples: np.ndarray, normals: np.ndarray, tru
         full = np.zeros(len(samples), bool)
         full[idx] = local
         view[name] = full
-    measured = np.zeros(len(samples), bool)
-    measured[idx] = measured_local
+    measured, measured_raw = np.zeros(len(samples), bool), np.zeros(len(samples), bool)
+    measured[idx], measured_raw[idx] = measured_local, raw_local
     return missing_by_cause(samples, missing, in_view=view["in_view"], in_view_well=view["in_view_well"],
-                            measured=measured, stages=result.stages, threshold_m=threshold_m)
+                            measured=measured, measured_raw=measured_raw, stages=result.stages,
+                            threshold_m=threshold_m)
 
 
 def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:
