@@ -83,3 +83,20 @@ def test_missing_causes_on_the_tiny_survey(processed_path: Path, survey_path: Pa
     unseen = c["not_in_view"] + c["grazing_or_range"] + c["no_depth"] + c["depth_filter"] + c["crop"]
     assert unseen >= 0.9 * underside.sum()
     assert c["support"] + c["outlier_removal"] <= 0.05 * out["missing"]
+
+
+def test_the_benchmark_row_reads_results_json() -> None:
+    from helpers.benchmark_modules import load_benchmark
+
+    bench = load_benchmark("missing_by_cause")
+    results = {"object": "mug", "clouds": {"fused": 1234},
+               "heldout": {"aggregate": {"median_mm": 0.5, "rmse_mm": 1.0, "within_10mm_pct": 99.5}},
+               "cross_arm": {"directions": [{"co_observed_pct": 12.0}, {"co_observed_pct": 9.5}]},
+               "truth": {"cloud": {"accuracy": {"median_mm": 0.2, "p90_mm": 0.4}},
+                         "seeable": {"completeness_pct": {"5mm": 90.0},
+                                     "missing_by_cause": {"share_pct": {"support": 60.0, "outlier_removal": 40.0,
+                                                                        "crop": 0.5}}}}}
+    line = bench.row(results, "default")
+    assert line is not None and line.startswith("| mug | default | 1,234 | 90.0 % | support 6.0, SOR 4.0 |")
+    assert "12.0 / 9.5 %" in line and "crop" not in line  # 0.05 point is below the printed 0.1
+    assert bench.row({"truth": None}, "x") is None
