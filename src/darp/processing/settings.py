@@ -107,6 +107,7 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("fusion", "support_neighbourhood"),
     ("fusion", "arm_support_from_fused"),
     ("fusion", "sor_local_ratio"),
+    ("fusion", "neighbourhood_own_frames"),
     ("evaluation", "missing_by_cause"),
     ("evaluation", "missing_threshold_m"),
 )

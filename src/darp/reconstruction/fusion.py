@@ -80,6 +80,7 @@ class FusionSettings:
     visibility_tolerance_m: float = 0.01  # in view: not more than this behind the frame's measured depth
     visibility_stride_px: int = 4  # the in-view test reads every n-th depth pixel (memory: ~W*H/n^2 per frame)
     support_neighbourhood: int = 0  # count support over the (2n+1)^3 voxels around each voxel (0 = the voxel alone)
+    neighbourhood_own_frames: int = 1  # ... only for voxels that at least this many frames saw themselves
     arm_support_from_fused: int = 0  # an arm's cloud also keeps voxels the fused cloud supports that this many
     # of the arm's own frames saw (0 = off: each arm's cloud needs the support from its own frames alone)
 
@@ -102,6 +103,8 @@ class FusionSettings:
                                       "table_calibration_factor must be >= 0")
         if self.arm_support_from_fused < 0:
             raise ReconstructionError("arm_support_from_fused must be >= 0")
+        if self.neighbourhood_own_frames < 1:
+            raise ReconstructionError(f"neighbourhood_own_frames must be >= 1, got {self.neighbourhood_own_frames}")
         if not 0 <= self.support_neighbourhood <= 2:
             raise ReconstructionError(f"support_neighbourhood must be 0, 1 or 2, got {self.support_neighbourhood}")
         if not (self.min_frames_floor >= 1 and 0 < self.support_fraction <= 1 and self.visibility_tolerance_m > 0
@@ -333,8 +336,14 @@ def neighbourhood_support(stats: VoxelStats, radius: int) -> tuple[np.ndarray, n
 def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
                      counts: dict[str, int] | None = None) -> np.ndarray:
     """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``), counted
-    over each voxel's neighbourhood with ``support_neighbourhood``."""
+    over each voxel's neighbourhood with ``support_neighbourhood`` (for the voxels at least
+    ``neighbourhood_own_frames`` frames saw; the others keep their own counts)."""
     n_frames, view_mask = neighbourhood_support(stats, settings.support_neighbourhood)
+    if settings.support_neighbourhood > 0 and settings.neighbourhood_own_frames > 1:
+        # a voxel only one frame hit is where noise scatters: it keeps its own count
+        alone = stats.n_frames < settings.neighbourhood_own_frames
+        n_frames = np.where(alone, stats.n_frames, n_frames)
+        view_mask = np.where(alone, stats.view_mask, view_mask)
     if settings.support_neighbourhood > 0:
         stats = dataclasses.replace(stats, n_frames=n_frames, view_mask=view_mask)
     n_views = popcount64(stats.view_mask)
