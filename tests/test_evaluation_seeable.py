@@ -14,6 +14,7 @@ from darp.evaluation.truth_metrics import sample_surface, visible_in_frames
 from darp.formats.envelope import Envelope
 from darp.processing.evaluate import read_truth_mesh, seeable_completeness
 from darp.processing.results import read_results
+from darp.processing.settings import EvaluationSettings, ProcessSettings
 from darp.reconstruction.cloud_io import read_ply
 from darp.reconstruction.keyframe_io import iter_keyframes, posed_frames
 from darp.reconstruction.keyframes import FUSE
@@ -28,7 +29,8 @@ def test_seeable_completeness_from_the_keyframes_own_poses(processed_path: Path,
     poses = [k.posed_depth(colour=False).T_world_cam for k in iter_keyframes(kf, FUSE)]
     env = Envelope(object_name="cube", extra={"coverage": {"feasible_poses": {
         "arm110": [np.asarray(T)[:3].reshape(-1).tolist() for T in poses]}}})
-    job = types.SimpleNamespace(survey=types.SimpleNamespace(envelope=lambda: env), keyframes_dir=kf)
+    plain = ProcessSettings(evaluation=EvaluationSettings(missing_by_cause=False))  # tests/test_missing_by_cause.py
+    job = types.SimpleNamespace(survey=types.SimpleNamespace(envelope=lambda: env), keyframes_dir=kf, settings=plain)
     tv, tt = read_truth_mesh(survey_path / "truth" / "object.ply")
     samples, normals = sample_surface(tv, tt, np.random.default_rng(0), spacing_m=0.002)
     seen = visible_in_frames(samples, posed_frames(iter_keyframes(kf, FUSE), colour=False), tolerance_m=0.005,
@@ -48,5 +50,5 @@ def test_seeable_completeness_from_the_keyframes_own_poses(processed_path: Path,
     assert out["completeness_pct"]["2mm"] <= out["completeness_pct"]["5mm"] <= out["completeness_pct"]["10mm"]
     # no feasible poses recorded: no seeable section
     bare = types.SimpleNamespace(survey=types.SimpleNamespace(envelope=lambda: Envelope(object_name="cube")),
-                                 keyframes_dir=kf)
+                                 keyframes_dir=kf, settings=plain)
     assert seeable_completeness(bare, fused, samples, normals, tv, tt, seen) is None  # type: ignore[arg-type]

@@ -139,3 +139,18 @@ def test_per_arm_clouds_keep_the_band_the_fused_cloud_supports(frames: list[Pose
             assert not np.any(np.linalg.norm(c.points - ghost, axis=1) < 0.003)
     assert dataclasses.asdict(shared.settings)["arm_support_from_fused"] == 1
     assert popcount64(np.array([3], np.uint64))[0] == 2
+
+
+def test_neighbourhood_support_only_for_voxels_seen_by_enough_frames_themselves() -> None:
+    # a well-supported voxel (4 frames, 2 bins), beside it one that 2 frames hit and one that 1 frame hit
+    stats = stats_of({(0, 0, 0): (4, [0, 1]), (1, 0, 0): (2, [0]), (0, 1, 0): (1, [1])})
+    order = {k: n for n, k in enumerate(sorted([(0, 0, 0), (1, 0, 0), (0, 1, 0)],
+                                               key=lambda k: int(pack_keys(np.array([k]))[0])))}
+    every = supported_voxels(stats, FusionSettings(support_neighbourhood=1, adaptive_support=False))
+    own2 = supported_voxels(stats, FusionSettings(support_neighbourhood=1, neighbourhood_own_frames=2,
+                                                  adaptive_support=False))
+    assert every.all()  # the neighbourhood lends its support to both
+    assert own2[order[(0, 0, 0)]] and own2[order[(1, 0, 0)]]
+    assert not own2[order[(0, 1, 0)]]  # a voxel one frame hit keeps its own count
+    with pytest.raises(ReconstructionError, match="neighbourhood_own_frames"):
+        FusionSettings(neighbourhood_own_frames=0)

@@ -147,6 +147,60 @@ def seeable_from_poses(samples: np.ndarray, normals: np.ndarray, vertices: np.nd
     return seen
 
 
+MISSING_CAUSES = ("not_in_view", "grazing_or_range", "no_depth", "depth_filter", "crop", "support",
+                  "outlier_removal", "surface_fit")
+"""Where a seeable true-surface sample missing from the fused cloud was lost, in pipeline order (see
+:func:`missing_by_cause`)."""
+
+
+def missing_by_cause(samples: np.ndarray, missing: np.ndarray, *, in_view: np.ndarray, in_view_well: np.ndarray,
+                     measured: np.ndarray, stages: dict[str, np.ndarray], threshold_m: float,
+                     measured_raw: np.ndarray | None = None) -> dict[str, Any]:
+    """Why each ``missing`` sample (a seeable true-surface sample farther than ``threshold_m`` from the fused
+    cloud) is missing: the last step of the pipeline that still had a point within ``threshold_m`` of it.
+
+    - ``not_in_view``: no fused keyframe had it in its image unoccluded (``in_view`` False): planning;
+    - ``grazing_or_range``: in view, but only beyond the seeable incidence or depth range (``in_view_well``
+      False): planning;
+    - ``no_depth``: in view well, but no frame's depth has a point near it, even unfiltered (``measured_raw``
+      False: depth holes, or poses that put the measurement elsewhere);
+    - ``depth_filter``: the unfiltered depth had a point near it, the per-frame depth filters (edges,
+      incidence, range) left none (``measured`` False);
+    - ``crop``: measured, but no voxel inside the envelope/table crop near it (``stages['in_envelope']``);
+    - ``support``: a voxel near it, none supported (``stages['supported']``);
+    - ``outlier_removal``: supported, removed by statistical outlier removal (``stages['after_sor']``);
+    - ``surface_fit``: kept after outlier removal, moved or merged away by the surface fit.
+
+    ``in_view``, ``in_view_well``, ``measured`` and ``measured_raw`` (default: ``measured``) are boolean per
+    sample. Returns counts and shares (of the
+    missing samples) per cause."""
+    pts = np.asarray(samples, np.float64)
+    todo = np.flatnonzero(np.asarray(missing, bool))
+    cause = np.full(todo.size, -1, np.int64)
+
+    def near(points: np.ndarray | None, idx: np.ndarray) -> np.ndarray:
+        if points is None or len(points) == 0 or idx.size == 0:
+            return np.zeros(idx.size, bool)
+        d = cKDTree(np.asarray(points, np.float64)).query(pts[idx], k=1, distance_upper_bound=threshold_m)[0]
+        found: np.ndarray = d <= threshold_m
+        return found
+
+    # from the end of the pipeline backwards: the first stage that still had the sample is the one that lost it
+    for code, stage in ((7, "after_sor"), (6, "supported"), (5, "in_envelope")):
+        open_ = np.flatnonzero(cause < 0)
+        cause[open_[near(stages.get(stage), todo[open_])]] = code
+    raw = measured if measured_raw is None else np.asarray(measured_raw, bool) | np.asarray(measured, bool)
+    for code, mask in ((4, measured), (3, raw), (2, in_view_well), (1, in_view)):
+        open_ = np.flatnonzero(cause < 0)
+        cause[open_[np.asarray(mask, bool)[todo[open_]]]] = code
+    cause[cause < 0] = 0
+    counts = np.bincount(cause, minlength=len(MISSING_CAUSES))
+    total = max(int(todo.size), 1)
+    return {"missing": int(todo.size), "threshold_mm": round(threshold_m * 1000.0, 3),
+            "count": {name: int(counts[i]) for i, name in enumerate(MISSING_CAUSES)},
+            "share_pct": {name: round(100.0 * float(counts[i]) / total, 2) for i, name in enumerate(MISSING_CAUSES)}}
+
+
 @dataclass(frozen=True)
 class SurfaceScores:
     """Accuracy (reconstruction -> truth), completeness (seen truth -> reconstruction) and F-score."""
@@ -222,5 +276,6 @@ def truth_metrics(points: np.ndarray, truth_vertices: np.ndarray, truth_triangle
                         n_seen=int(seen_mask.sum()))
 
 
-__all__ = ["SEEABLE_DEPTH_RANGE_M", "SEEABLE_MAX_INCIDENCE_DEG", "TRUTH_THRESHOLDS_M", "SurfaceScores", "TruthMetrics",
-           "sample_surface", "seeable_from_poses", "truth_metrics", "visible_in_frames"]
+__all__ = ["MISSING_CAUSES", "SEEABLE_DEPTH_RANGE_M", "SEEABLE_MAX_INCIDENCE_DEG", "TRUTH_THRESHOLDS_M",
+           "SurfaceScores", "TruthMetrics", "missing_by_cause", "sample_surface", "seeable_from_poses",
+           "truth_metrics", "visible_in_frames"]

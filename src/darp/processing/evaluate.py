@@ -18,7 +18,10 @@ from darp.evaluation.cross_arm import cross_arm_consistency
 from darp.evaluation.heldout import evaluate_heldout
 from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
 from darp.evaluation.truth_metrics import (
+    SEEABLE_DEPTH_RANGE_M,
+    SEEABLE_MAX_INCIDENCE_DEG,
     TRUTH_THRESHOLDS_M,
+    missing_by_cause,
     sample_surface,
     seeable_from_poses,
     truth_metrics,
@@ -188,10 +191,74 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
                               fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
                               table_z_m=float(np.min(truth_v[:, 2])))
     distance = cKDTree(fused).query(samples[mask], k=1)[0] if mask.any() else np.empty(0)
+    causes = None
+    if job.settings.evaluation.missing_by_cause and mask.any():
+        threshold = job.settings.evaluation.missing_threshold_m
+        missing = np.zeros(len(samples), bool)
+        missing[np.flatnonzero(mask)[distance > threshold]] = True
+        causes = missing_causes(job, samples, normals, truth_v, truth_t, missing, threshold)
     return {"poses": len(poses), "samples": int(mask.sum()), "of_mesh_pct": round(100.0 * float(mask.mean()), 4),
             "seen_by_keyframes_pct": round(100.0 * float(np.mean(seen[mask])), 4) if mask.any() else None,
             "completeness_pct": {f"{t * 1000:g}mm": (round(100.0 * float(np.mean(distance <= t)), 4)
-                                                     if distance.size else None) for t in TRUTH_THRESHOLDS_M}}
+                                                     if distance.size else None) for t in TRUTH_THRESHOLDS_M},
+            **({"missing_by_cause": causes} if causes is not None else {})}
+
+
+def missing_causes(job: SurveyJob, samples: np.ndarray, normals: np.ndarray, truth_v: np.ndarray,
+                   truth_t: np.ndarray, missing: np.ndarray, threshold_m: float) -> dict[str, Any]:
+    """:func:`~darp.evaluation.truth_metrics.missing_by_cause` for a processed twin survey: the fuse keyframes
+    are fused again (same settings and crops) keeping each step's points, each is back-projected without any
+    crop (what the camera measured), and the samples are tested against the keyframes' own poses for being
+    in view (unoccluded in the image, any incidence and depth) and in view well (the seeable rules)."""
+    from scipy.spatial import cKDTree
+
+    from darp.reconstruction.backproject import DepthFilterSettings, backproject
+    from darp.reconstruction.fusion import VoxelFusion
+
+    idx = np.flatnonzero(missing)
+    targets = samples[idx]
+    measured_local = np.zeros(idx.size, bool)
+    raw_local = np.zeros(idx.size, bool)
+    unfiltered = DepthFilterSettings(min_depth_m=0.0, max_depth_m=1e3, discontinuity_abs_m=1e3, edge_margin_px=0,
+                                     max_incidence_deg=90.0)
+    target_tree = cKDTree(targets) if idx.size else None
+    fusion = VoxelFusion(job.settings.fusion, job.crop())
+    poses: list[np.ndarray] = []
+    intr = None
+    for keyframe in iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY):
+        frame = keyframe.posed_depth(colour=False)
+        intr = frame.intrinsics
+        poses.append(np.asarray(frame.T_world_cam, np.float64))
+        if job.settings.corrections.table:
+            fusion.add(frame, job.table_region(frame)[0])
+        else:
+            fusion.add(frame)
+        if target_tree is not None:
+            for settings, reached in ((job.settings.fusion.depth, measured_local), (unfiltered, raw_local)):
+                raw = backproject(frame, settings, None).points
+                if len(raw):
+                    hits = target_tree.query_ball_point(np.asarray(raw, np.float64), r=threshold_m)
+                    near = [j for group in hits for j in group]
+                    reached[np.unique(np.asarray(near, np.int64))] = True
+    result = fusion.result(keep_stages=True)
+    assert result.stages is not None
+    view: dict[str, np.ndarray] = {}
+    for name, incidence, depth_range in (("in_view", 89.9, (0.0, np.inf)),
+                                         ("in_view_well", SEEABLE_MAX_INCIDENCE_DEG, SEEABLE_DEPTH_RANGE_M)):
+        local = np.zeros(idx.size, bool)
+        if intr is not None and idx.size:
+            local = seeable_from_poses(targets, normals[idx], truth_v, truth_t, poses, width=intr.width,
+                                       height=intr.height, fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
+                                       table_z_m=float(np.min(truth_v[:, 2])), max_incidence_deg=incidence,
+                                       depth_range_m=depth_range)
+        full = np.zeros(len(samples), bool)
+        full[idx] = local
+        view[name] = full
+    measured, measured_raw = np.zeros(len(samples), bool), np.zeros(len(samples), bool)
+    measured[idx], measured_raw[idx] = measured_local, raw_local
+    return missing_by_cause(samples, missing, in_view=view["in_view"], in_view_well=view["in_view_well"],
+                            measured=measured, measured_raw=measured_raw, stages=result.stages,
+                            threshold_m=threshold_m)
 
 
 def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:

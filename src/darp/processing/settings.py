@@ -46,10 +46,16 @@ class EvaluationSettings:
     # twin surveys: a fused cloud whose median distance to the true mesh is above this is flagged implausible
     # (the held-out median measures self-consistency and cannot see whole views moved together)
     max_truth_accuracy_mm: float = 10.0
+    # twin surveys with recorded feasible poses: truth.seeable.missing_by_cause, why each seeable sample farther
+    # than missing_threshold_m from the fused cloud is missing (fuses the keyframes a second time)
+    missing_by_cause: bool = True
+    missing_threshold_m: float = 0.005
 
     def __post_init__(self) -> None:
         if not (self.truth_sample_spacing_m > 0 and self.visibility_tolerance_m > 0):
             raise ConfigError("evaluation: truth_sample_spacing_m and visibility_tolerance_m must be > 0")
+        if not self.missing_threshold_m > 0:
+            raise ConfigError("evaluation: missing_threshold_m must be > 0")
         if not (self.max_heldout_median_mm > 0 and self.max_truth_accuracy_mm > 0):
             raise ConfigError("evaluation: max_heldout_median_mm and max_truth_accuracy_mm must be > 0")
 
@@ -100,6 +106,10 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("corrections", "table"),
     ("fusion", "support_neighbourhood"),
     ("fusion", "arm_support_from_fused"),
+    ("fusion", "sor_local_ratio"),
+    ("fusion", "neighbourhood_own_frames"),
+    ("evaluation", "missing_by_cause"),
+    ("evaluation", "missing_threshold_m"),
 )
 
 

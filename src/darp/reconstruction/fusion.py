@@ -70,6 +70,7 @@ class FusionSettings:
     table_calibration_factor: float = 1.5  # ... and at least this times the calibration's held-out p90 error
     sor_neighbours: int = 20  # statistical outlier removal: neighbours per point (0 = off)
     sor_std_ratio: float = 2.0  # ... and the tolerated excess of the mean neighbour distance, in std
+    sor_local_ratio: float = 0.0  # > 0: SOR spares a point not sparser than this x its neighbours' median (0 = off)
     surface_fit_radius_voxels: float = 1.5  # local plane fit along the normal (0 = off), in voxels
     surface_fit_neighbours: int = 16  # at most this many neighbours enter a plane fit
     merge_rows: int = 400_000  # pending per-frame voxel rows merged into the state beyond this
@@ -79,6 +80,7 @@ class FusionSettings:
     visibility_tolerance_m: float = 0.01  # in view: not more than this behind the frame's measured depth
     visibility_stride_px: int = 4  # the in-view test reads every n-th depth pixel (memory: ~W*H/n^2 per frame)
     support_neighbourhood: int = 0  # count support over the (2n+1)^3 voxels around each voxel (0 = the voxel alone)
+    neighbourhood_own_frames: int = 1  # ... only for voxels that at least this many frames saw themselves
     arm_support_from_fused: int = 0  # an arm's cloud also keeps voxels the fused cloud supports that this many
     # of the arm's own frames saw (0 = off: each arm's cloud needs the support from its own frames alone)
 
@@ -89,6 +91,8 @@ class FusionSettings:
             raise ReconstructionError("min_frames and min_view_bins must be >= 1")
         if self.sor_neighbours < 0 or self.sor_std_ratio <= 0:
             raise ReconstructionError("sor_neighbours must be >= 0 and sor_std_ratio > 0")
+        if not (math.isfinite(self.sor_local_ratio) and (self.sor_local_ratio == 0 or self.sor_local_ratio >= 1)):
+            raise ReconstructionError(f"sor_local_ratio must be 0 (off) or >= 1, got {self.sor_local_ratio}")
         if self.surface_fit_radius_voxels < 0 or self.surface_fit_neighbours < 2:
             raise ReconstructionError("surface_fit_radius_voxels must be >= 0 and surface_fit_neighbours >= 2")
         if self.merge_rows < 1:
@@ -99,6 +103,8 @@ class FusionSettings:
                                       "table_calibration_factor must be >= 0")
         if self.arm_support_from_fused < 0:
             raise ReconstructionError("arm_support_from_fused must be >= 0")
+        if self.neighbourhood_own_frames < 1:
+            raise ReconstructionError(f"neighbourhood_own_frames must be >= 1, got {self.neighbourhood_own_frames}")
         if not 0 <= self.support_neighbourhood <= 2:
             raise ReconstructionError(f"support_neighbourhood must be 0, 1 or 2, got {self.support_neighbourhood}")
         if not (self.min_frames_floor >= 1 and 0 < self.support_fraction <= 1 and self.visibility_tolerance_m > 0
@@ -182,6 +188,7 @@ class FusionResult:
     per_arm: dict[str, VoxelCloud]
     settings: FusionSettings
     stats: dict[str, Any]
+    stages: dict[str, np.ndarray] | None = None  # with ``result(keep_stages=True)``: see :meth:`VoxelFusion.result`
 
     def to_dict(self) -> dict[str, Any]:
         """Settings and counts (frames, points in, voxels, supported, after SOR, points out), for JSON."""
@@ -189,18 +196,25 @@ class FusionResult:
                 "points": {"fused": len(self.fused), **{arm: len(c) for arm, c in self.per_arm.items()}}}
 
 
-def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
+def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float,
+                         local_ratio: float = 0.0) -> np.ndarray:
     """Boolean (N,) inliers: mean distance to the ``neighbours`` nearest points <= mean + ratio * std.
 
-    The same rule as Open3D's ``remove_statistical_outlier`` (population std over the cloud).
+    The same rule as Open3D's ``remove_statistical_outlier`` (population std over the cloud). With
+    ``local_ratio`` > 0 a point that rule rejects is kept when its mean distance is at most ``local_ratio``
+    times the median of its neighbours' mean distances: a uniformly sparse region (a rim or a side seen by
+    few frames) is as sparse as its neighbours and stays; a stray point beside a denser surface still goes.
     """
     n = points.shape[0]
     if neighbours <= 0 or n <= neighbours:
         return np.ones(n, bool)
     tree = cKDTree(points)
-    dist, _ = tree.query(points, k=neighbours + 1, workers=-1)  # the first neighbour is the point itself
+    dist, idx = tree.query(points, k=neighbours + 1, workers=-1)  # the first neighbour is the point itself
     mean_d = dist[:, 1:].mean(axis=1)
     inliers: np.ndarray = mean_d <= mean_d.mean() + std_ratio * mean_d.std()
+    if local_ratio > 0:
+        out = np.flatnonzero(~inliers)
+        inliers[out] = mean_d[out] <= local_ratio * np.median(mean_d[idx[out, 1:]], axis=1)
     return inliers
 
 
@@ -322,8 +336,14 @@ def neighbourhood_support(stats: VoxelStats, radius: int) -> tuple[np.ndarray, n
 def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
                      counts: dict[str, int] | None = None) -> np.ndarray:
     """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``), counted
-    over each voxel's neighbourhood with ``support_neighbourhood``."""
+    over each voxel's neighbourhood with ``support_neighbourhood`` (for the voxels at least
+    ``neighbourhood_own_frames`` frames saw; the others keep their own counts)."""
     n_frames, view_mask = neighbourhood_support(stats, settings.support_neighbourhood)
+    if settings.support_neighbourhood > 0 and settings.neighbourhood_own_frames > 1:
+        # a voxel only one frame hit is where noise scatters: it keeps its own count
+        alone = stats.n_frames < settings.neighbourhood_own_frames
+        n_frames = np.where(alone, stats.n_frames, n_frames)
+        view_mask = np.where(alone, stats.view_mask, view_mask)
     if settings.support_neighbourhood > 0:
         stats = dataclasses.replace(stats, n_frames=n_frames, view_mask=view_mask)
     n_views = popcount64(stats.view_mask)
@@ -351,10 +371,12 @@ def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: Vi
 
 def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],
                      counts: dict[str, int] | None = None, visibility: VisibilityFn | None = None,
-                     also_keys: np.ndarray | None = None, supported: np.ndarray | None = None) -> VoxelCloud:
+                     also_keys: np.ndarray | None = None, supported: np.ndarray | None = None,
+                     stages: dict[str, np.ndarray] | None = None) -> VoxelCloud:
     """Apply voxel support, average each voxel and remove statistical outliers. ``also_keys`` (sorted voxel
     keys, e.g. those the fused cloud supports) are kept too where ``arm_support_from_fused`` frames saw them.
-    ``supported`` is :func:`supported_voxels`' answer when the caller already has it."""
+    ``supported`` is :func:`supported_voxels`' answer when the caller already has it. ``stages`` (a dict)
+    receives the points after each step: ``in_envelope`` (every voxel's mean), ``supported``, ``after_sor``."""
     n_views = popcount64(stats.view_mask)
     if supported is None:
         supported = supported_voxels(stats, settings, visibility, counts)
@@ -372,7 +394,11 @@ def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[st
     colours = None if kept.sum_rgb is None else np.clip(np.rint(kept.sum_rgb / n), 0, 255).astype(np.uint8)
     cloud = VoxelCloud(points, normals, colours, kept.n_points.astype(np.int32), kept.n_frames,
                        n_views[supported], kept.arm_mask, unpack_keys(kept.keys), arms)
-    inliers = statistical_outliers(points, settings.sor_neighbours, settings.sor_std_ratio)
+    inliers = statistical_outliers(points, settings.sor_neighbours, settings.sor_std_ratio, settings.sor_local_ratio)
+    if stages is not None:
+        stages["in_envelope"] = (stats.sum_xyz / np.maximum(stats.n_points, 1)[:, None]).astype(np.float32)
+        stages["supported"] = points
+        stages["after_sor"] = points[inliers]
     if counts is not None:
         counts.update(voxels=len(stats), supported=int(supported.sum()), after_sor=int(inliers.sum()))
     cloud = cloud.select(inliers)
@@ -503,8 +529,10 @@ class VoxelFusion:
         self._pending = {}
         self._pending_rows = 0
 
-    def result(self) -> FusionResult:
-        """Support, averaging and outlier removal per arm and for all arms together."""
+    def result(self, keep_stages: bool = False) -> FusionResult:
+        """Support, averaging and outlier removal per arm and for all arms together. With ``keep_stages`` the
+        result's ``stages`` holds the fused cloud's points after each step (``in_envelope``: every voxel's
+        mean, ``supported``, ``after_sor``, ``fused``), for finding where true surface is lost."""
         self._merge()
         if not self._state:
             raise ReconstructionError("nothing to fuse: no frame left any point inside the envelope")
@@ -522,7 +550,10 @@ class VoxelFusion:
         c: dict[str, int] = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
         all_stats = merge_stats(list(self._state.values()))
         fused_supported = supported_voxels(all_stats, self.settings, visibility(0xFF), c)
-        fused = cloud_from_stats(all_stats, self.settings, arms, c, supported=fused_supported)
+        stages: dict[str, np.ndarray] | None = {} if keep_stages else None
+        fused = cloud_from_stats(all_stats, self.settings, arms, c, supported=fused_supported, stages=stages)
+        if stages is not None:
+            stages["fused"] = fused.points
         counts["fused"] = c
         fused_keys = all_stats.keys[fused_supported] if self.settings.arm_support_from_fused > 0 else None
         for bit, arm in enumerate(arms):
@@ -532,7 +563,7 @@ class VoxelFusion:
             counts[arm] = c
         counts["fused"] = counts.pop("fused")  # the per-arm counts first, as recorded before
         counts["peak_rows"] = self.peak_rows
-        return FusionResult(fused=fused, per_arm=per_arm, settings=self.settings, stats=counts)
+        return FusionResult(fused=fused, per_arm=per_arm, settings=self.settings, stats=counts, stages=stages)
 
 
 def write_voxel_cloud(path: str | Path, cloud: VoxelCloud) -> Path:
