@@ -37,6 +37,28 @@ def test_bad_specs_name_the_problem(spec: str) -> None:
         CorrectionSettings.parse(spec)
 
 
+def test_fusion_rules_apply_only_when_switched_on_and_only_where_the_user_kept_the_default() -> None:
+    from darp.processing.settings import DEPTH_FILTER_RULES, FUSION_RULES
+
+    paper = ProcessSettings()
+    assert paper.fusion_used == paper.fusion  # paper mode: the paper's fusion, unchanged
+    on = settings_from_dict({"corrections": {"fusion": True}})
+    used = on.fusion_used
+    assert all(getattr(used, k) == v for k, v in FUSION_RULES.items())
+    assert all(getattr(used.depth, k) == v for k, v in DEPTH_FILTER_RULES.items())
+    assert used.voxel_size_m == paper.fusion.voxel_size_m and used.min_frames == paper.fusion.min_frames
+    assert on.to_dict()["fusion"] == paper.to_dict()["fusion"]  # the rules live in the switch, not the group
+    given = settings_from_dict({"corrections": {"fusion": True},
+                                "fusion": {"sor_local_ratio": 3.0, "depth": {"edge_margin_px": 0}}})
+    assert given.fusion_used.sor_local_ratio == 3.0 and given.fusion_used.depth.edge_margin_px == 0
+    assert given.fusion_used.arm_support_from_fused == FUSION_RULES["arm_support_from_fused"]
+    assert CorrectionSettings.parse("all").fusion and "fusion" in CorrectionSettings.parse("fusion,depth").applied
+    from darp.processing.results import fusion_rules_used
+
+    assert fusion_rules_used(given) == {"arm_support_from_fused": 1, "sor_local_ratio": 3.0,
+                                        "depth": {"edge_margin_px": 0}}  # what results.json records
+
+
 def test_labels() -> None:
     assert CorrectionSettings.parse("all").label == "all"
     assert CorrectionSettings.parse("refine,depth").label == "depth+refine"

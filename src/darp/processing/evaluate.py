@@ -222,7 +222,7 @@ def missing_causes(job: SurveyJob, samples: np.ndarray, normals: np.ndarray, tru
     unfiltered = DepthFilterSettings(min_depth_m=0.0, max_depth_m=1e3, discontinuity_abs_m=1e3, edge_margin_px=0,
                                      max_incidence_deg=90.0)
     target_tree = cKDTree(targets) if idx.size else None
-    fusion = VoxelFusion(job.settings.fusion, job.crop())
+    fusion = VoxelFusion(job.settings.fusion_used, job.crop())
     poses: list[np.ndarray] = []
     intr = None
     for keyframe in iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY):
@@ -234,7 +234,7 @@ def missing_causes(job: SurveyJob, samples: np.ndarray, normals: np.ndarray, tru
         else:
             fusion.add(frame)
         if target_tree is not None:
-            for settings, reached in ((job.settings.fusion.depth, measured_local), (unfiltered, raw_local)):
+            for settings, reached in ((job.settings.fusion_used.depth, measured_local), (unfiltered, raw_local)):
                 raw = backproject(frame, settings, None).points
                 if len(raw):
                     hits = target_tree.query_ball_point(np.asarray(raw, np.float64), r=threshold_m)
@@ -273,7 +273,7 @@ def evaluate_processed_survey(job: SurveyJob) -> dict[str, Any]:
 
     heldout_frames = posed_frames(iter_keyframes(job.keyframes_dir, HELDOUT, skip=DEPTH_ONLY), colour=False)
     heldout = evaluate_heldout(heldout_frames, MeshDistance(v, t), object_name=index.object_name or job.survey.name,
-                               settings=settings.fusion, region=crop,
+                               settings=settings.fusion_used, region=crop,
                                region_of=(lambda f: job.table_region(f)[0]) if settings.corrections.table else None)
     _save_arrays(folder / HELDOUT_DISTANCES, heldout.distances)
 

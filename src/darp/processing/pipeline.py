@@ -140,7 +140,7 @@ class SurveyJob:
     def crop(self) -> EnvelopeCrop:
         """The object-support region: the envelope cylinder with fusion's margins (grown with the
         calibration's stated held-out error, :func:`darp.reconstruction.fusion.calibration_uncertainty_m`)."""
-        return self.settings.fusion.crop(self.envelope(), calibration_uncertainty_m=self.calibration_uncertainty())
+        return self.settings.fusion_used.crop(self.envelope(), calibration_uncertainty_m=self.calibration_uncertainty())
 
     def calibration_uncertainty(self) -> float | None:
         """The calibration's stated uncertainty (metres), or None when it states none."""
@@ -155,7 +155,7 @@ class SurveyJob:
             if envelope is None or not envelope.has_geometry:
                 estimate = estimate_survey_envelope(
                     self.poses(), self.recording, [self.calibration.arms[a].T_world_base[:2, 3] for a in self.arms],
-                    keyframe_settings=self.settings.keyframes, depth_settings=self.settings.fusion.depth,
+                    keyframe_settings=self.settings.keyframes, depth_settings=self.settings.fusion_used.depth,
                     path=self.survey.path)
                 self._envelope_record = estimate.to_dict()
                 envelope = estimate.envelope(envelope)
@@ -169,7 +169,7 @@ class SurveyJob:
         crop when none is found) and its record (:mod:`darp.reconstruction.table_plane`)."""
         from darp.reconstruction.table_plane import table_region
 
-        return table_region(frame, self.crop(), None, self.settings.fusion.depth, self.calibration_uncertainty())
+        return table_region(frame, self.crop(), None, self.settings.fusion_used.depth, self.calibration_uncertainty())
 
     def envelope_record(self) -> dict[str, Any]:
         """Where the envelope came from: ``{"source": "manip_envelope.json" | "estimated", "center_m", ...}``."""
@@ -235,7 +235,7 @@ class SurveyJob:
                 to_estimate.append(arm)
         if to_estimate:
             region = self.crop()
-            depth = self.settings.fusion.depth
+            depth = self.settings.fusion_used.depth
             estimates = {}
             for arm in to_estimate:
                 # the arm's own settled frames: the other arm's carry the base-to-base error, which a moving
@@ -437,7 +437,7 @@ def refine_keyframes(job: SurveyJob, folder: Path, entries: list[Any],
 
     job.report("refine", 0, None)
     result = refine_poses(views, (frame(e) for e in entries), crop, job.calibration_uncertainty(),
-                          job.settings.refinement, job.settings.fusion.depth)
+                          job.settings.refinement, job.settings.fusion_used.depth)
     new_entries = []
     for entry in entries:
         T = result.poses[entry.file]
@@ -518,7 +518,7 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
     """Fuse the ``fuse`` keyframes (streamed from disk); writes the per-arm and fused clouds."""
     index = read_keyframe_index(job.keyframes_dir)
     total = len(index.select(FUSE))
-    fusion = VoxelFusion(job.settings.fusion, job.crop())
+    fusion = VoxelFusion(job.settings.fusion_used, job.crop())
     table_records: list[dict[str, Any]] = []
     for k, keyframe in enumerate(iter_keyframes(job.keyframes_dir, FUSE, skip=FOR_FUSION)):
         frame = keyframe.posed_depth()
@@ -534,8 +534,8 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
         points_in = result.stats.get("fused", {}).get("points_in", 0)
         raise ReconstructionError(
             f"fusion kept no point: {total} fuse keyframes left {points_in} points inside the envelope and no voxel "
-            f"had the support asked (min_frames {job.settings.fusion.min_frames}, min_view_bins "
-            f"{job.settings.fusion.min_view_bins})", job.keyframes_dir)
+            f"had the support asked (min_frames {job.settings.fusion_used.min_frames}, min_view_bins "
+            f"{job.settings.fusion_used.min_view_bins})", job.keyframes_dir)
     clouds = {**{f"{arm}.ply": cloud for arm, cloud in result.per_arm.items()}, FUSED_FILE: result.fused}
     with staged_outputs(job.out, list(clouds)) as paths:
         for name, cloud in clouds.items():

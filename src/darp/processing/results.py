@@ -70,6 +70,7 @@ from darp.processing.pipeline import (
     read_stage_state,
     unfinished_reason,
 )
+from darp.processing.settings import DEPTH_FILTER_RULES, FUSION_RULES, ProcessSettings
 
 RESULTS_FILE = "results.json"
 SCHEMA = "darp-results/1"
@@ -107,6 +108,13 @@ def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
     return warnings
 
 
+def fusion_rules_used(settings: ProcessSettings) -> dict[str, Any]:
+    """The fusion and depth-filter values ``corrections.fusion`` used (a value the settings file gave wins)."""
+    used = settings.fusion_used
+    return {**{k: getattr(used, k) for k in FUSION_RULES},
+            "depth": {k: getattr(used.depth, k) for k in DEPTH_FILTER_RULES}}
+
+
 def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]:
     """The per-survey results document from the stage summaries and the evaluation."""
     stages = read_stage_state(job.out).get("stages", {})
@@ -128,7 +136,8 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
                            if (summary.get("poses") or {}).get("time_alignment") else {}),
                         **({"refine": keyframes["refine"]} if keyframes.get("refine") is not None else {}),
                         **({"table": summary["fusion"]["table"]}
-                           if (summary.get("fusion") or {}).get("table") else {})},
+                           if (summary.get("fusion") or {}).get("table") else {}),
+                        **({"fusion": fusion_rules_used(job.settings)} if job.settings.corrections.fusion else {})},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),
