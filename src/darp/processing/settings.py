@@ -100,6 +100,7 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("corrections", "table"),
     ("fusion", "support_neighbourhood"),
     ("fusion", "arm_support_from_fused"),
+    ("mesh", "split_sides"),
 )
 
 
