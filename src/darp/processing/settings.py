@@ -120,6 +120,7 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("fusion", "neighbourhood_own_frames"),
     ("evaluation", "missing_by_cause"),
     ("evaluation", "missing_threshold_m"),
+    ("mesh", "split_sides"),
 )
 
 

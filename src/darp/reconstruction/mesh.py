@@ -34,6 +34,7 @@ class MeshSettings:
     radius_factors: tuple[float, ...] = (2.0, 4.0, 8.0)  # ball radii / spacing (about 1, 2, 4 voxels)
     spacing_m: float | None = None  # None: the cloud's median nearest-neighbour distance
     min_component_triangles: int = 10  # smaller connected pieces are dropped (0 keeps all)
+    split_sides: bool = False  # pivot the points facing away from / toward the cloud's vertical axis apart
 
     def __post_init__(self) -> None:
         if not self.radius_factors or any(not f > 0 for f in self.radius_factors):
@@ -84,9 +85,31 @@ def ball_pivoting_mesh(points: np.ndarray, normals: np.ndarray, colours: np.ndar
     if colours is not None:
         cloud.colors = o3d.utility.Vector3dVector(np.asarray(colours, np.float64) / 255.0)
     radii = ball_pivoting_radii(points, settings)
-    mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(
-        cloud, o3d.utility.DoubleVector(radii))
+    if not settings.split_sides:
+        mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(
+            cloud, o3d.utility.DoubleVector(radii))
+        return clean_mesh(mesh, settings.min_component_triangles)
+    mesh = o3d.geometry.TriangleMesh()
+    for part in normal_sides(points, normals):
+        if part.sum() >= 3:
+            mesh += o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(
+                cloud.select_by_index(np.flatnonzero(part).tolist()), o3d.utility.DoubleVector(radii))
     return clean_mesh(mesh, settings.min_component_triangles)
+
+
+def normal_sides(points: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(outward, inward) boolean masks: whether a point's normal has a horizontal component away from the
+    vertical axis through the cloud's centroid (``MeshSettings.split_sides``).
+
+    Fused normals point toward the cameras that saw a voxel; where a surface is seen from both sides (a thin
+    part, an inside wall over a rim) neighbouring points carry opposite normals. A ball touching two of them
+    makes a triangle whose vertex normals disagree, so ball pivoting stops there and leaves a hole in a
+    surface the fused cloud has (docs/accuracy.md, the seed-3 mug). Pivoting each side on its own avoids
+    that; no point is added or moved.
+    """
+    radial = np.asarray(points, np.float64)[:, :2] - np.asarray(points, np.float64)[:, :2].mean(axis=0)
+    outward: np.ndarray = np.einsum("ij,ij->i", np.asarray(normals, np.float64)[:, :2], radial) >= 0.0
+    return outward, ~outward
 
 
 def clean_mesh(mesh: o3d.geometry.TriangleMesh, min_component_triangles: int = 0) -> o3d.geometry.TriangleMesh:
@@ -151,6 +174,7 @@ __all__ = [
     "ball_pivoting_radii",
     "boundary_edges",
     "clean_mesh",
+    "normal_sides",
     "mesh_area",
     "mesh_arrays",
     "mesh_from_arrays",
