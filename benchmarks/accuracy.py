@@ -9,7 +9,8 @@ and the SAME surveys are processed once per mode (``darp process --corrections S
 command in its own interpreter (the helpers of benchmarks/robustness.py), timed.
 
 Modes map to ``--corrections`` specs: ``paper`` (none: poses from calibration and kinematics, as the
-paper), ``kinematics``, ``time``, ``depth``, ``refine``, ``table``, ``fusion`` (one improvement each), ``all``, and any
+paper), ``kinematics``, ``time``, ``depth``, ``refine``, ``table``, ``fusion``, ``mesh`` (one
+improvement each), ``all``, and any
 combination joined by ``+`` (``kinematics+depth+table`` runs ``--corrections kinematics,depth,table``). A mode whose
 results.json records nothing for its correction and whose numbers equal paper mode's is reported as
 "no effect" (its switch does nothing on this branch), never as an improvement.
@@ -47,8 +48,8 @@ from typing import Any
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from robustness import ROOT, darp, fmt, last_error, placements, print_aligned  # the shared helpers
 
-MODES = ("paper", "kinematics", "time", "depth", "refine", "table", "fusion", "all")
-CORRECTION_NAMES = ("kinematics", "time", "depth", "refine", "table", "fusion")
+MODES = ("paper", "kinematics", "time", "depth", "refine", "table", "fusion", "mesh", "all")
+CORRECTION_NAMES = ("kinematics", "time", "depth", "refine", "table", "fusion", "mesh")
 # the richest model darp solves (its backlash needs captures that record their move directions)
 KINEMATIC_MODEL = "kinematic+compliance+backlash"
 NEEDS_MODEL = {"kinematics", "all"}

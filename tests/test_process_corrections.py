@@ -59,6 +59,14 @@ def test_fusion_rules_apply_only_when_switched_on_and_only_where_the_user_kept_t
                                         "depth": {"edge_margin_px": 0}}  # what results.json records
 
 
+def test_mesh_rules_apply_only_when_switched_on() -> None:
+    assert not ProcessSettings().mesh_used.split_sides  # paper mode: one ball-pivoting pass
+    on = settings_from_dict({"corrections": {"mesh": True}})
+    assert on.mesh_used.split_sides and on.mesh_used.radius_factors == on.mesh.radius_factors
+    assert on.to_dict()["mesh"] == ProcessSettings().to_dict()["mesh"]
+    assert CorrectionSettings.parse("all").mesh and CorrectionSettings.parse("mesh").applied == ("mesh",)
+
+
 def test_labels() -> None:
     assert CorrectionSettings.parse("all").label == "all"
     assert CorrectionSettings.parse("refine,depth").label == "depth+refine"

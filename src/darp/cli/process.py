@@ -42,7 +42,7 @@ def _warn_estimated_envelope(survey: str, envelope: dict[str, Any] | None) -> No
 
 Corrections = Annotated[str | None, typer.Option(
     "--corrections", help="darp's improvements over the paper's method: paper (none), all, or a comma-separated "
-    "subset of kinematics, time, depth, refine, table, fusion (docs/accuracy.md). Overrides the settings file's "
+    "subset of kinematics, time, depth, refine, table, fusion, mesh (docs/accuracy.md). Overrides the settings file's "
     "'corrections'.")]
 
 

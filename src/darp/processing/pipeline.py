@@ -559,7 +559,7 @@ def stage_mesh(job: SurveyJob) -> dict[str, Any]:
     if cloud.normals is None:
         raise FormatError("the fused cloud has no normals", job.out / FUSED_FILE)
     normals = cloud.normals / np.linalg.norm(cloud.normals, axis=1, keepdims=True)
-    mesh = ball_pivoting_mesh(cloud.points, normals, cloud.colours, job.settings.mesh)
+    mesh = ball_pivoting_mesh(cloud.points, normals, cloud.colours, job.settings.mesh_used)
     if len(mesh.triangles) == 0:
         raise ReconstructionError(f"ball pivoting made no triangle from the fused cloud's {len(cloud.points)} points "
                                   "(too few or too sparse: more views per arm are needed)", job.out / FUSED_FILE)
@@ -567,7 +567,7 @@ def stage_mesh(job: SurveyJob) -> dict[str, Any]:
         write_mesh(paths[MESH_FILE], mesh)
     job.report("mesh", 1, 1)
     return {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": mesh_area(mesh),
-            "radii_m": ball_pivoting_radii(cloud.points, job.settings.mesh)}
+            "radii_m": ball_pivoting_radii(cloud.points, job.settings.mesh_used)}
 
 
 @contextlib.contextmanager

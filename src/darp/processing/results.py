@@ -70,7 +70,7 @@ from darp.processing.pipeline import (
     read_stage_state,
     unfinished_reason,
 )
-from darp.processing.settings import DEPTH_FILTER_RULES, FUSION_RULES, ProcessSettings
+from darp.processing.settings import DEPTH_FILTER_RULES, FUSION_RULES, MESH_RULES, ProcessSettings
 
 RESULTS_FILE = "results.json"
 SCHEMA = "darp-results/1"
@@ -137,7 +137,9 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
                         **({"refine": keyframes["refine"]} if keyframes.get("refine") is not None else {}),
                         **({"table": summary["fusion"]["table"]}
                            if (summary.get("fusion") or {}).get("table") else {}),
-                        **({"fusion": fusion_rules_used(job.settings)} if job.settings.corrections.fusion else {})},
+                        **({"fusion": fusion_rules_used(job.settings)} if job.settings.corrections.fusion else {}),
+                        **({"mesh": {k: getattr(job.settings.mesh_used, k) for k in MESH_RULES}}
+                           if job.settings.corrections.mesh else {})},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),

@@ -6,7 +6,7 @@ A settings file (YAML or JSON) gives any subset; everything not given keeps its 
     fusion: {voxel_size_m: 0.0015, min_frames: 3, depth: {max_depth_m: 1.0}}
     mesh: {radius_factors: [2, 4, 8]}
     evaluation: {truth_sample_spacing_m: 0.001, figures: true}
-    corrections: {kinematics: true, depth: true, time: true, refine: true, table: true, fusion: true}
+    corrections: {kinematics: true, depth: true, time: true, refine: true, table: true, fusion: true, mesh: true}
     refinement: {max_sigma: 2.0, per_view: true}   # parameters of corrections.refine
 
 ``corrections`` switches darp's improvements over the paper's method (docs/accuracy.md); all off is
@@ -61,13 +61,15 @@ class EvaluationSettings:
             raise ConfigError("evaluation: max_heldout_median_mm and max_truth_accuracy_mm must be > 0")
 
 
-CORRECTIONS = ("kinematics", "time", "depth", "refine", "table", "fusion")
+CORRECTIONS = ("kinematics", "time", "depth", "refine", "table", "fusion", "mesh")
 
 # corrections.fusion: darp's fusion rules (docs/processing.md, "darp's fusion rules"), each applied where the
 # setting still holds its default, so a value given in the settings file wins. They keep surface that the
 # paper's per-arm support and outlier rules drop (thin rims, the sides between the arms, sparse true surface).
 FUSION_RULES: dict[str, Any] = {"arm_support_from_fused": 1, "sor_local_ratio": 2.0}
 DEPTH_FILTER_RULES: dict[str, Any] = {"edge_margin_px": 1}
+# corrections.mesh: ball pivoting per normal side (MeshSettings.split_sides), where the file kept the default
+MESH_RULES: dict[str, Any] = {"split_sides": True}
 
 
 @dataclass(frozen=True)
@@ -80,11 +82,12 @@ class CorrectionSettings:
     refine: bool = False  # survey-level pose refinement from overlapping depth, within the calibration's bounds
     table: bool = False  # each keyframe cut at its own fitted table plane instead of the crop's floor
     fusion: bool = False  # darp's fusion rules (FUSION_RULES, DEPTH_FILTER_RULES) instead of the paper's support
+    mesh: bool = False  # darp's meshing rules (MESH_RULES): the two sides of thin walls pivoted apart
 
     @classmethod
     def parse(cls, spec: str) -> CorrectionSettings:
         """``paper`` (none), ``all``, or a comma-separated subset of kinematics, time, depth, refine, table,
-        fusion."""
+        fusion, mesh."""
         words = [w.strip().lower() for w in spec.split(",") if w.strip()]
         if words == ["paper"] or words == ["none"]:
             return cls()
@@ -114,6 +117,7 @@ class CorrectionSettings:
 ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("corrections", "table"),
     ("corrections", "fusion"),
+    ("corrections", "mesh"),
     ("fusion", "support_neighbourhood"),
     ("fusion", "arm_support_from_fused"),
     ("fusion", "sor_local_ratio"),
@@ -134,6 +138,16 @@ class ProcessSettings:
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
     corrections: CorrectionSettings = field(default_factory=CorrectionSettings)
     refinement: RefineSettings = field(default_factory=RefineSettings)  # parameters of corrections.refine
+
+    @property
+    def mesh_used(self) -> MeshSettings:
+        """The meshing settings the pipeline uses: ``mesh``, with darp's meshing rules where ``corrections.mesh``
+        is on and the setting holds its default."""
+        if not self.corrections.mesh:
+            return self.mesh
+        default = MeshSettings()
+        return dataclasses.replace(self.mesh, **{k: v for k, v in MESH_RULES.items()
+                                                 if getattr(self.mesh, k) == getattr(default, k)})
 
     @property
     def fusion_used(self) -> FusionSettings:
