@@ -10,6 +10,7 @@ from darp.acquisition.viewpoints import (
     Candidate,
     ViewpointPlanner,
     ViewpointSettings,
+    feasibility_summary,
     orbit_shape,
     order_views,
     standoff_for_radius,
@@ -139,6 +140,26 @@ def test_too_few_views_regenerates_with_relaxed_parameters() -> None:
     assert len(plan.views) == max(a["views"] for a in plan.attempts)  # the best attempt is kept
     for a in plan.attempts:
         assert a["candidates"] == a["views"] + sum(a["rejected"].values())
+
+
+def test_feasibility_summary_counts_every_refusal_by_reason() -> None:
+    # A table margin no pose meets: every candidate that IK solves is refused for table clearance (or earlier).
+    plan = planner(margins=ClearanceMargins(table_m=0.6), settings=ViewpointSettings(min_views=1)).plan()
+    assert not plan.views
+    counts: dict[str, int] = {}
+    for c in plan.candidates:
+        counts[c.reason] = counts.get(c.reason, 0) + 1
+    assert counts.get("table", 0) > 0
+    text = feasibility_summary(plan)
+    assert text.startswith(f"0 feasible of {len(plan.candidates)} candidates (the nominal orbit, best of 4 tried): ")
+    ranked = text.split(": ", 1)[1].split("; e.g. ")[0].split(", ")
+    assert sum(int(part.split(" ", 1)[0]) for part in ranked) == len(plan.candidates)
+    assert f"{counts['table']} table clearance" in ranked
+    first = max(counts, key=lambda r: counts[r])
+    example = next(c for c in plan.candidates if c.reason == first)
+    assert text.endswith(example.detail) and "mm above the table (margin 600 mm)" in text or first != "table"
+    good = planner().plan()  # a feasible plan: nothing refused is listed when nothing was
+    assert feasibility_summary(good).startswith(f"{len(good.views)} feasible of {len(good.candidates)} candidates")
 
 
 def test_path_check_finds_a_collision_between_clear_views() -> None:

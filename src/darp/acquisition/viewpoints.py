@@ -199,6 +199,39 @@ def _reject_counts(cands: list[Candidate]) -> dict[str, int]:
     return counts
 
 
+REASON_WORDS = {"ik": "IK", "joint_limits": "joint limits", "workspace": "workspace", "min_depth": "minimum depth",
+                "table": "table clearance", "self": "self-collision", "parked_arm": "parked-arm",
+                "envelope": "envelope clearance", "joint_motion": "joint motion"}
+"""How a refusal reason reads in a message; ``path_<reason>`` reads as "path <words>"."""
+
+
+def reason_words(reason: str) -> str:
+    """A refusal reason code in words (``path_table`` -> ``path table clearance``)."""
+    if reason.startswith("path_"):
+        return "path " + REASON_WORDS.get(reason[5:], reason[5:])
+    return REASON_WORDS.get(reason, reason or "unchecked")
+
+
+def feasibility_summary(plan: ViewPlan) -> str:
+    """Why an arm's candidate views were refused, for a user: ``0 feasible of 36 candidates: 20 IK,
+    12 table clearance, 4 parked-arm; e.g. IK: <the first such refusal's detail>``. The counts are those of
+    the orbit the plan kept (the relaxation with the most views; the first one when all have none); the most
+    frequent reason comes first, ties in :data:`CANDIDATE_REASONS` order."""
+    counts = _reject_counts(plan.candidates)
+    order = {r: k for k, r in enumerate(CANDIDATE_REASONS)}
+    ranked = sorted(counts, key=lambda r: (-counts[r], order.get(r, len(order)), r))
+    text = f"{len(plan.views)} feasible of {len(plan.candidates)} candidates"
+    kept = [a["relaxation"] for a in plan.attempts if a.get("shape") == plan.shape.to_record()]
+    if len(plan.attempts) > 1 and kept:
+        text += f" (the {kept[0]} orbit, best of {len(plan.attempts)} tried)"
+    if ranked:
+        text += ": " + ", ".join(f"{counts[r]} {reason_words(r)}" for r in ranked)
+        example = next(c for c in plan.candidates if not c.ok and c.reason == ranked[0])
+        if example.detail:
+            text += f"; e.g. {reason_words(ranked[0])}: {example.detail}"
+    return text
+
+
 def envelope_points(centre_m: Array, radius_m: float, height_m: float, table_z_m: float, n: int = 16) -> Array:
     """Points on the envelope cylinder's rims (bottom, middle, top) for depth and visibility checks."""
     a = np.arange(n) * 2.0 * np.pi / n
@@ -446,10 +479,12 @@ __all__ = [
     "ViewpointPlanner",
     "ViewpointSettings",
     "envelope_points",
+    "feasibility_summary",
     "min_depth_from_intrinsics",
     "move_cost",
     "orbit_shape",
     "order_views",
+    "reason_words",
     "standoff_for_radius",
     "tour_cost",
 ]
