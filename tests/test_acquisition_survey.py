@@ -198,6 +198,21 @@ def test_too_few_views_names_why_each_candidate_was_refused(tmp_path: Path) -> N
     assert outcome.message in (outcome.folder / "REJECTED.txt").read_text()
 
 
+def test_a_calibration_with_a_base_off_the_table_ends_before_any_move(tmp_path: Path) -> None:
+    rig = FakeRig([OBJECT])
+    cal = rig.rig.nominal_calibration()
+    T = np.array(cal.arms["arm111"].T_world_base, dtype=float)
+    T[2, 3] -= 0.045
+    cal.arms["arm111"].T_world_base = T
+    outcome = run_survey(rig, rig.rig, tmp_path, "s", calibration=cal)
+    assert outcome.status == "rejected" and outcome.reason == "calibration_inconsistent"
+    assert "the shoulder of arm111 45 mm lower than the rig file" in outcome.message
+    kinds = [e["kind"] for e in read_events(outcome.folder / "events.jsonl")]
+    assert "localise_start" not in kinds and "parked" not in kinds
+    for arm in rig.arms.values():  # never moved
+        np.testing.assert_allclose(arm.true_q(), rig.rig.arms[arm.arm_id].park_q_rad, atol=1e-12)
+
+
 def test_a_one_off_bad_estimate_falls_back_to_the_reconfirmed_one(tmp_path: Path) -> None:
     rig = FakeRig([OBJECT])
     ghost = Cylinder(OBJECT.x_m + 0.12, OBJECT.y_m, OBJECT.radius_m, OBJECT.height_m)

@@ -10,9 +10,11 @@ from darp.acquisition.viewpoints import (
     Candidate,
     ViewpointPlanner,
     ViewpointSettings,
+    calibration_table_problem,
     feasibility_summary,
     orbit_shape,
     order_views,
+    shoulder_offsets_m,
     standoff_for_radius,
     tour_cost,
 )
@@ -243,3 +245,36 @@ def test_collision_model_uses_the_calibration() -> None:
                                         RIG.camera_mount("arm110"))
     np.testing.assert_allclose(shifted.primitives(q).centre, expected.centre)
     assert not np.allclose(nominal.primitives(q).centre, expected.centre)
+
+
+def _tilted_base_calibration(arm: str, dz_m: float, tilt_deg: float = 0.0) -> object:
+    """The nominal calibration with one arm's base moved up by ``dz_m`` and tilted about the world x axis."""
+    cal = RIG.nominal_calibration()
+    T = np.array(cal.arms[arm].T_world_base, dtype=float)
+    a = np.radians(tilt_deg)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    T[:3, :3] = R @ T[:3, :3]
+    T[2, 3] += dz_m
+    cal.arms[arm].T_world_base = T
+    return cal
+
+
+def test_a_calibration_that_moves_a_base_off_the_table_is_named() -> None:
+    """The 4x sweep's case (docs/twin.md): a solved base 40 mm low puts the arm's own park pose in the table
+    clearance, so every view is refused; 40 mm high passes every check that the real arm would fail."""
+    margin = ClearanceMargins.from_rig(RIG).table_m
+    assert calibration_table_problem(RIG, RIG.nominal_calibration(), margin) == ""
+    park = RIG.arms["arm111"].park_q_rad
+    low = _tilted_base_calibration("arm111", -0.040, tilt_deg=2.0)
+    offsets = shoulder_offsets_m(RIG, low)
+    assert offsets["arm110"] == pytest.approx(0.0, abs=1e-9) and -0.045 < offsets["arm111"] < -0.039
+    assert ArmCollisionModel(RIG, "arm111").check_configuration(park).ok
+    verdict = ArmCollisionModel(RIG, "arm111", calibration=low).check_configuration(park)
+    assert not verdict.ok and verdict.reason == "table"  # the oracle: the collision model itself
+    problem = calibration_table_problem(RIG, low, margin)
+    assert "shoulder of arm111 4" in problem and "mm lower than the rig file" in problem and "arm110: +0 mm" in problem
+    high = _tilted_base_calibration("arm110", 0.040)
+    assert ArmCollisionModel(RIG, "arm110", calibration=high).check_configuration(RIG.arms["arm110"].park_q_rad).ok
+    assert "shoulder of arm110 40 mm higher" in calibration_table_problem(RIG, high, margin)
+    within = _tilted_base_calibration("arm111", -0.8 * margin)  # inside the clearance: planning is left to decide
+    assert calibration_table_problem(RIG, within, margin) == ""

@@ -72,6 +72,7 @@ from darp.acquisition.viewpoints import (
     ViewPlan,
     ViewpointPlanner,
     ViewpointSettings,
+    calibration_table_problem,
     feasibility_summary,
     min_depth_from_intrinsics,
     standoff_for_radius,
@@ -411,6 +412,10 @@ class SurveyRunner:
     # -- the procedure ----------------------------------------------------------------------------
     def _acquire(self) -> tuple[ObjectEstimate, dict[str, ViewPlan]]:
         """Park, localise and confirm, plan, record; raises _Terminated for an early end."""
+        if self.calibration is not None:  # before any move: the clearance checks stand on the calibration
+            problem = calibration_table_problem(self.rig, self.calibration, self.margins.table_m)
+            if problem:
+                raise _Terminated("calibration_inconsistent", problem)
         workspace = workspace_obstacle(self.rig)
         for arm_id in self.rig.arm_ids:
             self._park(arm_id, workspace)

@@ -50,9 +50,11 @@ from numpy.typing import NDArray
 
 from darp.acquisition.motion_check import ArmCollisionModel
 from darp.errors import AcquisitionError
+from darp.formats.calibration import Calibration
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics import z1
 from darp.kinematics.ik import solve_look_at
+from darp.kinematics.rig import Rig
 
 Array = NDArray[np.float64]
 
@@ -74,6 +76,37 @@ def min_depth_from_intrinsics(intrinsics: Intrinsics, baseline_m: float = 0.050,
                               margin_m: float = 0.02) -> float:
     """The D4's minimum depth f * B / d_max for a depth stream, plus a margin (0.17 m at 640x480)."""
     return float(intrinsics.fx * baseline_m / max_disparity_px + margin_m)
+
+
+def shoulder_offsets_m(rig: Rig, calibration: Calibration) -> dict[str, float]:
+    """Per arm: how far (m, + up) the calibration's base pose puts the shoulder (the joint-2 axis on the base's
+    vertical axis, whose height no joint changes) from where the rig file stands it on the table."""
+    out = {}
+    for arm_id in rig.arm_ids:
+        nominal, _, _ = rig.extrinsics(arm_id)
+        solved, _, _ = rig.extrinsics(arm_id, calibration)
+        shoulder = np.r_[SHOULDER_BASE_M, 1.0]
+        out[arm_id] = float((solved @ shoulder)[2] - (nominal @ shoulder)[2])
+    return out
+
+
+def calibration_table_problem(rig: Rig, calibration: Calibration, table_clearance_m: float) -> str:
+    """Empty when every arm's calibrated shoulder height is within ``table_clearance_m`` of the rig's; otherwise
+    why the clearance checks cannot be trusted with this calibration (one line).
+
+    The bases stand on the table, so their parts' heights are the rig's whatever the calibration; a calibrated
+    base pose that moves the shoulder by more than the table clearance moves every part of the arm's model by
+    about as much: lower, and even the arm's own park pose fails the table check (every view is refused);
+    higher, and planned moves may pass the check while the real arm touches the table."""
+    offsets = shoulder_offsets_m(rig, calibration)
+    bad = {a: d for a, d in offsets.items() if abs(d) > table_clearance_m}
+    if not bad:
+        return ""
+    what = " and ".join(f"of {a} {abs(d) * 1000:.0f} mm {'higher' if d > 0 else 'lower'}" for a, d in bad.items())
+    others = "; ".join(f"{a}: {d * 1000:+.0f} mm" for a, d in offsets.items() if a not in bad)
+    return (f"the calibration puts the shoulder {what} than the rig file, whose bases stand on the table"
+            f"{f' ({others})' if others else ''}: more than the {table_clearance_m * 1000:.0f} mm table clearance "
+            f"that planned moves keep, so the clearance checks cannot be trusted with it (recalibrate)")
 
 
 @dataclass(frozen=True)
@@ -478,6 +511,7 @@ __all__ = [
     "ViewPlan",
     "ViewpointPlanner",
     "ViewpointSettings",
+    "calibration_table_problem",
     "envelope_points",
     "feasibility_summary",
     "min_depth_from_intrinsics",
@@ -485,6 +519,7 @@ __all__ = [
     "orbit_shape",
     "order_views",
     "reason_words",
+    "shoulder_offsets_m",
     "standoff_for_radius",
     "tour_cost",
 ]
