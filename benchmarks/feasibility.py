@@ -13,7 +13,8 @@ survey plans it (:class:`darp.acquisition.viewpoints.ViewpointPlanner`, the surv
 - ``nominal``: the rig file alone;
 
 and prints per arm and geometry the views found and the refusals by reason (each relaxation), plus the
-calibration's differences from the nominal rig (base, hand-eye, joint zeros).
+calibration's differences from the nominal rig (base, the shoulder's height as the survey's calibration check
+measures it, hand-eye, joint zeros).
 
     .venv/bin/python benchmarks/feasibility.py --calibration CAL.json [--truth TRUTH.json]
         (--survey SURVEY.rejected | --object mug --placement X,Y,YAW) [--json out.json]
@@ -38,6 +39,7 @@ from darp.acquisition.viewpoints import (  # noqa: E402
     ViewpointPlanner,
     feasibility_summary,
     min_depth_from_intrinsics,
+    shoulder_offsets_m,
 )
 from darp.formats.calibration import Calibration, read_calibration  # noqa: E402
 from darp.formats.realsense.types import Intrinsics  # noqa: E402
@@ -66,11 +68,13 @@ def envelope_from_object(rig: Rig, name: str, placement: str) -> tuple[np.ndarra
 def geometry_diff(rig: Rig, cal: Calibration) -> dict[str, dict[str, float]]:
     """Per arm: the calibration's base, hand-eye and joint-zero differences from the nominal rig."""
     out = {}
+    shoulder = shoulder_offsets_m(rig, cal)
     for arm_id in rig.arm_ids:
         Tb0, Tc0, _ = rig.extrinsics(arm_id)
         Tb, Tc, dq = rig.extrinsics(arm_id, cal)
         rot = np.degrees(np.arccos(np.clip((np.trace(Tc0[:3, :3].T @ Tc[:3, :3]) - 1) / 2, -1, 1)))
         out[arm_id] = {"base_mm": float(np.linalg.norm(Tb[:3, 3] - Tb0[:3, 3]) * 1000),
+                       "shoulder_height_mm": shoulder[arm_id] * 1000,
                        "hand_eye_mm": float(np.linalg.norm(Tc[:3, 3] - Tc0[:3, 3]) * 1000),
                        "hand_eye_deg": float(rot),
                        "joint_zero_max_deg": float(np.degrees(np.max(np.abs(dq))))}
@@ -128,7 +132,8 @@ def main() -> None:
             diff = geometry_diff(rig, cal)
             record.setdefault("geometry", {})[name] = diff
             print(f"{name} calibration against the nominal rig: " + "; ".join(
-                f"{a}: base {d['base_mm']:.1f} mm, hand-eye {d['hand_eye_mm']:.1f} mm / {d['hand_eye_deg']:.2f} deg, "
+                f"{a}: base {d['base_mm']:.1f} mm (shoulder {d['shoulder_height_mm']:+.1f} mm), "
+                f"hand-eye {d['hand_eye_mm']:.1f} mm / {d['hand_eye_deg']:.2f} deg, "
                 f"joint zeros up to {d['joint_zero_max_deg']:.2f} deg" for a, d in diff.items()))
         plans = plan_all(rig, cal, centre, radius, height, min_depth)
         record.setdefault("plans", {})[name] = plans

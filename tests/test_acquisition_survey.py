@@ -193,6 +193,8 @@ def test_too_few_views_names_why_each_candidate_was_refused(tmp_path: Path) -> N
         listed = ", ".join(f"{n} {words[r]}" for r, n in ranked if n)
         assert f"{arm_id}: 0 feasible of {len(plan.candidates)} candidates (the nominal orbit, best of 4 tried): " \
             f"{listed}; e.g. {words[ranked[0][0]]}: " in outcome.message
+        if ranked[1][1]:  # an example of the second reason too
+            assert f"; {words[ranked[1][0]]}: " in outcome.message.split(f"{arm_id}: ")[1]
     assert "(minimum depth 1.500 m)" in outcome.message  # an example refusal's detail
     assert "\n" not in outcome.message
     assert outcome.message in (outcome.folder / "REJECTED.txt").read_text()

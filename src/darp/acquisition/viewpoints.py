@@ -247,7 +247,8 @@ def reason_words(reason: str) -> str:
 
 def feasibility_summary(plan: ViewPlan) -> str:
     """Why an arm's candidate views were refused, for a user: ``0 feasible of 36 candidates: 20 IK,
-    12 table clearance, 4 parked-arm; e.g. IK: <the first such refusal's detail>``. The counts are those of
+    12 table clearance, 4 parked-arm; e.g. IK: <detail>; table clearance: <detail>`` (the first refusal's detail
+    for each of the two most frequent reasons). The counts are those of
     the orbit the plan kept (the relaxation with the most views; the first one when all have none); the most
     frequent reason comes first, ties in :data:`CANDIDATE_REASONS` order."""
     counts = _reject_counts(plan.candidates)
@@ -259,9 +260,9 @@ def feasibility_summary(plan: ViewPlan) -> str:
         text += f" (the {kept[0]} orbit, best of {len(plan.attempts)} tried)"
     if ranked:
         text += ": " + ", ".join(f"{counts[r]} {reason_words(r)}" for r in ranked)
-        example = next(c for c in plan.candidates if not c.ok and c.reason == ranked[0])
-        if example.detail:
-            text += f"; e.g. {reason_words(ranked[0])}: {example.detail}"
+        examples = [(r, next(c.detail for c in plan.candidates if not c.ok and c.reason == r)) for r in ranked[:2]]
+        if any(detail for _, detail in examples):
+            text += "; e.g. " + "; ".join(f"{reason_words(r)}: {detail}" for r, detail in examples if detail)
     return text
 
 
