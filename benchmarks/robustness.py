@@ -192,15 +192,17 @@ def print_table(rows: list[dict[str, Any]]) -> None:
     lines.append(["paper", "-", "3.58 / 3.93", "-", "-", "-", "-", "2.13", "96.56", "-", "-"])
     print_aligned(lines)
     for r in rows:
+        img = r.get("image_scale", r["scale"])
+        case = f"{r['scale']:g}x" + ("" if img == r["scale"] else f" (images {img:g}x)") + f" seed {r['seed']}"
         if r.get("calibration_error"):
-            print(f"{r['scale']:g}x seed {r['seed']}: calibration failed: {r['calibration_error']}")
+            print(f"{case}: calibration failed: {r['calibration_error']}")
         for name, s in r.get("surveys", {}).items():
             if not s.get("accepted"):
-                print(f"{r['scale']:g}x seed {r['seed']}: {name} rejected: {s.get('message')}")
+                print(f"{case}: {name} rejected: {s.get('message')}")
             elif not s.get("processed", False):
-                print(f"{r['scale']:g}x seed {r['seed']}: {name} not processed: {r.get('process_error')}")
+                print(f"{case}: {name} not processed: {r.get('process_error')}")
             elif s.get("warnings"):
-                print(f"{r['scale']:g}x seed {r['seed']}: {name} flagged: {'; '.join(s['warnings'])}")
+                print(f"{case}: {name} flagged: {'; '.join(s['warnings'])}")
 
 
 def plot(rows: list[dict[str, Any]], path: Path) -> None:
@@ -212,28 +214,31 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig, axes = plt.subplots(1, 4, figsize=(16, 3.8))
     scales = sorted({r["scale"] for r in rows})
 
-    def series(key: str) -> tuple[list[float], list[float]]:
+    def held(r: dict[str, Any]) -> bool:  # board images at their own scale (--image-scale)
+        return bool(r.get("image_scale", r["scale"]) != r["scale"])
+
+    def series(key: str, images_held: bool) -> tuple[list[float], list[float]]:
         xs, ys = [], []
         for r in rows:
-            if r.get(key) is not None:
-                xs.append(r["scale"])
-                ys.append(float(r[key]))
+            if held(r) == images_held:
+                values = list((r.get(key) or {}).values()) if key == "handeye_heldout_mm" else [r.get(key)]
+                for v in values:
+                    if v is not None:
+                        xs.append(r["scale"])
+                        ys.append(float(v))
         return xs, ys
 
-    he_x, he_y = [], []
-    for r in rows:
-        for v in (r.get("handeye_heldout_mm") or {}).values():
-            if v is not None:
-                he_x.append(r["scale"])
-                he_y.append(float(v))
     panels = [
-        ("hand-eye held-out median (mm)", (he_x, he_y), [3.58, 3.93]),
-        ("held-out point-to-mesh median (mm)", series("heldout_median_mm"), [PAPER["median_mm"]]),
-        ("held-out within 10 mm (%)", series("within_10mm_pct"), [PAPER["within_10mm_pct"]]),
-        ("fused cloud to true mesh, median (mm)", series("truth_accuracy_median_mm"), []),
+        ("hand-eye held-out median (mm)", "handeye_heldout_mm", [3.58, 3.93]),
+        ("held-out point-to-mesh median (mm)", "heldout_median_mm", [PAPER["median_mm"]]),
+        ("held-out within 10 mm (%)", "within_10mm_pct", [PAPER["within_10mm_pct"]]),
+        ("fused cloud to true mesh, median (mm)", "truth_accuracy_median_mm", []),
     ]
-    for ax, (title, (xs, ys), refs) in zip(axes, panels, strict=True):
-        ax.plot(xs, ys, "o", color="tab:blue", label="twin (paper profile x scale)")
+    for ax, (title, key, refs) in zip(axes, panels, strict=True):
+        ax.plot(*series(key, False), "o", color="tab:blue", label="twin (paper profile x scale)")
+        if any(held(r) for r in rows):
+            ax.plot(*series(key, True), "s", mfc="none", color="tab:green",
+                    label="same, board images at their own scale")
         for ref in refs:
             ax.axhline(ref, color="tab:red", ls="--", lw=1)
         ax.axvline(1.0, color="grey", lw=0.6)
@@ -242,8 +247,10 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
         ax.set_xlabel("error scale (paper profile = 1x)")
         ax.set_title(title, fontsize=9)
     axes[0].legend(fontsize=7, loc="upper left")
-    acc = [f"{r['scale']:g}x: {r.get('accepted', 0)}/{len(r['objects'])} accepted, "
-           f"{r.get('processed', 0)} processed" for r in rows]
+    acc = [f"{r['scale']:g}x" + (f" (images {r['image_scale']:g}x)" if held(r) else "")
+           + (": calibration failed" if r.get("calibration_error") else
+              f": {r.get('accepted', 0)}/{len(r['objects'])} accepted, {r.get('processed', 0)} processed")
+           for r in rows]
     fig.suptitle("darp robustness sweep (red: the paper's real-rig values)   " + "; ".join(acc), fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
