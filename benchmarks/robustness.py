@@ -148,6 +148,9 @@ def run_case(scale: float, seed: int, objects: list[str], args: argparse.Namespa
         summary = processed / "results.json"
         if summary.exists():
             data = json.loads(summary.read_text())
+            for failed in data.get("failed") or []:  # each failed survey's own stage and reason
+                if failed.get("name") in row["surveys"]:
+                    row["surveys"][failed["name"]]["failure"] = f"{failed.get('stage')}: {failed.get('reason')}"
             agg = (data.get("heldout") or {}).get("aggregate") or {}
             row["heldout_median_mm"] = agg.get("median_mm")
             row["heldout_rmse_mm"] = agg.get("rmse_mm")
@@ -200,7 +203,7 @@ def print_table(rows: list[dict[str, Any]]) -> None:
             if not s.get("accepted"):
                 print(f"{case}: {name} rejected: {s.get('message')}")
             elif not s.get("processed", False):
-                print(f"{case}: {name} not processed: {r.get('process_error')}")
+                print(f"{case}: {name} not processed: {s.get('failure') or r.get('process_error')}")
             elif s.get("warnings"):
                 print(f"{case}: {name} flagged: {'; '.join(s['warnings'])}")
 
