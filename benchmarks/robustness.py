@@ -187,8 +187,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         he = r.get("handeye_heldout_mm") or {}
         img = r.get("image_scale", r["scale"])
         label = f"{r['scale']:g}x" + ("" if img == r["scale"] else f" (images {img:g}x)")
+        tried = "calibration failed" if r.get("calibration_error") else f"{r.get('accepted', 0)}/{len(r['objects'])}"
         lines.append([label, str(r["seed"]), " / ".join(fmt(v) for v in he.values()) or "--",
-                      f"{r.get('accepted', 0)}/{len(r['objects'])}", f"{r.get('processed', 0)}/{r.get('accepted', 0)}",
+                      tried, f"{r.get('processed', 0)}/{r.get('accepted', 0)}",
                       str(r.get("flagged", "--")), str(r.get("process_exit", "--")),
                       fmt(r.get("heldout_median_mm")), fmt(r.get("within_10mm_pct")),
                       fmt(r.get("truth_accuracy_median_mm"), 3), fmt(r.get("seconds"), 0)])
