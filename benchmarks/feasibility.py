@@ -23,6 +23,7 @@ measures it, hand-eye, joint zeros).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -89,7 +90,7 @@ def plan_all(rig: Rig, cal: Calibration | None, centre: np.ndarray, radius: floa
     out = {}
     for arm_id in rig.arm_ids:
         model = ArmCollisionModel(rig, arm_id, calibration=cal, obstacle=obstacle, margins=margins)
-        settings = s.viewpoints.__class__(**{**s.viewpoints.__dict__, "min_depth_m": min_depth_m})
+        settings = dataclasses.replace(s.viewpoints, min_depth_m=min_depth_m)
         plan = ViewpointPlanner(model, centre, radius, height, settings, np.array(rig.arms[arm_id].park_q_rad)).plan()
         out[arm_id] = {"views": len(plan.views), "summary": feasibility_summary(plan),
                        "attempts": [{"relaxation": a["relaxation"], "views": a["views"], "candidates": a["candidates"],
@@ -117,7 +118,7 @@ def main() -> None:
     else:
         raise SystemExit("give --survey, or --object and --placement")
     w, h = (int(v) for v in args.resolution.split("x"))
-    fx = 0.5 * w / np.tan(np.radians(87.0) / 2)  # the D435's depth HFOV
+    fx = 0.5 * w  # a depth HFOV of about 90 deg (the twin's units: fx 211.7 px at 424x240)
     min_depth = min_depth_from_intrinsics(Intrinsics(w, h, fx, fx, w / 2, h / 2))
     record["envelope"] = {"centre_m": [round(float(v), 4) for v in centre], "radius_m": round(radius, 4),
                           "height_m": round(height, 4), "min_depth_m": round(min_depth, 4)}
