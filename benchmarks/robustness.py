@@ -251,7 +251,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
         ax.set_xlabel("error scale (paper profile = 1x)")
         ax.set_title(title, fontsize=9)
     axes[0].legend(fontsize=7, loc="upper left")
-    acc = [f"{r['scale']:g}x" + (f" (images {r['image_scale']:g}x)" if held(r) else "")
+    acc = [f"seed {r['seed']} {r['scale']:g}x" + (f" (images {r['image_scale']:g}x)" if held(r) else "")
            + (": calibration failed" if r.get("calibration_error") else
               f": {r.get('accepted', 0)}/{len(r['objects'])} accepted, {r.get('processed', 0)} processed")
            for r in rows]
