@@ -10,6 +10,7 @@ import pytest
 from darp.acquisition.confirm import ConfirmSettings
 from darp.acquisition.episode import read_events
 from darp.acquisition.survey import SurveySettings, run_survey
+from darp.acquisition.viewpoints import ViewpointSettings
 from darp.errors import AcquisitionError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.envelope import read_envelope
@@ -175,6 +176,43 @@ def test_disagreeing_arms_end_cleanly(tmp_path: Path) -> None:
     terminated = _rejected(tmp_path / "t", FakeRig([OBJECT], biases={"arm111": np.array([0.12, 0, 0, 0, 0, 0])}),
                            SurveySettings(confirm=ConfirmSettings(conflict_policy="terminate")))
     assert terminated.reason == "conflict" and "not averaged" in terminated.message
+
+
+def test_too_few_views_names_why_each_candidate_was_refused(tmp_path: Path) -> None:
+    # A minimum depth no view meets: both arms find the object, then every candidate view is refused.
+    settings = SurveySettings(viewpoints=ViewpointSettings(min_depth_m=1.5), derive_min_depth=False)
+    outcome = _rejected(tmp_path, FakeRig([OBJECT]), settings)
+    assert outcome.reason == "too_few_views"
+    assert outcome.message.startswith("too few feasible views (at least 4 needed) even after relaxing the orbit: "
+                                      "arm110: 0 feasible of ")
+    for arm_id, plan in outcome.plans.items():
+        counts = {r: sum(1 for c in plan.candidates if c.reason == r) for r in ("ik", "min_depth")}
+        assert counts["min_depth"] > 0 and sum(counts.values()) == len(plan.candidates) and not plan.views
+        ranked = sorted(counts.items(), key=lambda kv: -kv[1])  # the most frequent reason first
+        words = {"ik": "IK", "min_depth": "minimum depth"}
+        listed = ", ".join(f"{n} {words[r]}" for r, n in ranked if n)
+        assert f"{arm_id}: 0 feasible of {len(plan.candidates)} candidates (the nominal orbit, best of 4 tried): " \
+            f"{listed}; e.g. {words[ranked[0][0]]}: " in outcome.message
+        if ranked[1][1]:  # an example of the second reason too
+            assert f"; {words[ranked[1][0]]}: " in outcome.message.split(f"{arm_id}: ")[1]
+    assert "(minimum depth 1.500 m)" in outcome.message  # an example refusal's detail
+    assert "\n" not in outcome.message
+    assert outcome.message in (outcome.folder / "REJECTED.txt").read_text()
+
+
+def test_a_calibration_with_a_base_off_the_table_ends_before_any_move(tmp_path: Path) -> None:
+    rig = FakeRig([OBJECT])
+    cal = rig.rig.nominal_calibration()
+    T = np.array(cal.arms["arm111"].T_world_base, dtype=float)
+    T[2, 3] -= 0.045
+    cal.arms["arm111"].T_world_base = T
+    outcome = run_survey(rig, rig.rig, tmp_path, "s", calibration=cal)
+    assert outcome.status == "rejected" and outcome.reason == "calibration_inconsistent"
+    assert "the shoulder of arm111 45 mm lower than the rig file" in outcome.message
+    kinds = [e["kind"] for e in read_events(outcome.folder / "events.jsonl")]
+    assert "localise_start" not in kinds and "parked" not in kinds
+    for arm in rig.arms.values():  # never moved
+        np.testing.assert_allclose(arm.true_q(), rig.rig.arms[arm.arm_id].park_q_rad, atol=1e-12)
 
 
 def test_a_one_off_bad_estimate_falls_back_to_the_reconfirmed_one(tmp_path: Path) -> None:

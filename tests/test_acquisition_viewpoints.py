@@ -10,8 +10,12 @@ from darp.acquisition.viewpoints import (
     Candidate,
     ViewpointPlanner,
     ViewpointSettings,
+    calibration_table_problem,
+    feasibility_summary,
     orbit_shape,
     order_views,
+    reason_words,
+    shoulder_offsets_m,
     standoff_for_radius,
     tour_cost,
 )
@@ -141,6 +145,29 @@ def test_too_few_views_regenerates_with_relaxed_parameters() -> None:
         assert a["candidates"] == a["views"] + sum(a["rejected"].values())
 
 
+def test_feasibility_summary_counts_every_refusal_by_reason() -> None:
+    # A table margin no pose meets: every candidate that IK solves is refused for table clearance (or earlier).
+    plan = planner(margins=ClearanceMargins(table_m=0.6), settings=ViewpointSettings(min_views=1)).plan()
+    assert not plan.views
+    counts: dict[str, int] = {}
+    for c in plan.candidates:
+        counts[c.reason] = counts.get(c.reason, 0) + 1
+    assert counts.get("table", 0) > 0
+    text = feasibility_summary(plan)
+    assert text.startswith(f"0 feasible of {len(plan.candidates)} candidates (the nominal orbit, best of 4 tried): ")
+    ranked = text.split(": ", 1)[1].split("; e.g. ")[0].split(", ")
+    assert sum(int(part.split(" ", 1)[0]) for part in ranked) == len(plan.candidates)
+    assert f"{counts['table']} table clearance" in ranked
+    top_two = sorted(counts, key=lambda r: -counts[r])[:2]
+    assert "table" in top_two
+    for reason in top_two:  # the first refusal's detail of each of the two most frequent reasons
+        example = next(c for c in plan.candidates if c.reason == reason)
+        assert f"{reason_words(reason)}: {example.detail}" in text.split("; e.g. ", 1)[1]
+    assert "mm above the table (margin 600 mm)" in text
+    good = planner().plan()  # a feasible plan: nothing refused is listed when nothing was
+    assert feasibility_summary(good).startswith(f"{len(good.views)} feasible of {len(good.candidates)} candidates")
+
+
 def test_path_check_finds_a_collision_between_clear_views() -> None:
     model = ArmCollisionModel(RIG, "arm110")
     q_a = np.array([-0.6, 1.6, -1.2, 0.0, 0.0, 0.0])  # reaching forward, swinging across the table
@@ -222,3 +249,36 @@ def test_collision_model_uses_the_calibration() -> None:
                                         RIG.camera_mount("arm110"))
     np.testing.assert_allclose(shifted.primitives(q).centre, expected.centre)
     assert not np.allclose(nominal.primitives(q).centre, expected.centre)
+
+
+def _tilted_base_calibration(arm: str, dz_m: float, tilt_deg: float = 0.0) -> object:
+    """The nominal calibration with one arm's base moved up by ``dz_m`` and tilted about the world x axis."""
+    cal = RIG.nominal_calibration()
+    T = np.array(cal.arms[arm].T_world_base, dtype=float)
+    a = np.radians(tilt_deg)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    T[:3, :3] = R @ T[:3, :3]
+    T[2, 3] += dz_m
+    cal.arms[arm].T_world_base = T
+    return cal
+
+
+def test_a_calibration_that_moves_a_base_off_the_table_is_named() -> None:
+    """The 4x sweep's case (docs/twin.md): a solved base 40 mm low puts the arm's own park pose in the table
+    clearance, so every view is refused; 40 mm high passes every check that the real arm would fail."""
+    margin = ClearanceMargins.from_rig(RIG).table_m
+    assert calibration_table_problem(RIG, RIG.nominal_calibration(), margin) == ""
+    park = RIG.arms["arm111"].park_q_rad
+    low = _tilted_base_calibration("arm111", -0.040, tilt_deg=2.0)
+    offsets = shoulder_offsets_m(RIG, low)
+    assert offsets["arm110"] == pytest.approx(0.0, abs=1e-9) and -0.045 < offsets["arm111"] < -0.039
+    assert ArmCollisionModel(RIG, "arm111").check_configuration(park).ok
+    verdict = ArmCollisionModel(RIG, "arm111", calibration=low).check_configuration(park)
+    assert not verdict.ok and verdict.reason == "table"  # the oracle: the collision model itself
+    problem = calibration_table_problem(RIG, low, margin)
+    assert "shoulder of arm111 4" in problem and "mm lower than the rig file" in problem and "arm110: +0 mm" in problem
+    high = _tilted_base_calibration("arm110", 0.040)
+    assert ArmCollisionModel(RIG, "arm110", calibration=high).check_configuration(RIG.arms["arm110"].park_q_rad).ok
+    assert "shoulder of arm110 40 mm higher" in calibration_table_problem(RIG, high, margin)
+    within = _tilted_base_calibration("arm111", -0.8 * margin)  # inside the clearance: planning is left to decide
+    assert calibration_table_problem(RIG, within, margin) == ""

@@ -72,6 +72,8 @@ from darp.acquisition.viewpoints import (
     ViewPlan,
     ViewpointPlanner,
     ViewpointSettings,
+    calibration_table_problem,
+    feasibility_summary,
     min_depth_from_intrinsics,
     standoff_for_radius,
 )
@@ -271,9 +273,9 @@ class SurveyRunner:
         self.outcome.plans = plans
         short = {a: len(p.views) for a, p in plans.items() if len(p.views) < self.s.min_required_views}
         if short:
-            what = ", ".join(f"{a}: {n}" for a, n in short.items())
-            raise _Terminated("too_few_views", f"too few feasible views ({what}; at least "
-                              f"{self.s.min_required_views} needed) even after relaxing the orbit")
+            what = " | ".join(f"{a}: {feasibility_summary(plans[a])}" for a in short)
+            raise _Terminated("too_few_views", f"too few feasible views (at least {self.s.min_required_views} "
+                              f"needed) even after relaxing the orbit: {what}")
         return plans
 
     def _feasible_poses(self, planners: dict[str, ViewpointPlanner], plans: dict[str, ViewPlan]
@@ -410,6 +412,10 @@ class SurveyRunner:
     # -- the procedure ----------------------------------------------------------------------------
     def _acquire(self) -> tuple[ObjectEstimate, dict[str, ViewPlan]]:
         """Park, localise and confirm, plan, record; raises _Terminated for an early end."""
+        if self.calibration is not None:  # before any move: the clearance checks stand on the calibration
+            problem = calibration_table_problem(self.rig, self.calibration, self.margins.table_m)
+            if problem:
+                raise _Terminated("calibration_inconsistent", problem)
         workspace = workspace_obstacle(self.rig)
         for arm_id in self.rig.arm_ids:
             self._park(arm_id, workspace)

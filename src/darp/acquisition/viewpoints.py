@@ -50,9 +50,11 @@ from numpy.typing import NDArray
 
 from darp.acquisition.motion_check import ArmCollisionModel
 from darp.errors import AcquisitionError
+from darp.formats.calibration import Calibration
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics import z1
 from darp.kinematics.ik import solve_look_at
+from darp.kinematics.rig import Rig
 
 Array = NDArray[np.float64]
 
@@ -74,6 +76,37 @@ def min_depth_from_intrinsics(intrinsics: Intrinsics, baseline_m: float = 0.050,
                               margin_m: float = 0.02) -> float:
     """The D4's minimum depth f * B / d_max for a depth stream, plus a margin (0.17 m at 640x480)."""
     return float(intrinsics.fx * baseline_m / max_disparity_px + margin_m)
+
+
+def shoulder_offsets_m(rig: Rig, calibration: Calibration) -> dict[str, float]:
+    """Per arm: how far (m, + up) the calibration's base pose puts the shoulder (the joint-2 axis on the base's
+    vertical axis, whose height no joint changes) from where the rig file stands it on the table."""
+    out = {}
+    for arm_id in rig.arm_ids:
+        nominal, _, _ = rig.extrinsics(arm_id)
+        solved, _, _ = rig.extrinsics(arm_id, calibration)
+        shoulder = np.r_[SHOULDER_BASE_M, 1.0]
+        out[arm_id] = float((solved @ shoulder)[2] - (nominal @ shoulder)[2])
+    return out
+
+
+def calibration_table_problem(rig: Rig, calibration: Calibration, table_clearance_m: float) -> str:
+    """Empty when every arm's calibrated shoulder height is within ``table_clearance_m`` of the rig's; otherwise
+    why the clearance checks cannot be trusted with this calibration (one line).
+
+    The bases stand on the table, so their parts' heights are the rig's whatever the calibration; a calibrated
+    base pose that moves the shoulder by more than the table clearance moves every part of the arm's model by
+    about as much: lower, and even the arm's own park pose fails the table check (every view is refused);
+    higher, and planned moves may pass the check while the real arm touches the table."""
+    offsets = shoulder_offsets_m(rig, calibration)
+    bad = {a: d for a, d in offsets.items() if abs(d) > table_clearance_m}
+    if not bad:
+        return ""
+    what = " and ".join(f"of {a} {abs(d) * 1000:.0f} mm {'higher' if d > 0 else 'lower'}" for a, d in bad.items())
+    others = "; ".join(f"{a}: {d * 1000:+.0f} mm" for a, d in offsets.items() if a not in bad)
+    return (f"the calibration puts the shoulder {what} than the rig file, whose bases stand on the table"
+            f"{f' ({others})' if others else ''}: more than the {table_clearance_m * 1000:.0f} mm table clearance "
+            f"that planned moves keep, so the clearance checks cannot be trusted with it (recalibrate)")
 
 
 @dataclass(frozen=True)
@@ -197,6 +230,40 @@ def _reject_counts(cands: list[Candidate]) -> dict[str, int]:
         if not c.ok:
             counts[c.reason] = counts.get(c.reason, 0) + 1
     return counts
+
+
+REASON_WORDS = {"ik": "IK", "joint_limits": "joint limits", "workspace": "workspace", "min_depth": "minimum depth",
+                "table": "table clearance", "self": "self-collision", "parked_arm": "parked-arm",
+                "envelope": "envelope clearance", "joint_motion": "joint motion"}
+"""How a refusal reason reads in a message; ``path_<reason>`` reads as "path <words>"."""
+
+
+def reason_words(reason: str) -> str:
+    """A refusal reason code in words (``path_table`` -> ``path table clearance``)."""
+    if reason.startswith("path_"):
+        return "path " + REASON_WORDS.get(reason[5:], reason[5:])
+    return REASON_WORDS.get(reason, reason or "unchecked")
+
+
+def feasibility_summary(plan: ViewPlan) -> str:
+    """Why an arm's candidate views were refused, for a user: ``0 feasible of 36 candidates: 20 IK,
+    12 table clearance, 4 parked-arm; e.g. IK: <detail>; table clearance: <detail>`` (the first refusal's detail
+    for each of the two most frequent reasons). The counts are those of
+    the orbit the plan kept (the relaxation with the most views; the first one when all have none); the most
+    frequent reason comes first, ties in :data:`CANDIDATE_REASONS` order."""
+    counts = _reject_counts(plan.candidates)
+    order = {r: k for k, r in enumerate(CANDIDATE_REASONS)}
+    ranked = sorted(counts, key=lambda r: (-counts[r], order.get(r, len(order)), r))
+    text = f"{len(plan.views)} feasible of {len(plan.candidates)} candidates"
+    kept = [a["relaxation"] for a in plan.attempts if a.get("shape") == plan.shape.to_record()]
+    if len(plan.attempts) > 1 and kept:
+        text += f" (the {kept[0]} orbit, best of {len(plan.attempts)} tried)"
+    if ranked:
+        text += ": " + ", ".join(f"{counts[r]} {reason_words(r)}" for r in ranked)
+        examples = [(r, next(c.detail for c in plan.candidates if not c.ok and c.reason == r)) for r in ranked[:2]]
+        if any(detail for _, detail in examples):
+            text += "; e.g. " + "; ".join(f"{reason_words(r)}: {detail}" for r, detail in examples if detail)
+    return text
 
 
 def envelope_points(centre_m: Array, radius_m: float, height_m: float, table_z_m: float, n: int = 16) -> Array:
@@ -445,11 +512,15 @@ __all__ = [
     "ViewPlan",
     "ViewpointPlanner",
     "ViewpointSettings",
+    "calibration_table_problem",
     "envelope_points",
+    "feasibility_summary",
     "min_depth_from_intrinsics",
     "move_cost",
     "orbit_shape",
     "order_views",
+    "reason_words",
+    "shoulder_offsets_m",
     "standoff_for_radius",
     "tour_cost",
 ]
