@@ -11,7 +11,15 @@
 - the twin's seed (its true rig: joint-zero biases, hand-eye and base errors, noise), the viewpoint
   strategy (orbit or coverage, the latter with next best views) and the calibration the survey decides
   with (the twin's true one, or the rig's nominal one: the twin's true rig then differs from what the
-  motion checks model by the realistic profile's errors).
+  motion checks model by the profile's errors);
+- drawn after those (so ``--profiles realistic --solved-share 0`` draws exactly what the campaigns before
+  these two draws drew): the twin profile (``realistic`` or ``paper``, whose real-rig error levels put the
+  live envelope mm to cm off) and, with probability ``--solved-share``, a third calibration kind,
+  ``solved``: a calibration solved from simulated board images of the same twin (same profile and twin
+  seed) by darp's own capture and solve code (``capture_twin``, ``solve_captures``; ``--calib-captures``
+  per arm at the survey's resolution). A ``solved`` draw takes its twin seed from a pool of
+  ``--solved-pool`` seeds per profile, so the campaign solves at most pool x profiles calibrations; each is
+  solved once and cached in ``--out/calibrations/<profile>_seed<twin seed>/``.
 
 Each survey runs the whole acquisition (localise, confirm, plan, record both cameras, verify; no
 processing) on the cheapest camera the twin offers (424x240 depth and colour at 6 fps, no IMU). The
@@ -31,8 +39,9 @@ and ``TwinRig`` construction in the process is counted).
 Prints one line per survey and a summary; ``--json`` writes every row.
 
     MUJOCO_GL=egl .venv/bin/python benchmarks/safety.py [--surveys 100] [--invalid 3] [--seed 0]
-        [--start 0] [--fps 6] [--resolution 424x240] [--profile realistic] [--json safety.json]
-        [--out DIR] [--self-check] [--dense-hz 1000] [--resume]
+        [--start 0] [--fps 6] [--resolution 424x240] [--profiles realistic,paper] [--solved-share 0.333]
+        [--solved-pool 4] [--calib-captures 12] [--json safety.json] [--out DIR] [--self-check]
+        [--dense-hz 1000] [--resume]
 
 ``--resume`` keeps the rows already in ``--json`` and goes on with the next survey (a campaign cut
 short, or split over sessions, adds up to the same draws).
@@ -97,8 +106,18 @@ def load(name: str, meshes: dict[str, Path], scale: float = 1.0) -> Any:
 
 
 # -- valid surveys ------------------------------------------------------------------------------------------
-def draw_valid(i: int, seed: int, objects: list[str], meshes: dict[str, Path], rig: Any) -> dict[str, Any]:
-    """Survey ``i``'s draws (see the module docstring)."""
+def solved_pool_seed(seed: int, profile: str, k: int) -> int:
+    """The ``k``-th twin seed of the ``solved`` draws' pool for ``profile`` in campaign ``seed``."""
+    from darp.twin.settings import PROFILES
+
+    return int(np.random.default_rng([seed, 0xCA1B, PROFILES.index(profile), k]).integers(2**31))
+
+
+def draw_valid(i: int, seed: int, objects: list[str], meshes: dict[str, Path], rig: Any, *,
+               profiles: tuple[str, ...] = ("realistic",), solved_share: float = 0.0, solved_pool: int = 4
+               ) -> dict[str, Any]:
+    """Survey ``i``'s draws (see the module docstring); the defaults draw what campaigns before the profile and
+    ``solved`` draws drew."""
     from darp.errors import TwinError
     from darp.twin.objects.model import ObjectPlacement
     from darp.twin.placement import validate_placement
@@ -118,10 +137,17 @@ def draw_valid(i: int, seed: int, objects: list[str], meshes: dict[str, Path], r
             refused += 1
     else:
         raise SystemExit(f"survey {i}: no valid placement of {name} in 10000 draws")
-    return {"index": i, "object": name, "x_m": round(x, 4), "y_m": round(y, 4), "yaw_deg": round(math.degrees(yaw), 2),
-            "refused_draws": refused, "twin_seed": int(rng.integers(2**31)),
-            "viewpoints": ("orbit", "coverage")[int(rng.integers(2))],
-            "calibration": ("truth", "nominal")[int(rng.integers(2))]}
+    row = {"index": i, "object": name, "x_m": round(x, 4), "y_m": round(y, 4), "yaw_deg": round(math.degrees(yaw), 2),
+           "refused_draws": refused, "twin_seed": int(rng.integers(2**31)),
+           "viewpoints": ("orbit", "coverage")[int(rng.integers(2))],
+           "calibration": ("truth", "nominal")[int(rng.integers(2))]}
+    # drawn after the draws above, always, so that those stay what they were
+    profile = profiles[int(rng.integers(len(profiles)))]
+    k, solved = int(rng.integers(max(1, solved_pool))), bool(rng.random() < solved_share)
+    row["profile"] = profile
+    if solved:
+        row.update(calibration="solved", twin_seed=solved_pool_seed(seed, profile, k))
+    return row
 
 
 def contacts_of(twin: Any) -> dict[str, Any]:
@@ -164,9 +190,57 @@ def add_dense_check(twin: Any, hz: float = 1000.0) -> dict[str, Any]:
     return record
 
 
+def calibration_gap(cal: Any, truth: Any) -> dict[str, float]:
+    """How far a calibration is from the twin's true one: the largest base and hand-eye translation
+    differences (mm) and joint-offset difference (deg) over the arms."""
+    base = max(float(np.linalg.norm(cal.arms[a].T_world_base[:3, 3] - truth.arms[a].T_world_base[:3, 3]))
+               for a in truth.arms)
+    hand_eye = max(float(np.linalg.norm(cal.arms[a].T_wrist_cam[:3, 3] - truth.arms[a].T_wrist_cam[:3, 3]))
+                   for a in truth.arms)
+    dq = max(float(np.max(np.abs(np.asarray(cal.arms[a].joint_offsets_rad) - truth.arms[a].joint_offsets_rad)))
+             for a in truth.arms)
+    return {"base_mm": round(1e3 * base, 3), "hand_eye_mm": round(1e3 * hand_eye, 3),
+            "joint_offset_deg": round(math.degrees(dq), 4)}
+
+
+def solved_calibration(out: Path, profile: str, twin_seed: int, *, captures: int = 12,
+                       size: tuple[int, int] = (424, 240)) -> tuple[Any, dict[str, Any]]:
+    """The calibration solved from simulated board images of the twin (``profile``, ``twin_seed``) by darp's
+    own capture and solve code, and what the solve reported; cached in ``out/calibrations/<profile>_seed<seed>/``
+    (``calibration.json`` and ``solve.json``; the capture images are deleted once solved)."""
+    from darp.calibration.captures import read_captures
+    from darp.calibration.solve import SolveSettings, solve_captures
+    from darp.cli._calib_twin import capture_twin
+    from darp.formats.atomic import write_json_atomic
+    from darp.formats.calibration import read_calibration, write_calibration
+
+    folder = out / "calibrations" / f"{profile}_seed{twin_seed}"
+    path, info_path = folder / "calibration.json", folder / "solve.json"
+    if path.is_file() and info_path.is_file():
+        return read_calibration(path), {**json.loads(info_path.read_text()), "cached": True}
+    t0 = time.perf_counter()
+    with contextlib.redirect_stdout(io.StringIO()):
+        capture_twin(folder / "captures", seed=twin_seed, profile=profile, n_per_arm=captures, resolution=size,
+                     overwrite=True)
+    caps = read_captures(folder / "captures")
+    truth_path = caps.truth_calibration_path()
+    assert truth_path is not None
+    truth = read_calibration(truth_path)
+    outcome = solve_captures(caps, SolveSettings(folds=0, compare=False, epoch=f"safety-{profile}-seed{twin_seed}"))
+    cal = outcome.calibration
+    info = {"profile": profile, "twin_seed": twin_seed, "captures_per_arm": captures, "resolution": list(size),
+            "n_used": cal.report["n_used"], "n_captures": cal.report["n_captures"],
+            "fit_px_median": {a: round(c.residuals["fit_reprojection_px"]["median"], 3) for a, c in cal.arms.items()},
+            "gap_to_truth": calibration_gap(cal, truth), "wall_s": round(time.perf_counter() - t0, 1)}
+    write_calibration(path, cal)
+    write_json_atomic(info_path, info)
+    shutil.rmtree(folder / "captures", ignore_errors=True)
+    return cal, {**info, "cached": False}
+
+
 def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: int, size: tuple[int, int],
-              profile: str, keep: bool, dense_hz: float = 1000.0) -> dict[str, Any]:
-    """One survey on a fresh twin; the row of the table."""
+              keep: bool, dense_hz: float = 1000.0, calib_captures: int = 12) -> dict[str, Any]:
+    """One survey on a fresh twin (profile ``draw["profile"]``, realistic when absent); the row of the table."""
     from darp.acquisition.episode import read_events
     from darp.acquisition.survey import SurveySettings, run_survey
     from darp.kinematics.rig import load_rig
@@ -177,14 +251,29 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
     rig = load_rig()
     obj = load(draw["object"], meshes)
     place = ObjectPlacement(draw["x_m"], draw["y_m"], math.radians(draw["yaw_deg"]), rig.table.height_m)
+    profile = draw.get("profile", "realistic")
     settings = TwinSettings.from_profile(profile, seed=draw["twin_seed"]).with_camera(
         width=size[0], height=size[1], fps=fps, imu=False)
     name = f"s{draw['index']:04d}_{draw['object']}"
     row: dict[str, Any] = dict(draw)
+    solved = None
+    if draw["calibration"] == "solved":  # before the clock starts: solved once per (profile, seed), then cached
+        from darp.errors import DarpError
+
+        try:
+            solved, row["solve"] = solved_calibration(out, profile, draw["twin_seed"], captures=calib_captures,
+                                                      size=size)
+        except DarpError as err:  # no survey without its calibration; a row that says why
+            row.update(status="error", reason="calibration_failed", message=str(err)[:300], planned_views={},
+                       executed_views={}, contacts=0, contact_pairs=[], first_contact=None, fault=None,
+                       sim_s=0.0, wall_s=0.0, cpu_s=0.0)
+            return row
     t0, cpu0 = time.perf_counter(), time.process_time()
     with TwinRig(settings, rig=rig, obj=obj, placement=place) as twin:
         dense = add_dense_check(twin, dense_hz) if dense_hz > 0 else {}
-        cal = twin.true_rig.calibration(settings) if draw["calibration"] == "truth" else None
+        truth = twin.true_rig.calibration(settings)
+        cal = {"truth": truth, "nominal": None, "solved": solved}[draw["calibration"]]
+        row["calibration_gap"] = calibration_gap(rig.nominal_calibration() if cal is None else cal, truth)
         try:
             outcome = run_survey(twin, rig, out, name, calibration=cal, overwrite=True, object_name=obj.name,
                                  settings=SurveySettings(viewpoint_strategy=draw["viewpoints"]))
@@ -352,7 +441,11 @@ def summary(valid: list[dict[str, Any]], invalid: list[dict[str, Any]]) -> dict[
         key = r["status"] if r["status"] == "accepted" else f"{r['status']}:{r['reason']}"
         by_status[key] = by_status.get(key, 0) + 1
     wall = [r["wall_s"] for r in valid]
-    return {"surveys": n, "outcomes": by_status,
+    draws: dict[str, int] = {}
+    for r in valid:
+        key = f"{r.get('profile', 'realistic')}/{r['calibration']}"
+        draws[key] = draws.get(key, 0) + 1
+    return {"surveys": n, "outcomes": by_status, "draws": draws,
             "surveys_with_contacts": sum(1 for r in valid if r["contacts"]),
             "contact_samples": sum(r["contacts"] for r in valid),
             "dense_checked_surveys": sum(1 for r in valid if "dense_samples" in r),
@@ -370,7 +463,8 @@ def valid_line(r: dict[str, Any]) -> str:
     views = "/".join(f"{r['executed_views'].get(a, 0)}of{n}" for a, n in r["planned_views"].items()) or "-"
     status = r["status"] if r["status"] == "accepted" else f"{r['status']}({r['reason']})"
     return (f"{r['index']:4d} {r['object']:14s} ({r['x_m']:+.3f},{r['y_m']:+.3f}) {r['yaw_deg']:+7.1f}deg "
-            f"{r['viewpoints']:8s} {r['calibration']:7s} {status:28s} views {views:12s} "
+            f"{r['viewpoints']:8s} {r.get('profile', 'realistic'):9s} {r['calibration']:7s} {status:28s} "
+            f"views {views:12s} "
             f"contacts {r['contacts']:3d}/{r.get('dense_contacts', '-')} "
             f"{r['wall_s']:6.1f} s")
 
@@ -397,7 +491,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", default="all", help="comma-separated paper objects and torus,mushroom,l_shape")
     p.add_argument("--fps", type=int, default=6)
     p.add_argument("--resolution", default="424x240")
-    p.add_argument("--profile", default="realistic")
+    p.add_argument("--profiles", default="realistic,paper", help="twin profiles drawn from (comma-separated)")
+    p.add_argument("--profile", default=None, help="one profile only (same as --profiles NAME)")
+    p.add_argument("--solved-share", type=float, default=1 / 3,
+                   help="share of surveys with a calibration solved from the twin's board images (0: none)")
+    p.add_argument("--solved-pool", type=int, default=4, help="twin seeds per profile for the solved draws")
+    p.add_argument("--calib-captures", type=int, default=12, help="board captures per arm for a solved calibration")
     p.add_argument("--out", type=Path, default=None, help="where surveys are written (default: a temp folder)")
     p.add_argument("--keep", action="store_true", help="keep the survey folders")
     p.add_argument("--json", type=Path, default=None)
@@ -406,6 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--self-check", action="store_true", help="first show that a colliding move is counted")
     args = p.parse_args(argv)
     size = tuple(int(v) for v in args.resolution.lower().split("x"))
+    profiles = (args.profile,) if args.profile else tuple(args.profiles.split(","))
     objects = list(OBJECT_NAMES) + list(USER_MESHES) if args.objects == "all" else args.objects.split(",")
     out = args.out or Path(tempfile.mkdtemp(prefix="darp-safety-"))
     meshes = write_user_meshes(out / "meshes")
@@ -433,9 +533,10 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['message'][:150]}", flush=True)
     t0, first = time.perf_counter(), len(valid)
     for i in range(args.start, args.start + args.surveys - first):
-        draw = draw_valid(i, args.seed, objects, meshes, rig)
-        row = run_valid(draw, meshes, out, fps=args.fps, size=size, profile=args.profile,  # type: ignore[arg-type]
-                        keep=args.keep, dense_hz=args.dense_hz)
+        draw = draw_valid(i, args.seed, objects, meshes, rig, profiles=profiles, solved_share=args.solved_share,
+                          solved_pool=args.solved_pool)
+        row = run_valid(draw, meshes, out, fps=args.fps, size=size, keep=args.keep,  # type: ignore[arg-type]
+                        dense_hz=args.dense_hz, calib_captures=args.calib_captures)
         valid.append(row)
         print(f"[{len(valid)}/{args.surveys} {time.perf_counter() - t0:6.0f} s] {valid_line(row)}", flush=True)
         if row["contacts"] or row.get("dense_contacts"):
@@ -444,7 +545,9 @@ def main(argv: list[str] | None = None) -> int:
         write_json(args.json, args, valid, invalid, check)  # after every survey: a cut-short campaign keeps its rows
     s = summary(valid, invalid)
     write_json(args.json, args, valid, invalid, check)
-    print(f"\n== {s['surveys']} valid surveys ({args.profile}, {args.resolution} at {args.fps} fps, seed {args.seed})")
+    print(f"\n== {s['surveys']} valid surveys ({','.join(profiles)}, {args.resolution} at {args.fps} fps, "
+          f"seed {args.seed})")
+    print(f"draws: {json.dumps(s['draws'])}")
     print(f"outcomes: {json.dumps(s['outcomes'])}")
     print(f"contacts during motion: {s['contact_samples']} samples in {s['surveys_with_contacts']} surveys "
           f"(target 0); views executed: {s['views_executed']}")

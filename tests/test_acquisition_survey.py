@@ -191,7 +191,8 @@ def test_too_few_views_names_why_each_candidate_was_refused(tmp_path: Path) -> N
         ranked = sorted(counts.items(), key=lambda kv: -kv[1])  # the most frequent reason first
         words = {"ik": "IK", "min_depth": "minimum depth"}
         listed = ", ".join(f"{n} {words[r]}" for r, n in ranked if n)
-        assert f"{arm_id}: 0 feasible of {len(plan.candidates)} candidates (the nominal orbit, best of 4 tried): " \
+        n, tried = len(plan.candidates), len(plan.attempts)
+        assert f"{arm_id}: 0 feasible of {n} candidates (the nominal orbit, best of {tried} tried): " \
             f"{listed}; e.g. {words[ranked[0][0]]}: " in outcome.message
         if ranked[1][1]:  # an example of the second reason too
             assert f"; {words[ranked[1][0]]}: " in outcome.message.split(f"{arm_id}: ")[1]

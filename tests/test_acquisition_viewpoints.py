@@ -135,11 +135,13 @@ def test_plan_views_are_feasible_and_their_moves_clear() -> None:
 def test_too_few_views_regenerates_with_relaxed_parameters() -> None:
     plan = planner(settings=ViewpointSettings(min_views=200)).plan()
     names = [a["relaxation"] for a in plan.attempts]
-    assert names == ["nominal", "wider span, lower ring", "larger standoff", "smaller standoff, lower rings"]
+    assert names == ["nominal", "wider span, lower ring", "larger standoff", "smaller standoff, lower rings",
+                     "close"]
     spans = [a["shape"]["azimuth_span_deg"] for a in plan.attempts]
     assert spans[1] > spans[0]
     assert plan.attempts[2]["shape"]["standoff_m"] > plan.attempts[0]["shape"]["standoff_m"]
     assert plan.attempts[3]["shape"]["standoff_m"] < plan.attempts[0]["shape"]["standoff_m"]
+    assert plan.attempts[4]["shape"]["standoff_m"] == pytest.approx(0.25 + RADIUS)
     assert len(plan.views) == max(a["views"] for a in plan.attempts)  # the best attempt is kept
     for a in plan.attempts:
         assert a["candidates"] == a["views"] + sum(a["rejected"].values())
@@ -154,7 +156,8 @@ def test_feasibility_summary_counts_every_refusal_by_reason() -> None:
         counts[c.reason] = counts.get(c.reason, 0) + 1
     assert counts.get("table", 0) > 0
     text = feasibility_summary(plan)
-    assert text.startswith(f"0 feasible of {len(plan.candidates)} candidates (the nominal orbit, best of 4 tried): ")
+    n, tried = len(plan.candidates), len(plan.attempts)
+    assert text.startswith(f"0 feasible of {n} candidates (the nominal orbit, best of {tried} tried): ")
     ranked = text.split(": ", 1)[1].split("; e.g. ")[0].split(", ")
     assert sum(int(part.split(" ", 1)[0]) for part in ranked) == len(plan.candidates)
     assert f"{counts['table']} table clearance" in ranked
@@ -282,3 +285,19 @@ def test_a_calibration_that_moves_a_base_off_the_table_is_named() -> None:
     assert "shoulder of arm110 40 mm higher" in calibration_table_problem(RIG, high, margin)
     within = _tilted_base_calibration("arm111", -0.8 * margin)  # inside the clearance: planning is left to decide
     assert calibration_table_problem(RIG, within, margin) == ""
+
+
+def test_a_large_object_near_an_arms_base_gets_views_closer_in() -> None:
+    """The safety campaign's picture frame (envelope r 123 mm, h 194 mm) 0.58 m from arm110's base: the
+    4.5 r standoff (0.554 m) puts arm110's cameras behind its own base (2 views in the first four attempts,
+    4 needed); 25 cm from the envelope's surface (0.373 m) it has 10."""
+    centre, radius, height = np.array([-0.1151, -0.0632, 0.0969]), 0.12316, 0.19371
+    model = ArmCollisionModel(RIG, "arm110", obstacle=envelope_obstacle(centre, radius, height, 0.0))
+    p = ViewpointPlanner(model, centre, radius, height)
+    plan = p.plan()
+    names = [a["relaxation"] for a in plan.attempts]
+    assert names[-1] == "close" and all(a["views"] < 4 for a in plan.attempts[:-1])
+    assert len(plan.views) >= 6 and plan.shape.standoff_m == pytest.approx(0.25 + radius, abs=1e-3)
+    for v in plan.views:
+        assert v.ok and np.linalg.norm(v.camera_m - centre) == pytest.approx(plan.shape.standoff_m)
+        assert p.model.check_configuration(v.joints_rad).ok

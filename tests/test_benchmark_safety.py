@@ -83,3 +83,46 @@ def test_each_kind_of_invalid_placement_is_refused_before_motion(safety: ModuleT
     assert safety.classify(row["message"]).startswith(kind.split("_")[0])
     assert row["joint_commands"] == 0 and row["twins_built"] == 0 and row["folders"] == []
     assert row["refused_before_motion"]
+
+
+def test_the_profile_and_solved_draws_come_after_the_old_ones(safety: ModuleType, meshes: dict[str, Path]) -> None:
+    objects = ["cup", "picture_frame", *safety.USER_MESHES]
+    old = [safety.draw_valid(i, 3, objects, meshes, RIG) for i in range(12)]
+    new = [safety.draw_valid(i, 3, objects, meshes, RIG, profiles=("realistic", "paper"), solved_share=0.5,
+                             solved_pool=2) for i in range(12)]
+    assert all(o["profile"] == "realistic" for o in old)
+    assert {n["profile"] for n in new} == {"realistic", "paper"}
+    solved = [n for n in new if n["calibration"] == "solved"]
+    assert 0 < len(solved) < 12
+    pools = {p: {safety.solved_pool_seed(3, p, k) for k in range(2)} for p in ("realistic", "paper")}
+    assert all(n["twin_seed"] in pools[n["profile"]] for n in solved)
+    for o, n in zip(old, new, strict=True):  # the old fields are drawn as before
+        same = ("index", "object", "x_m", "y_m", "yaw_deg", "viewpoints")
+        assert {k: o[k] for k in same} == {k: n[k] for k in same}
+        if n["calibration"] != "solved":
+            assert (n["twin_seed"], n["calibration"]) == (o["twin_seed"], o["calibration"])
+
+
+@pytest.mark.slow
+def test_a_solved_calibration_is_solved_from_the_twins_images_once(safety: ModuleType, tmp_path: Path) -> None:
+    from darp.twin.rig_backend import TwinRig
+    from darp.twin.settings import TwinSettings
+
+    cal, info = safety.solved_calibration(tmp_path, "realistic", 21, captures=8)
+    assert not info["cached"] and info["n_used"] >= 12
+    settings = TwinSettings.from_profile("realistic", seed=21).with_camera(width=424, height=240, fps=6, imu=False)
+    with TwinRig(settings, rig=RIG) as twin:  # the survey's twin: same profile and seed, the survey's camera
+        truth = twin.true_rig.calibration(settings)
+    to_truth = safety.calibration_gap(cal, truth)
+    nominal_to_truth = safety.calibration_gap(RIG.nominal_calibration(), truth)
+    assert info["gap_to_truth"] == to_truth  # solved against the same true rig as the survey's twin
+    assert 0.01 < to_truth["hand_eye_mm"] < 3.0 and to_truth["joint_offset_deg"] > 1e-4  # solved: not the truth
+    for key in ("hand_eye_mm", "joint_offset_deg"):  # ... and closer to it than the nominal rig (3 mm, 0.97 deg)
+        assert to_truth[key] < nominal_to_truth[key]
+    assert safety.calibration_gap(cal, RIG.nominal_calibration())["hand_eye_mm"] > 0.01
+    path = tmp_path / "calibrations" / "realistic_seed21" / "calibration.json"
+    stamp = path.stat().st_mtime_ns
+    again, info2 = safety.solved_calibration(tmp_path, "realistic", 21, captures=8)
+    assert info2["cached"] and path.stat().st_mtime_ns == stamp
+    assert np.allclose(again.arms["arm110"].T_wrist_cam, cal.arms["arm110"].T_wrist_cam)
+    assert not (path.parent / "captures").exists()

@@ -30,7 +30,9 @@ from the previous view fails a clearance check). Rejected candidates are kept wi
 
 **Regeneration.** When fewer than ``min_views`` remain, the orbit is regenerated with relaxed
 parameters (:data:`RELAXATIONS`: wider span with a lower ring, then a larger standoff, then a smaller
-one with lower elevations); every attempt is recorded. The first attempt with enough views wins.
+one with lower elevations, then the nominal rings 25 cm from the envelope's surface: a large object near
+an arm's base puts the 4.5 r standoff's cameras behind that arm, out of its reach); every attempt is
+recorded. The first attempt with enough views wins, else the one with most.
 
 **Order.** Views are ordered to shorten joint travel: greedy nearest neighbour from the park
 configuration, then 2-opt, with the cost of a move being its largest joint change (a synchronised
@@ -153,8 +155,19 @@ def _relax_nearer(shape: OrbitShape) -> OrbitShape:
                    elevations_deg=tuple(sorted({max(10.0, e - 10.0) for e in wide.elevations_deg})))
 
 
+def _relax_close(shape: OrbitShape) -> OrbitShape:
+    """The nominal rings 25 cm from the envelope's surface, 5 cm inside the small objects' working distance and
+    without the large-object rule (module docstring). The radius comes back from the standoff:
+    ``r = min(s - 0.30, s / 4.5)`` inverts :func:`standoff_for_radius`."""
+    r = min(shape.standoff_m - 0.30, shape.standoff_m / 4.5)
+    return replace(shape, standoff_m=max(NEAR_STANDOFF_M, CLOSE_SURFACE_DISTANCE_M + r))
+
+
+NEAR_STANDOFF_M = 0.25  # the closest orbit standoff a relaxation may choose (the min_depth check still applies)
+CLOSE_SURFACE_DISTANCE_M = 0.25  # the last relaxation's camera distance to the envelope's surface
 RELAXATIONS = (("nominal", lambda s: s), ("wider span, lower ring", _relax_wider),
-               ("larger standoff", _relax_further), ("smaller standoff, lower rings", _relax_nearer))
+               ("larger standoff", _relax_further), ("smaller standoff, lower rings", _relax_nearer),
+               ("close", _relax_close))
 
 
 @dataclass(frozen=True)
