@@ -41,19 +41,25 @@ def _rigid(rotvec_deg: tuple[float, float, float], t_mm: tuple[float, float, flo
     return twist_transform(np.concatenate([np.radians(rotvec_deg), np.asarray(t_mm) / 1000.0]), CENTRE)
 
 
-@pytest.fixture(scope="module")
-def scene_views() -> list[tuple[str, str, int, str, np.ndarray, np.ndarray]]:
-    """(key, arm, frame, split, true pose, raw depth) of six noisy views per arm, 320x240."""
-    scene = Scene([table(), box((0.06, 0.04, 0.08), (-0.03, -0.02, 0.0)), sphere(0.025, (0.0, 0.05, 0.025))])
+def _two_arm_views(scene: Scene, held: int | None) -> list[tuple[str, str, int, str, np.ndarray, np.ndarray]]:
+    """(key, arm, frame, split, true pose, raw depth) of six noisy views per arm from opposite sides, 320x240;
+    each arm's view ``held`` is held out."""
     intr = small_intrinsics(320, 240, 192.0)
     rng = np.random.default_rng(0)
     views = []
     for arm, azimuths in (("arm110", (140, 180, 220)), ("arm111", (-40, 0, 40))):
         for k, T in enumerate(orbit_poses(CENTRE, 0.35, (35, 60), azimuths)):
             depth, _ = scene.render(T, intr)
-            views.append((f"{arm}/{k}", arm, k, "heldout" if k == HELD else "fuse", T,
+            views.append((f"{arm}/{k}", arm, k, "heldout" if k == held else "fuse", T,
                           to_z16(add_depth_noise(depth, rng), SCALE)))
     return views
+
+
+@pytest.fixture(scope="module")
+def scene_views() -> list[tuple[str, str, int, str, np.ndarray, np.ndarray]]:
+    """A box and a sphere on the table (:func:`_two_arm_views`, the third view of each arm held out)."""
+    return _two_arm_views(Scene([table(), box((0.06, 0.04, 0.08), (-0.03, -0.02, 0.0)),
+                                 sphere(0.025, (0.0, 0.05, 0.025))]), HELD)
 
 
 def _run(views: list, poses: dict[str, np.ndarray], uncertainty_m: float,
@@ -226,15 +232,7 @@ def round_scene_views() -> list[tuple[str, str, int, str, np.ndarray, np.ndarray
 
     cylinder = o3d.geometry.TriangleMesh.create_cylinder(0.03, 0.08, 96)
     cylinder.translate(CENTRE)
-    scene = Scene([table(), cylinder])
-    intr = small_intrinsics(320, 240, 192.0)
-    rng = np.random.default_rng(0)
-    views = []
-    for arm, azimuths in (("arm110", (140, 180, 220)), ("arm111", (-40, 0, 40))):
-        for k, T in enumerate(orbit_poses(CENTRE, 0.35, (35, 60), azimuths)):
-            depth, _ = scene.render(T, intr)
-            views.append((f"{arm}/{k}", arm, k, "fuse", T, to_z16(add_depth_noise(depth, rng), SCALE)))
-    return views
+    return _two_arm_views(Scene([table(), cylinder]), None)
 
 
 def test_arm_pair_records_what_its_overlap_constrains(round_scene_views: list, scene_views: list) -> None:
