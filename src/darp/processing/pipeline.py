@@ -514,6 +514,17 @@ def _clear_keyframes(folder: Path, arms: Any) -> None:
     folder.mkdir(parents=True, exist_ok=True)
 
 
+def low_floor_hint(crop: EnvelopeCrop) -> str:
+    """When the crop's floor (its table margin, which grows with the calibration's stated error) cuts at least
+    half of the object's height, the reason an empty fusion gives (one clause, '' otherwise)."""
+    if crop.table_margin_m < 0.5 * crop.height_m:
+        return ""
+    return (f"; the crop keeps only points {crop.table_margin_m * 1000:.0f} mm above the table (it grows with the "
+            f"calibration's held-out error), {100 * crop.table_margin_m / crop.height_m:.0f} % of the object's "
+            f"{crop.height_m * 1000:.0f} mm height: a better calibration, or --corrections table, is needed for "
+            "an object this low")
+
+
 def stage_fusion(job: SurveyJob) -> dict[str, Any]:
     """Fuse the ``fuse`` keyframes (streamed from disk); writes the per-arm and fused clouds."""
     index = read_keyframe_index(job.keyframes_dir)
@@ -529,13 +540,16 @@ def stage_fusion(job: SurveyJob) -> dict[str, Any]:
         else:
             fusion.add(frame)
         job.report("fusion", k + 1, total + 1)
-    result = fusion.result()
+    try:
+        result = fusion.result()
+    except ReconstructionError as err:
+        raise ReconstructionError(err.message + low_floor_hint(job.crop()), err.path) from None
     if len(result.fused) == 0:
         points_in = result.stats.get("fused", {}).get("points_in", 0)
         raise ReconstructionError(
             f"fusion kept no point: {total} fuse keyframes left {points_in} points inside the envelope and no voxel "
             f"had the support asked (min_frames {job.settings.fusion_used.min_frames}, min_view_bins "
-            f"{job.settings.fusion_used.min_view_bins})", job.keyframes_dir)
+            f"{job.settings.fusion_used.min_view_bins})" + low_floor_hint(job.crop()), job.keyframes_dir)
     clouds = {**{f"{arm}.ply": cloud for arm, cloud in result.per_arm.items()}, FUSED_FILE: result.fused}
     with staged_outputs(job.out, list(clouds)) as paths:
         for name, cloud in clouds.items():
