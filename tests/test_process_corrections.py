@@ -53,10 +53,10 @@ def test_fusion_rules_apply_only_when_switched_on_and_only_where_the_user_kept_t
     assert given.fusion_used.sor_local_ratio == 3.0 and given.fusion_used.depth.edge_margin_px == 0
     assert given.fusion_used.arm_support_from_fused == FUSION_RULES["arm_support_from_fused"]
     assert CorrectionSettings.parse("all").fusion and "fusion" in CorrectionSettings.parse("fusion,depth").applied
-    from darp.processing.results import fusion_rules_used
+    from darp.processing.results import rules_used
 
-    assert fusion_rules_used(given) == {"arm_support_from_fused": 1, "sor_local_ratio": 3.0,
-                                        "depth": {"edge_margin_px": 0}}  # what results.json records
+    assert rules_used(given) == {"fusion": {"arm_support_from_fused": 1, "sor_local_ratio": 3.0,
+                                            "depth": {"edge_margin_px": 0}}}  # what results.json records
 
 
 def test_mesh_rules_apply_only_when_switched_on() -> None:
@@ -64,6 +64,9 @@ def test_mesh_rules_apply_only_when_switched_on() -> None:
     on = settings_from_dict({"corrections": {"mesh": True}})
     assert on.mesh_used.split_sides and on.mesh_used.radius_factors == on.mesh.radius_factors
     assert on.to_dict()["mesh"] == ProcessSettings().to_dict()["mesh"]
+    from darp.processing.results import rules_used
+
+    assert rules_used(on) == {"mesh": {"split_sides": True}} and rules_used(ProcessSettings()) == {}
     assert CorrectionSettings.parse("all").mesh and CorrectionSettings.parse("mesh").applied == ("mesh",)
 
 

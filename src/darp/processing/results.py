@@ -108,11 +108,17 @@ def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
     return warnings
 
 
-def fusion_rules_used(settings: ProcessSettings) -> dict[str, Any]:
-    """The fusion and depth-filter values ``corrections.fusion`` used (a value the settings file gave wins)."""
-    used = settings.fusion_used
-    return {**{k: getattr(used, k) for k in FUSION_RULES},
-            "depth": {k: getattr(used.depth, k) for k in DEPTH_FILTER_RULES}}
+def rules_used(settings: ProcessSettings) -> dict[str, Any]:
+    """The values ``corrections.fusion`` and ``corrections.mesh`` used, per switch that is on (a value the
+    settings file gave wins)."""
+    out: dict[str, Any] = {}
+    if settings.corrections.fusion:
+        used = settings.fusion_used
+        out["fusion"] = {**{k: getattr(used, k) for k in FUSION_RULES},
+                         "depth": {k: getattr(used.depth, k) for k in DEPTH_FILTER_RULES}}
+    if settings.corrections.mesh:
+        out["mesh"] = {k: getattr(settings.mesh_used, k) for k in MESH_RULES}
+    return out
 
 
 def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]:
@@ -137,9 +143,7 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
                         **({"refine": keyframes["refine"]} if keyframes.get("refine") is not None else {}),
                         **({"table": summary["fusion"]["table"]}
                            if (summary.get("fusion") or {}).get("table") else {}),
-                        **({"fusion": fusion_rules_used(job.settings)} if job.settings.corrections.fusion else {}),
-                        **({"mesh": {k: getattr(job.settings.mesh_used, k) for k in MESH_RULES}}
-                           if job.settings.corrections.mesh else {})},
+                        **rules_used(job.settings)},
         "calibration": {"epoch": job.calibration.epoch,
                         "path": None if job.calibration_path is None else str(job.calibration_path)},
         "composition": evaluation.get("composition"),

@@ -23,7 +23,7 @@ import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from darp.errors import ConfigError, DarpError
 from darp.formats.text import read_yaml_mapping
@@ -70,6 +70,13 @@ FUSION_RULES: dict[str, Any] = {"arm_support_from_fused": 1, "sor_local_ratio": 
 DEPTH_FILTER_RULES: dict[str, Any] = {"edge_margin_px": 1}
 # corrections.mesh: ball pivoting per normal side (MeshSettings.split_sides), where the file kept the default
 MESH_RULES: dict[str, Any] = {"split_sides": True}
+_Group = TypeVar("_Group", FusionSettings, DepthFilterSettings, MeshSettings)
+
+
+def _with_rules(given: _Group, rules: dict[str, Any]) -> _Group:
+    """``given`` with each of ``rules`` applied where ``given`` still holds its class's default."""
+    default = type(given)()
+    return dataclasses.replace(given, **{k: v for k, v in rules.items() if getattr(given, k) == getattr(default, k)})
 
 
 @dataclass(frozen=True)
@@ -143,11 +150,7 @@ class ProcessSettings:
     def mesh_used(self) -> MeshSettings:
         """The meshing settings the pipeline uses: ``mesh``, with darp's meshing rules where ``corrections.mesh``
         is on and the setting holds its default."""
-        if not self.corrections.mesh:
-            return self.mesh
-        default = MeshSettings()
-        return dataclasses.replace(self.mesh, **{k: v for k, v in MESH_RULES.items()
-                                                 if getattr(self.mesh, k) == getattr(default, k)})
+        return _with_rules(self.mesh, MESH_RULES) if self.corrections.mesh else self.mesh
 
     @property
     def fusion_used(self) -> FusionSettings:
@@ -155,12 +158,8 @@ class ProcessSettings:
         is on and the setting holds its default (a value the user gave is kept)."""
         if not self.corrections.fusion:
             return self.fusion
-        def at_default(given: Any, default: Any, rules: dict[str, Any]) -> dict[str, Any]:
-            return {k: v for k, v in rules.items() if getattr(given, k) == getattr(default, k)}
-
-        depth = dataclasses.replace(self.fusion.depth,
-                                    **at_default(self.fusion.depth, DepthFilterSettings(), DEPTH_FILTER_RULES))
-        return dataclasses.replace(self.fusion, depth=depth, **at_default(self.fusion, FusionSettings(), FUSION_RULES))
+        depth = _with_rules(self.fusion.depth, DEPTH_FILTER_RULES)
+        return _with_rules(dataclasses.replace(self.fusion, depth=depth), FUSION_RULES)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values of every group, less the :data:`ADDED_LATER` settings that hold their defaults."""
