@@ -72,6 +72,67 @@ def test_scattered_surface_is_kept_and_isolated_ghosts_are_not() -> None:
         FusionSettings(arm_support_from_fused=-1)
 
 
+def test_tangent_plane_neighbourhood_lends_support_along_the_surface_not_to_the_noise_layer() -> None:
+    """A surface in z = 0 (normals +z): a neighbour beside the supported voxel borrows its support, the voxel
+    above it (where noise along the normal lands) borrows it only from the whole cube; a voxel without a
+    normal keeps its own support."""
+    voxels = {
+        (0, 0, 0): (3, [1, 2]),  # the supported surface voxel
+        (1, 0, 0): (1, [1]),  # beside it, in the surface plane
+        (0, 0, 1): (1, [2]),  # above it: the noise layer
+        (1, 1, 1): (1, [2]),  # diagonal, one voxel off the plane
+    }
+    stats = stats_of(voxels)
+    normals = np.zeros((len(stats), 3))
+    normals[:, 2] = 1.0
+    no_normal = int(np.flatnonzero(stats.keys == pack_keys(np.array([(1, 1, 1)])))[0])
+    normals[no_normal] = 0.0
+    stats = dataclasses.replace(stats, sum_normal=normals)
+    keys = {k: int(np.flatnonzero(stats.keys == pack_keys(np.array([k])))[0]) for k in voxels}
+
+    def kept(**kw: float) -> set[tuple[int, int, int]]:
+        mask = supported_voxels(stats, FusionSettings(adaptive_support=False, support_neighbourhood=1, **kw))
+        return {k for k, i in keys.items() if mask[i]}
+
+    assert kept() == {(0, 0, 0), (1, 0, 0), (0, 0, 1), (1, 1, 1)}
+    assert kept(neighbourhood_plane_voxels=0.5) == {(0, 0, 0), (1, 0, 0)}
+    frames, _ = neighbourhood_support(stats, 1, plane_voxels=0.5)
+    assert frames[keys[(0, 0, 1)]] == 1 and frames[keys[(1, 0, 0)]] == 3 and frames[keys[(1, 1, 1)]] == 1
+    # a tilted surface: normal (1, 0, 1)/sqrt(2); (1, 0, -1) lies in its plane, (1, 0, 0) is 0.71 voxel off it
+    tilted = dataclasses.replace(stats, sum_normal=np.tile([1.0, 0.0, 1.0], (len(stats), 1)))
+    frames, _ = neighbourhood_support(tilted, 1, plane_voxels=0.5)
+    assert frames[keys[(1, 0, 0)]] == 1
+    with pytest.raises(ReconstructionError):
+        FusionSettings(neighbourhood_plane_voxels=-1.0)
+
+
+def test_holes_only_neighbourhood_fills_a_hole_but_not_a_second_layer() -> None:
+    """A surface row in z = 0 (normals +z) with a thin voxel at x = 2 (a hole in the support) and, above its
+    start, a second copy of the surface one voxel up (another view, offset by pose error): the cube lends
+    support to both; ``neighbourhood_holes_only`` keeps the hole and drops the second layer."""
+    voxels = {(x, 0, 0): (3, [1, 2]) for x in (0, 1, 3, 4)}
+    voxels[(2, 0, 0)] = (1, [1])
+    voxels[(0, 0, 1)] = (1, [2])
+    voxels[(1, 0, 1)] = (2, [2])
+    stats = stats_of(voxels)
+    stats = dataclasses.replace(stats, sum_normal=np.tile([0.0, 0.0, 1.0], (len(stats), 1)))
+    keys = {k: int(np.flatnonzero(stats.keys == pack_keys(np.array([k])))[0]) for k in voxels}
+
+    def kept(**kw: float) -> set[tuple[int, int, int]]:
+        mask = supported_voxels(stats, FusionSettings(adaptive_support=False, support_neighbourhood=1, **kw))
+        return {k for k, i in keys.items() if mask[i]}
+
+    surface = {(x, 0, 0) for x in range(5)}
+    assert kept() == surface | {(0, 0, 1), (1, 0, 1)}
+    counts: dict[str, int] = {}
+    mask = supported_voxels(stats, FusionSettings(adaptive_support=False, support_neighbourhood=1,
+                                                  neighbourhood_holes_only=2), counts=counts)
+    assert {k for k, i in keys.items() if mask[i]} == surface
+    assert counts["second_layer"] == 2
+    with pytest.raises(ReconstructionError):
+        FusionSettings(neighbourhood_holes_only=4)
+
+
 R = 0.04
 CENTRE = np.array([0.0, 0.0, R])
 INTR = small_intrinsics(160, 120, 190.0)

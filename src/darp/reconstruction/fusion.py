@@ -81,6 +81,10 @@ class FusionSettings:
     visibility_stride_px: int = 4  # the in-view test reads every n-th depth pixel (memory: ~W*H/n^2 per frame)
     support_neighbourhood: int = 0  # count support over the (2n+1)^3 voxels around each voxel (0 = the voxel alone)
     neighbourhood_own_frames: int = 1  # ... only for voxels that at least this many frames saw themselves
+    neighbourhood_plane_voxels: float = 0.0  # > 0: ... only from neighbours within this many voxels of the
+    # voxel's tangent plane (its mean normal), so support spreads along the surface, not onto the noise layer
+    neighbourhood_holes_only: int = 0  # > 0: borrowed support only fills holes: a voxel with a voxel of its own
+    # support within this many voxels along its normal is a second layer of that surface and is not kept
     arm_support_from_fused: int = 0  # an arm's cloud also keeps voxels the fused cloud supports that this many
     # of the arm's own frames saw (0 = off: each arm's cloud needs the support from its own frames alone)
 
@@ -105,6 +109,12 @@ class FusionSettings:
             raise ReconstructionError("arm_support_from_fused must be >= 0")
         if self.neighbourhood_own_frames < 1:
             raise ReconstructionError(f"neighbourhood_own_frames must be >= 1, got {self.neighbourhood_own_frames}")
+        if not (math.isfinite(self.neighbourhood_plane_voxels) and self.neighbourhood_plane_voxels >= 0):
+            raise ReconstructionError(
+                f"neighbourhood_plane_voxels must be >= 0 (0 = the whole cube), got {self.neighbourhood_plane_voxels}")
+        if not 0 <= self.neighbourhood_holes_only <= 3:
+            raise ReconstructionError(
+                f"neighbourhood_holes_only must be 0 (off) .. 3 voxels, got {self.neighbourhood_holes_only}")
         if not 0 <= self.support_neighbourhood <= 2:
             raise ReconstructionError(f"support_neighbourhood must be 0, 1 or 2, got {self.support_neighbourhood}")
         if not (self.min_frames_floor >= 1 and 0 < self.support_fraction <= 1 and self.visibility_tolerance_m > 0
@@ -314,20 +324,33 @@ VisibilityFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``visibility(centres (N, 3), unit normals (N, 3)) -> (frames expected to hit each voxel, bins in view)``."""
 
 
-def neighbourhood_support(stats: VoxelStats, radius: int) -> tuple[np.ndarray, np.ndarray]:
+def neighbourhood_support(stats: VoxelStats, radius: int,
+                          plane_voxels: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Per voxel, lower bounds of the support of the ``(2 radius + 1)^3`` voxels around it: the most frames
     any of them saw (so at least that many distinct frames saw the neighbourhood) and the union of their
-    viewing-direction bins (exact). ``radius`` 0 returns the voxel's own."""
+    viewing-direction bins (exact). ``radius`` 0 returns the voxel's own.
+
+    ``plane_voxels`` > 0 keeps only the neighbours whose centre lies within that many voxels of the voxel's
+    tangent plane (the plane through it normal to its mean normal). Depth noise spreads a surface over
+    layers along the normal; a cube lends an off-surface voxel the support of the surface voxel beside it
+    and keeps the noise layer, the tangent plane lends support only along the surface (holes where
+    frames thinned out). A voxel without a normal keeps its own support."""
     frames = stats.n_frames.copy()
     bins = stats.view_mask.copy()
     if radius <= 0 or len(stats) == 0:
         return frames, bins
     ijk = unpack_keys(stats.keys)
+    normals = None
+    if plane_voxels > 0:
+        length = np.linalg.norm(stats.sum_normal, axis=1, keepdims=True)
+        normals = np.where(length > 0, stats.sum_normal / np.where(length > 0, length, 1.0), np.nan)
     r = range(-radius, radius + 1)
     for offset in [(i, j, k) for i in r for j in r for k in r if (i, j, k) != (0, 0, 0)]:
         keys = pack_keys(ijk + np.array(offset, np.int64))
         pos = np.minimum(np.searchsorted(stats.keys, keys), len(stats) - 1)
         found = stats.keys[pos] == keys
+        if normals is not None:
+            found &= np.abs(normals @ np.asarray(offset, np.float64)) <= plane_voxels  # NaN (no normal): False
         frames[found] = np.maximum(frames[found], stats.n_frames[pos[found]])
         bins[found] |= stats.view_mask[pos[found]]
     return frames, bins
@@ -337,8 +360,43 @@ def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: Vi
                      counts: dict[str, int] | None = None) -> np.ndarray:
     """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``), counted
     over each voxel's neighbourhood with ``support_neighbourhood`` (for the voxels at least
-    ``neighbourhood_own_frames`` frames saw; the others keep their own counts)."""
-    n_frames, view_mask = neighbourhood_support(stats, settings.support_neighbourhood)
+    ``neighbourhood_own_frames`` frames saw; the others keep their own counts). With
+    ``neighbourhood_holes_only`` a voxel kept only through its neighbourhood is dropped again where a voxel
+    of its own support lies that close along its normal (:func:`second_layer`)."""
+    if settings.support_neighbourhood <= 0 or settings.neighbourhood_holes_only <= 0:
+        return _supported(stats, settings, visibility, counts)
+    own = _supported(stats, dataclasses.replace(settings, support_neighbourhood=0), visibility)
+    borrowed = _supported(stats, settings, visibility, counts) & ~own
+    layer = second_layer(stats, own, np.flatnonzero(borrowed), settings.neighbourhood_holes_only)
+    if counts is not None:
+        counts["second_layer"] = int(layer.sum())
+    keep = own.copy()
+    keep[np.flatnonzero(borrowed)[~layer]] = True
+    return keep
+
+
+def second_layer(stats: VoxelStats, own: np.ndarray, idx: np.ndarray, depth_voxels: int) -> np.ndarray:
+    """Boolean (len(idx),): voxels ``idx`` that have an ``own``-supported voxel within ``depth_voxels`` voxels
+    along their mean normal, either way (a surface seen twice, offset by pose or depth error, not a hole)."""
+    hit = np.zeros(idx.size, bool)
+    if idx.size == 0:
+        return hit
+    length = np.linalg.norm(stats.sum_normal[idx], axis=1, keepdims=True)
+    normals = stats.sum_normal[idx] / np.where(length > 0, length, 1.0)
+    ijk = unpack_keys(stats.keys[idx])
+    for step in range(1, depth_voxels + 1):
+        for sign in (1.0, -1.0):
+            keys = pack_keys(ijk + np.rint(sign * step * normals).astype(np.int64))
+            pos = np.minimum(np.searchsorted(stats.keys, keys), len(stats) - 1)
+            hit |= (stats.keys[pos] == keys) & own[pos] & (length[:, 0] > 0)
+    return hit
+
+
+def _supported(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
+               counts: dict[str, int] | None = None) -> np.ndarray:
+    """:func:`supported_voxels` without the hole rule."""
+    n_frames, view_mask = neighbourhood_support(stats, settings.support_neighbourhood,
+                                                settings.neighbourhood_plane_voxels)
     if settings.support_neighbourhood > 0 and settings.neighbourhood_own_frames > 1:
         # a voxel only one frame hit is where noise scatters: it keeps its own count
         alone = stats.n_frames < settings.neighbourhood_own_frames
@@ -599,6 +657,7 @@ __all__ = [
     "in_view",
     "merge_coincident",
     "neighbourhood_support",
+    "second_layer",
     "statistical_outliers",
     "supported_voxels",
     "write_voxel_cloud",
