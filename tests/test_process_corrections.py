@@ -49,14 +49,14 @@ def test_fusion_rules_apply_only_when_switched_on_and_only_where_the_user_kept_t
     assert used.voxel_size_m == paper.fusion.voxel_size_m and used.min_frames == paper.fusion.min_frames
     assert on.to_dict()["fusion"] == paper.to_dict()["fusion"]  # the rules live in the switch, not the group
     given = settings_from_dict({"corrections": {"fusion": True},
-                                "fusion": {"sor_local_ratio": 3.0, "depth": {"edge_margin_px": 0}}})
-    assert given.fusion_used.sor_local_ratio == 3.0 and given.fusion_used.depth.edge_margin_px == 0
+                                "fusion": {"sor_local_ratio": 3.0, "depth": {"edge_margin_px": 1}}})
+    assert given.fusion_used.sor_local_ratio == 3.0 and given.fusion_used.depth.edge_margin_px == 1
     assert given.fusion_used.arm_support_from_fused == FUSION_RULES["arm_support_from_fused"]
     assert CorrectionSettings.parse("all").fusion and "fusion" in CorrectionSettings.parse("fusion,depth").applied
     from darp.processing.results import rules_used
 
-    assert rules_used(given) == {"fusion": {"arm_support_from_fused": 1, "sor_local_ratio": 3.0,
-                                            "depth": {"edge_margin_px": 0}}}  # what results.json records
+    assert rules_used(given) == {"fusion": {**FUSION_RULES, "sor_local_ratio": 3.0,
+                                            "depth": {"edge_margin_px": 1}}}  # what results.json records
 
 
 def test_mesh_rules_apply_only_when_switched_on() -> None:
