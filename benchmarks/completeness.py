@@ -1,0 +1,146 @@
+#!/usr/bin/env python3
+"""Completeness of the seeable surface over random placements: issue 14's target, survey by survey.
+
+For every object and placement ``k`` the twin draws the placement itself (``darp collect --twin`` without
+``--placement``: centre and yaw random, seeded, checked against the workspace) from the survey's seed
+``seed * 1000 + object index * 100 + k``; the survey runs the whole acquisition (coverage planner with
+next best views unless ``--viewpoints orbit``), then ``darp process`` with ``--corrections`` (default
+``fusion``: darp's fusion rules) and the optional processing ``--settings`` file. Each row reads the
+survey's results.json: seeable completeness at 5 mm (``truth.seeable``: the share of the true surface that
+any feasible camera pose of either arm can see which lies within 5 mm of the fused cloud;
+docs/processing.md), the fused cloud's accuracy against the true mesh, the held-out median and the
+cross-arm co-observed share per direction.
+
+The commands are darp's own command line (subprocesses that inherit this environment, OPENBLAS_* too), so
+a row is exactly what a user gets. A survey already processed in ``--out`` is read again, not redone
+(``--resume`` is the default), so a campaign cut short goes on where it stopped.
+
+    MUJOCO_GL=egl .venv/bin/python benchmarks/completeness.py [--objects mug,cup] [--placements 4]
+        [--seed 0] [--profile realistic] [--fps 6] [--resolution 424x240] [--corrections fusion]
+        [--settings FILE] [--calibration FILE] [--viewpoints coverage] [--out DIR] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+
+from darp.twin.objects.model import OBJECT_NAMES  # the paper's ten objects
+
+
+def darp(*args: str) -> subprocess.CompletedProcess[str]:
+    """``python -m darp ARGS`` with this interpreter and environment (OPENBLAS_* and MUJOCO_GL inherited)."""
+    return subprocess.run([sys.executable, "-m", "darp", *args], capture_output=True, text=True,
+                          env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")})
+
+
+def survey(name: str, obj: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
+    """Collect (unless already collected) and process (unless already processed) one survey: its row."""
+    surveys, processed = args.out / "surveys", args.out / "processed"
+    row: dict[str, Any] = {"survey": name, "object": obj, "seed": seed}
+    results = processed / name / "results.json"
+    if not results.is_file():
+        t0 = time.monotonic()
+        if not (surveys / name / "arm_poses.csv").is_file():
+            for stale in (surveys / name, surveys / f"{name}.partial"):  # an interrupted collection: again
+                if stale.exists():
+                    shutil.rmtree(stale)
+            calib = ["--truth-calibration"] if args.calibration is None else ["--calibration", str(args.calibration)]
+            done = darp("collect", name, "--twin", "--object", obj, "--seed", str(seed), "--profile", args.profile,
+                        "--fps", str(args.fps), "--resolution", args.resolution, "--viewpoints", args.viewpoints,
+                        *calib, "--out", str(surveys), "--quiet")
+            row["collect_s"] = round(time.monotonic() - t0, 1)
+            if done.returncode != 0:
+                row.update(status="collect failed", exit=done.returncode, error=_last_error(done))
+                return row
+        t1 = time.monotonic()
+        calibration = args.calibration or surveys / name / "truth" / "calibration.json"
+        settings = ["--settings", str(args.settings)] if args.settings else []
+        done = darp("process", str(surveys / name), "--calibration", str(calibration), "--corrections",
+                    args.corrections, *settings, "--out", str(processed))
+        row["process_s"] = round(time.monotonic() - t1, 1)
+        if done.returncode != 0 or not results.is_file():
+            row.update(status="process failed", exit=done.returncode, error=_last_error(done))
+            return row
+    r = json.loads(results.read_text(encoding="utf-8"))
+    truth = r.get("truth") or {}
+    seeable = (truth.get("seeable") or {}).get("completeness_pct") or {}
+    row.update(status="ok", fused=r["clouds"]["fused"],
+               seeable_5mm_pct=seeable.get("5mm"),
+               accuracy_median_mm=(truth.get("cloud") or {}).get("accuracy", {}).get("median_mm"),
+               heldout_median_mm=r["heldout"]["aggregate"]["median_mm"],
+               co_observed_pct=[d["co_observed_pct"] for d in (r.get("cross_arm") or {}).get("directions", [])])
+    return row
+
+
+def _last_error(done: subprocess.CompletedProcess[str]) -> str:
+    lines = [line for line in (done.stderr or done.stdout or "").splitlines() if line.strip()]
+    return lines[-1][:300] if lines else f"exit {done.returncode}"
+
+
+def line(r: dict[str, Any]) -> str:
+    if r["status"] != "ok":
+        return f"| {r['survey']} | {r['object']} | {r['status']}: {r.get('error', '')} | | | | |"
+    co = " / ".join(f"{c:.1f}" for c in r["co_observed_pct"]) or "-"
+    c5 = "-" if r["seeable_5mm_pct"] is None else f"{r['seeable_5mm_pct']:.1f} %"
+    return (f"| {r['survey']} | {r['object']} | {r['fused']:,} | {c5} | {r['accuracy_median_mm']:.3f} | "
+            f"{r['heldout_median_mm']:.3f} | {co} % |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--objects", default=",".join(OBJECT_NAMES),
+                   help="comma-separated twin objects or mesh files (default: the paper's ten)")
+    p.add_argument("--placements", type=int, default=4, help="random placements per object")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--profile", default="realistic", choices=("ideal", "realistic", "paper"))
+    p.add_argument("--fps", type=int, default=6)
+    p.add_argument("--resolution", default="424x240")
+    p.add_argument("--viewpoints", default="coverage", choices=("coverage", "orbit"))
+    p.add_argument("--corrections", default="fusion", help="darp process --corrections (default: fusion)")
+    p.add_argument("--settings", type=Path, default=None, help="darp process --settings file")
+    p.add_argument("--calibration", type=Path, default=None,
+                   help="calibration for live decisions and processing (default: each survey's true one)")
+    p.add_argument("--out", type=Path, default=Path("completeness-run"))
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    objects = [o.strip() for o in args.objects.split(",") if o.strip()]
+    rows: list[dict[str, Any]] = []
+    print("| survey | object | fused points | seeable @5 mm | accuracy median, mm | held-out median, mm | "
+          "co-observed (arm110 / arm111) |")
+    print("|---|---|---|---|---|---|---|")
+    for i, obj in enumerate(objects):
+        for k in range(args.placements):
+            seed = args.seed * 1000 + i * 100 + k
+            name = f"{Path(obj).stem}_s{seed}"
+            rows.append(survey(name, obj, seed, args))
+            print(line(rows[-1]), flush=True)
+            if args.json:
+                args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows},
+                                                indent=1), encoding="utf-8")
+    ok = [r for r in rows if r["status"] == "ok" and r["seeable_5mm_pct"] is not None]
+    print()
+    for obj in objects:
+        values = [r["seeable_5mm_pct"] for r in ok if r["object"] == obj]
+        co = [min(r["co_observed_pct"]) for r in ok if r["object"] == obj and r["co_observed_pct"]]
+        if values:
+            print(f"{obj}: seeable @5 mm min {min(values):.1f} / median {statistics.median(values):.1f} % over "
+                  f"{len(values)} placements (>= 95 %: {sum(v >= 95.0 for v in values)}); co-observed, lower arm, "
+                  f"min {min(co):.1f} %" if co else "")
+    failed = [r for r in rows if r["status"] != "ok"]
+    print(f"{len(ok)} of {len(rows)} surveys processed; {len(failed)} failed")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
