@@ -133,6 +133,31 @@ def test_holes_only_neighbourhood_fills_a_hole_but_not_a_second_layer() -> None:
         FusionSettings(neighbourhood_holes_only=4)
 
 
+def test_cell_support_counts_distinct_frames_whose_hits_scattered_over_a_cell() -> None:
+    """Four frames hit one 2x2x2 cell, each only one of two voxels in it (hits scattered by noise and a pixel
+    footprint the voxel's size): no voxel has 3 frames, the cell has 4, so both voxels are kept with
+    ``support_cell_voxels: 2``; a cell only 2 frames hit stays out; counts are distinct frames, not hits."""
+    from darp.reconstruction.voxel_stats import cell_stats, frame_stats, merge_stats
+
+    voxel = 0.0015
+    a, b = np.array([[0.25, 0.25, 0.25]]) * voxel, np.array([[1.25, 0.25, 0.25]]) * voxel  # one cell, two voxels
+    ghost = np.array([[20.25, 20.25, 20.25]]) * voxel
+    up = np.array([[0.0, 0.0, 1.0]])
+    frames = []
+    for pts, cam in [(a, (0.3, 0, 0.3)), (a, (-0.3, 0, 0.3)), (np.vstack([b, b]), (0, 0.3, 0.3)),
+                     (b, (0, -0.3, 0.3)), (ghost, (0.3, 0, 0.3)), (ghost, (0.3, 0.01, 0.3))]:
+        frames.append(frame_stats(pts, np.repeat(up, len(pts), axis=0), None, np.array(cam), voxel, 0))
+    stats = merge_stats(frames)
+    cells = merge_stats([cell_stats(f, 2) for f in frames])
+    assert sorted(cells.n_frames.tolist()) == [2, 4]  # the scattered cell: 4 distinct frames (5 hits)
+    settings = FusionSettings(adaptive_support=False, support_cell_voxels=2)
+    assert not supported_voxels(stats, settings).any()  # without the cells: 2 frames at most per voxel
+    kept = supported_voxels(stats, settings, cells=cells)
+    assert kept.sum() == 2 and not kept[np.argmax(stats.keys)]  # the two voxels of the cell, not the ghost
+    with pytest.raises(ReconstructionError):
+        FusionSettings(support_cell_voxels=0)
+
+
 R = 0.04
 CENTRE = np.array([0.0, 0.0, R])
 INTR = small_intrinsics(160, 120, 190.0)

@@ -67,7 +67,8 @@ CORRECTIONS = ("kinematics", "time", "depth", "refine", "table", "fusion", "mesh
 # setting still holds its default, so a value given in the settings file wins. They keep surface that the
 # paper's per-arm support and outlier rules drop (thin rims, the sides between the arms, sparse true surface).
 FUSION_RULES: dict[str, Any] = {"arm_support_from_fused": 1, "sor_local_ratio": 2.0, "support_neighbourhood": 1,
-                                "neighbourhood_plane_voxels": 0.5, "neighbourhood_holes_only": 2}
+                                "neighbourhood_plane_voxels": 0.5, "neighbourhood_holes_only": 2,
+                                "support_cell_voxels": 2}
 DEPTH_FILTER_RULES: dict[str, Any] = {"edge_margin_px": 0}
 # corrections.mesh: ball pivoting per normal side (MeshSettings.split_sides), where the file kept the default
 MESH_RULES: dict[str, Any] = {"split_sides": True}
@@ -132,6 +133,7 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("fusion", "neighbourhood_own_frames"),
     ("fusion", "neighbourhood_plane_voxels"),
     ("fusion", "neighbourhood_holes_only"),
+    ("fusion", "support_cell_voxels"),
     ("evaluation", "missing_by_cause"),
     ("evaluation", "missing_threshold_m"),
     ("mesh", "split_sides"),

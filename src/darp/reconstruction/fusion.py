@@ -45,6 +45,8 @@ from darp.reconstruction.cloud_io import write_cloud_ply
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.voxel_stats import (
     VoxelStats,
+    cell_keys,
+    cell_stats,
     frame_stats,
     merge_stats,
     pack_keys,
@@ -83,6 +85,8 @@ class FusionSettings:
     neighbourhood_own_frames: int = 1  # ... only for voxels that at least this many frames saw themselves
     neighbourhood_plane_voxels: float = 0.0  # > 0: ... only from neighbours within this many voxels of the
     # voxel's tangent plane (its mean normal), so support spreads along the surface, not onto the noise layer
+    support_cell_voxels: int = 1  # > 1: a voxel also counts the distinct frames and bins of the cell of this
+    # many voxels a side that holds it (frames whose hits scattered over the cell's voxels; borrowed support)
     neighbourhood_holes_only: int = 0  # > 0: borrowed support only fills holes: a voxel with a voxel of its own
     # support within this many voxels along its normal is a second layer of that surface and is not kept
     arm_support_from_fused: int = 0  # an arm's cloud also keeps voxels the fused cloud supports that this many
@@ -112,6 +116,8 @@ class FusionSettings:
         if not (math.isfinite(self.neighbourhood_plane_voxels) and self.neighbourhood_plane_voxels >= 0):
             raise ReconstructionError(
                 f"neighbourhood_plane_voxels must be >= 0 (0 = the whole cube), got {self.neighbourhood_plane_voxels}")
+        if not 1 <= self.support_cell_voxels <= 4:
+            raise ReconstructionError(f"support_cell_voxels must be 1 (off) .. 4, got {self.support_cell_voxels}")
         if not 0 <= self.neighbourhood_holes_only <= 3:
             raise ReconstructionError(
                 f"neighbourhood_holes_only must be 0 (off) .. 3 voxels, got {self.neighbourhood_holes_only}")
@@ -357,16 +363,18 @@ def neighbourhood_support(stats: VoxelStats, radius: int,
 
 
 def supported_voxels(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
-                     counts: dict[str, int] | None = None) -> np.ndarray:
+                     counts: dict[str, int] | None = None, cells: VoxelStats | None = None) -> np.ndarray:
     """Boolean (M,): the voxels with enough support (fixed counts, or adapted with ``visibility``), counted
-    over each voxel's neighbourhood with ``support_neighbourhood`` (for the voxels at least
-    ``neighbourhood_own_frames`` frames saw; the others keep their own counts). With
-    ``neighbourhood_holes_only`` a voxel kept only through its neighbourhood is dropped again where a voxel
-    of its own support lies that close along its normal (:func:`second_layer`)."""
-    if settings.support_neighbourhood <= 0 or settings.neighbourhood_holes_only <= 0:
-        return _supported(stats, settings, visibility, counts)
+    over each voxel's neighbourhood with ``support_neighbourhood`` and, with ``cells`` (the same frames'
+    :func:`~darp.reconstruction.voxel_stats.cell_stats` at ``support_cell_voxels``), over the cell that holds
+    it (both for the voxels at least ``neighbourhood_own_frames`` frames saw; the others keep their own
+    counts). With ``neighbourhood_holes_only`` a voxel kept only through such borrowed support is dropped
+    again where a voxel of its own support lies that close along its normal (:func:`second_layer`)."""
+    borrows = settings.support_neighbourhood > 0 or cells is not None
+    if not borrows or settings.neighbourhood_holes_only <= 0:
+        return _supported(stats, settings, visibility, counts, cells)
     own = _supported(stats, dataclasses.replace(settings, support_neighbourhood=0), visibility)
-    borrowed = _supported(stats, settings, visibility, counts) & ~own
+    borrowed = _supported(stats, settings, visibility, counts, cells) & ~own
     layer = second_layer(stats, own, np.flatnonzero(borrowed), settings.neighbourhood_holes_only)
     if counts is not None:
         counts["second_layer"] = int(layer.sum())
@@ -393,16 +401,23 @@ def second_layer(stats: VoxelStats, own: np.ndarray, idx: np.ndarray, depth_voxe
 
 
 def _supported(stats: VoxelStats, settings: FusionSettings, visibility: VisibilityFn | None = None,
-               counts: dict[str, int] | None = None) -> np.ndarray:
+               counts: dict[str, int] | None = None, cells: VoxelStats | None = None) -> np.ndarray:
     """:func:`supported_voxels` without the hole rule."""
     n_frames, view_mask = neighbourhood_support(stats, settings.support_neighbourhood,
                                                 settings.neighbourhood_plane_voxels)
-    if settings.support_neighbourhood > 0 and settings.neighbourhood_own_frames > 1:
+    if cells is not None and len(cells) and len(stats):
+        keys = cell_keys(stats.keys, settings.support_cell_voxels)
+        pos = np.minimum(np.searchsorted(cells.keys, keys), len(cells) - 1)
+        found = cells.keys[pos] == keys
+        n_frames = np.where(found, np.maximum(n_frames, cells.n_frames[pos]), n_frames)
+        view_mask = np.where(found, view_mask | cells.view_mask[pos], view_mask)
+    borrows = settings.support_neighbourhood > 0 or cells is not None
+    if borrows and settings.neighbourhood_own_frames > 1:
         # a voxel only one frame hit is where noise scatters: it keeps its own count
         alone = stats.n_frames < settings.neighbourhood_own_frames
         n_frames = np.where(alone, stats.n_frames, n_frames)
         view_mask = np.where(alone, stats.view_mask, view_mask)
-    if settings.support_neighbourhood > 0:
+    if borrows:
         stats = dataclasses.replace(stats, n_frames=n_frames, view_mask=view_mask)
     n_views = popcount64(stats.view_mask)
     fixed = (stats.n_frames >= settings.min_frames) & (n_views >= settings.min_view_bins)
@@ -430,14 +445,14 @@ def _supported(stats: VoxelStats, settings: FusionSettings, visibility: Visibili
 def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[str, ...],
                      counts: dict[str, int] | None = None, visibility: VisibilityFn | None = None,
                      also_keys: np.ndarray | None = None, supported: np.ndarray | None = None,
-                     stages: dict[str, np.ndarray] | None = None) -> VoxelCloud:
+                     stages: dict[str, np.ndarray] | None = None, cells: VoxelStats | None = None) -> VoxelCloud:
     """Apply voxel support, average each voxel and remove statistical outliers. ``also_keys`` (sorted voxel
     keys, e.g. those the fused cloud supports) are kept too where ``arm_support_from_fused`` frames saw them.
     ``supported`` is :func:`supported_voxels`' answer when the caller already has it. ``stages`` (a dict)
     receives the points after each step: ``in_envelope`` (every voxel's mean), ``supported``, ``after_sor``."""
     n_views = popcount64(stats.view_mask)
     if supported is None:
-        supported = supported_voxels(stats, settings, visibility, counts)
+        supported = supported_voxels(stats, settings, visibility, counts, cells)
     if also_keys is not None and also_keys.size and len(stats) and settings.arm_support_from_fused > 0:
         pos = np.minimum(np.searchsorted(also_keys, stats.keys), also_keys.size - 1)
         confirmed = (also_keys[pos] == stats.keys) & (stats.n_frames >= settings.arm_support_from_fused)
@@ -517,6 +532,7 @@ class VoxelFusion:
         self.arms: list[str] = []
         self._state: dict[str, VoxelStats] = {}
         self._pending: dict[str, list[VoxelStats]] = {}
+        self._cells: dict[str, list[VoxelStats]] = {}  # per-frame cell statistics (support_cell_voxels > 1)
         self._pending_rows = 0
         self._seen: set[tuple[str, int]] = set()
         self._colour: bool | None = None
@@ -574,6 +590,10 @@ class VoxelFusion:
                             self.settings.voxel_size_m, self.arms.index(arm))
         self._pending.setdefault(arm, []).append(stats)
         self._pending_rows += len(stats)
+        if self.settings.support_cell_voxels > 1:
+            cells = cell_stats(stats, self.settings.support_cell_voxels)
+            self._cells.setdefault(arm, []).append(cells)
+            self._pending_rows += len(cells)
         self.peak_rows = max(self.peak_rows, self.rows)
         if self._pending_rows >= self.settings.merge_rows:
             self._merge()
@@ -584,8 +604,16 @@ class VoxelFusion:
             if parts:
                 self._state[arm] = merge_stats([self._state.get(arm, VoxelStats.empty(bool(self._colour))),
                                                 *parts])
+        for arm, parts in self._cells.items():  # kept as one merged part per arm
+            self._cells[arm] = [merge_stats(parts)] if parts else []
         self._pending = {}
         self._pending_rows = 0
+
+    def _cells_of(self, arms: Iterable[str]) -> VoxelStats | None:
+        """The merged cell statistics of ``arms`` (None when cells are off)."""
+        if self.settings.support_cell_voxels <= 1:
+            return None
+        return merge_stats([part for arm in arms for part in self._cells.get(arm, [])])
 
     def result(self, keep_stages: bool = False) -> FusionResult:
         """Support, averaging and outlier removal per arm and for all arms together. With ``keep_stages`` the
@@ -607,7 +635,7 @@ class VoxelFusion:
 
         c: dict[str, int] = {"frames": len(self._seen), "points_in": sum(self.points_in.values())}
         all_stats = merge_stats(list(self._state.values()))
-        fused_supported = supported_voxels(all_stats, self.settings, visibility(0xFF), c)
+        fused_supported = supported_voxels(all_stats, self.settings, visibility(0xFF), c, self._cells_of(self.arms))
         stages: dict[str, np.ndarray] | None = {} if keep_stages else None
         fused = cloud_from_stats(all_stats, self.settings, arms, c, supported=fused_supported, stages=stages)
         if stages is not None:
@@ -617,7 +645,8 @@ class VoxelFusion:
         for bit, arm in enumerate(arms):
             c = {"frames": self.frames.get(arm, 0), "points_in": self.points_in.get(arm, 0)}
             per_arm[arm] = cloud_from_stats(self._state.get(arm, VoxelStats.empty(bool(self._colour))),
-                                            self.settings, arms, c, visibility(1 << bit), fused_keys)
+                                            self.settings, arms, c, visibility(1 << bit), fused_keys,
+                                            cells=self._cells_of([arm]))
             counts[arm] = c
         counts["fused"] = counts.pop("fused")  # the per-arm counts first, as recorded before
         counts["peak_rows"] = self.peak_rows

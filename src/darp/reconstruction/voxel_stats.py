@@ -184,10 +184,37 @@ def merge_stats(parts: list[VoxelStats]) -> VoxelStats:
     )
 
 
+def cell_keys(keys: np.ndarray, factor: int) -> np.ndarray:
+    """Keys of the ``factor``^3-voxel cells that hold voxels ``keys`` (floor division of their coordinates)."""
+    return pack_keys(np.floor_divide(unpack_keys(keys), int(factor)))
+
+
+def cell_stats(frame: VoxelStats, factor: int) -> VoxelStats:
+    """One frame's statistics per ``factor``^3-voxel cell: the frame counts once per cell it hits, its view
+    and arm bits are the union of its voxels' there. Merged over frames (:func:`merge_stats`), ``n_frames``
+    is the number of distinct frames that hit each cell."""
+    if len(frame) == 0:
+        return frame
+    keys = cell_keys(frame.keys, factor)
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+
+    def reduce(values: np.ndarray, op: np.ufunc = np.add) -> np.ndarray:
+        return op.reduceat(values[order], starts, axis=0)
+
+    m = starts.size
+    return VoxelStats(keys=keys[starts], n_points=reduce(frame.n_points), sum_xyz=reduce(frame.sum_xyz),
+                      sum_normal=reduce(frame.sum_normal), sum_rgb=None, n_frames=np.ones(m, np.int32),
+                      view_mask=reduce(frame.view_mask, np.bitwise_or), arm_mask=reduce(frame.arm_mask, np.bitwise_or))
+
+
 __all__ = [
     "N_VIEW_BINS",
     "VIEW_DIRECTIONS",
     "VoxelStats",
+    "cell_keys",
+    "cell_stats",
     "fibonacci_directions",
     "frame_stats",
     "merge_stats",
