@@ -151,3 +151,22 @@ def test_thresholds_follow_the_calibrations_stated_uncertainty() -> None:
     # no stated uncertainty (a nominal calibration): the configured thresholds
     same, how = settings_from_calibration(base, {"arm110": {}, "arm111": residuals})
     assert same is base and how["source"] == "configured"
+
+
+def test_a_partial_view_inside_the_other_estimate_is_consistent_but_a_shift_of_the_same_size_is_not() -> None:
+    """The twin's L-shape (campaign seed 1200): arm110 saw the whole L (r 7.8 cm), arm111 one leg (r 3.5 cm,
+    centre 4.8 cm off): the leg lies inside the L's footprint, so the arms agree; two whole-object estimates
+    as far apart (a calibration fault) still disagree, and so does a small estimate reaching outside."""
+    whole, leg = est("arm110", -0.108, 0.025, r=0.078, h=0.12), est("arm111", -0.062, 0.041, r=0.035, h=0.12)
+    check = consistency(whole, leg, ConfirmSettings())
+    assert check["contained"] and check["consistent"] and check["centre_distance_m"] > check["centre_tolerance_m"]
+    d = decide(result("arm110", whole), result("arm111", leg))
+    assert d.status == "consistent" and "partial view" in d.message
+    combined = d.estimate
+    for e in (whole, leg):  # the combined envelope holds both footprints
+        gap = np.linalg.norm(np.asarray(combined.centre_m)[:2] - np.asarray(e.centre_m)[:2])
+        assert gap + e.radius_m <= combined.radius_m + 1e-9
+    shifted = est("arm111", -0.108 + 0.048, 0.025, r=0.078, h=0.12)  # the whole L, 4.8 cm off
+    assert not consistency(whole, shifted, ConfirmSettings())["consistent"]
+    outside = est("arm111", -0.108 + 0.09, 0.025, r=0.035, h=0.12)  # a small estimate reaching 4.7 cm out
+    assert not consistency(whole, outside, ConfirmSettings())["consistent"]

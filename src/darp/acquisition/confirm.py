@@ -4,8 +4,9 @@ The searching arm's estimate A is an initial hypothesis; the other arm, looking 
 the first is parked, gives B. :func:`decide` applies these rules, in order, and records every step:
 
 1. **Consistent** (:func:`consistent`): the centres lie within ``max(centre_tolerance_m,
-   centre_tolerance_rel * larger radius)`` of each other and the heights within ``max(height_tolerance_m,
-   height_tolerance_rel * larger height)``. They are **combined** (:func:`combine`): centres averaged,
+   centre_tolerance_rel * larger radius)`` of each other, or the smaller footprint lies inside the larger
+   one up to ``centre_tolerance_m`` (a partial view of a non-convex object), and the heights within
+   ``max(height_tolerance_m, height_tolerance_rel * larger height)``. They are **combined** (:func:`combine`): centres averaged,
    the larger radius kept and grown by half the centre distance (so the combined cylinder still
    contains both arms' cylinders' axes), the larger height kept: a conservative envelope.
 2. **One valid estimate** (the other arm saw nothing usable even when looking straight at it): the
@@ -134,14 +135,21 @@ class Decision:
 
 
 def consistency(a: ObjectEstimate, b: ObjectEstimate, settings: ConfirmSettings) -> dict[str, Any]:
-    """Centre distance and height difference against their tolerances (a record; ``consistent`` key)."""
+    """Centre distance and height difference against their tolerances (a record; ``consistent`` key).
+
+    The centres agree when they lie within the centre tolerance, or when the smaller estimate's footprint
+    lies inside the larger one's, up to the absolute tolerance (``contained``): an arm that sees only part of
+    a non-convex object (one leg of an L, the other hidden behind it) estimates a smaller cylinder off the
+    whole object's centre. Two estimates of about the same size are held to the centre rule either way."""
     d = float(np.linalg.norm(np.asarray(a.centre_m)[:2] - np.asarray(b.centre_m)[:2]))
     dh = abs(a.height_m - b.height_m)
     tol_c = max(settings.centre_tolerance_m, settings.centre_tolerance_rel * max(a.radius_m, b.radius_m))
     tol_h = max(settings.height_tolerance_m, settings.height_tolerance_rel * max(a.height_m, b.height_m))
+    small, large = sorted((a.radius_m, b.radius_m))
+    contained = d > tol_c and d + small <= large + settings.centre_tolerance_m
     return {"centre_distance_m": round(d, 5), "centre_tolerance_m": round(tol_c, 5),
             "height_difference_m": round(dh, 5), "height_tolerance_m": round(tol_h, 5),
-            "consistent": bool(d <= tol_c and dh <= tol_h)}
+            "contained": bool(contained), "consistent": bool((d <= tol_c or contained) and dh <= tol_h)}
 
 
 def consistent(a: ObjectEstimate, b: ObjectEstimate, settings: ConfirmSettings) -> bool:
@@ -196,10 +204,12 @@ def decide(primary: LocalisationResult, secondary: LocalisationResult, settings:
     check = consistency(a, b, s)
     steps.append({"step": "consistency", **check})
     if check["consistent"]:
+        how = (f"centres {check['centre_distance_m'] * 100:.1f} cm apart, tolerance "
+               f"{check['centre_tolerance_m'] * 100:.1f} cm" if not check["contained"] else
+               f"the smaller estimate lies inside the larger one: a partial view; centres "
+               f"{check['centre_distance_m'] * 100:.1f} cm apart")
         return Decision("consistent", combine(a, b), "combined",
-                        f"{a.arm_id} and {b.arm_id} agree (centres {check['centre_distance_m'] * 100:.1f} cm apart, "
-                        f"tolerance {check['centre_tolerance_m'] * 100:.1f} cm): centres averaged, larger extents kept",
-                        steps)
+                        f"{a.arm_id} and {b.arm_id} agree ({how}): centres averaged, larger extents kept", steps)
     gap = (f"centres {check['centre_distance_m'] * 100:.1f} cm apart "
            f"(tolerance {check['centre_tolerance_m'] * 100:.1f} cm)")
     if s.conflict_policy == "terminate" or reobserve is None:
