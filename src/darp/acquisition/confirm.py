@@ -6,9 +6,10 @@ the first is parked, gives B. :func:`decide` applies these rules, in order, and 
 1. **Consistent** (:func:`consistent`): the centres lie within ``max(centre_tolerance_m,
    centre_tolerance_rel * larger radius)`` of each other, or the smaller footprint lies inside the larger
    one up to ``centre_tolerance_m`` (a partial view of a non-convex object), and the heights within
-   ``max(height_tolerance_m, height_tolerance_rel * larger height)``. They are **combined** (:func:`combine`): centres averaged,
-   the larger radius kept and grown by half the centre distance (so the combined cylinder still
-   contains both arms' cylinders' axes), the larger height kept: a conservative envelope.
+   ``max(height_tolerance_m, height_tolerance_rel * larger height)``. They are **combined**
+   (:func:`combine`): centres averaged, the larger radius kept and grown by half the centre distance (so
+   the combined cylinder still contains both arms' cylinders' axes), the larger height kept: a
+   conservative envelope.
 2. **One valid estimate** (the other arm saw nothing usable even when looking straight at it): the
    valid one is the reference if its depth support is at least ``fallback_min_points``; otherwise
    the survey terminates (``unconfirmed``).

@@ -330,6 +330,13 @@ VisibilityFn = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``visibility(centres (N, 3), unit normals (N, 3)) -> (frames expected to hit each voxel, bins in view)``."""
 
 
+def mean_normals(sum_normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit mean normals from summed normals (N, 3) and whether each has one (a zero sum has none: zeros)."""
+    length = np.linalg.norm(sum_normal, axis=1)
+    has = length > 0
+    return sum_normal / np.where(has, length, 1.0)[:, None], has
+
+
 def neighbourhood_support(stats: VoxelStats, radius: int,
                           plane_voxels: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Per voxel, lower bounds of the support of the ``(2 radius + 1)^3`` voxels around it: the most frames
@@ -348,8 +355,8 @@ def neighbourhood_support(stats: VoxelStats, radius: int,
     ijk = unpack_keys(stats.keys)
     normals = None
     if plane_voxels > 0:
-        length = np.linalg.norm(stats.sum_normal, axis=1, keepdims=True)
-        normals = np.where(length > 0, stats.sum_normal / np.where(length > 0, length, 1.0), np.nan)
+        unit, has = mean_normals(stats.sum_normal)
+        normals = np.where(has[:, None], unit, np.nan)
     r = range(-radius, radius + 1)
     for offset in [(i, j, k) for i in r for j in r for k in r if (i, j, k) != (0, 0, 0)]:
         keys = pack_keys(ijk + np.array(offset, np.int64))
@@ -389,14 +396,13 @@ def second_layer(stats: VoxelStats, own: np.ndarray, idx: np.ndarray, depth_voxe
     hit = np.zeros(idx.size, bool)
     if idx.size == 0:
         return hit
-    length = np.linalg.norm(stats.sum_normal[idx], axis=1, keepdims=True)
-    normals = stats.sum_normal[idx] / np.where(length > 0, length, 1.0)
+    normals, has = mean_normals(stats.sum_normal[idx])
     ijk = unpack_keys(stats.keys[idx])
     for step in range(1, depth_voxels + 1):
         for sign in (1.0, -1.0):
             keys = pack_keys(ijk + np.rint(sign * step * normals).astype(np.int64))
             pos = np.minimum(np.searchsorted(stats.keys, keys), len(stats) - 1)
-            hit |= (stats.keys[pos] == keys) & own[pos] & (length[:, 0] > 0)
+            hit |= (stats.keys[pos] == keys) & own[pos] & has
     return hit
 
 
@@ -429,8 +435,7 @@ def _supported(stats: VoxelStats, settings: FusionSettings, visibility: Visibili
     if idx.size == 0:
         return fixed
     centres = stats.sum_xyz[idx] / stats.n_points[idx].astype(np.float64)[:, None]
-    length = np.linalg.norm(stats.sum_normal[idx], axis=1, keepdims=True)
-    normals = stats.sum_normal[idx] / np.where(length > 0, length, 1.0)
+    normals, _ = mean_normals(stats.sum_normal[idx])
     visible, visible_bins = visibility(centres, normals)
     frames = stats.n_frames[idx]
     frames_ok = (frames >= settings.min_frames) | (frames >= np.ceil(settings.support_fraction * visible))
@@ -462,8 +467,7 @@ def cloud_from_stats(stats: VoxelStats, settings: FusionSettings, arms: tuple[st
     kept = stats.select(supported)
     n = kept.n_points.astype(np.float64)[:, None]
     points = (kept.sum_xyz / n).astype(np.float32)
-    normal_len = np.linalg.norm(kept.sum_normal, axis=1)
-    normals = (kept.sum_normal / np.where(normal_len > 0, normal_len, 1.0)[:, None]).astype(np.float32)
+    normals = mean_normals(kept.sum_normal)[0].astype(np.float32)
     colours = None if kept.sum_rgb is None else np.clip(np.rint(kept.sum_rgb / n), 0, 255).astype(np.uint8)
     cloud = VoxelCloud(points, normals, colours, kept.n_points.astype(np.int32), kept.n_frames,
                        n_views[supported], kept.arm_mask, unpack_keys(kept.keys), arms)
