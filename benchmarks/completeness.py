@@ -12,8 +12,9 @@ docs/processing.md), the fused cloud's accuracy against the true mesh, the held-
 cross-arm co-observed share per direction.
 
 The commands are darp's own command line (subprocesses that inherit this environment, OPENBLAS_* too), so
-a row is exactly what a user gets. A survey already processed in ``--out`` is read again, not redone
-(``--resume`` is the default), so a campaign cut short goes on where it stopped.
+a row is exactly what a user gets. A survey already processed in ``--out`` is read again, not redone, so a
+campaign cut short goes on where it stopped. After processing, a survey's bags and keyframes are deleted
+unless ``--keep-recordings`` (a 26-survey run at 424x240 otherwise fills about 30 GB).
 
     MUJOCO_GL=egl .venv/bin/python benchmarks/completeness.py [--objects mug,cup] [--placements 4]
         [--seed 0] [--profile realistic] [--fps 6] [--resolution 424x240] [--corrections fusion]
@@ -72,6 +73,10 @@ def survey(name: str, obj: str, seed: int, args: argparse.Namespace) -> dict[str
         if done.returncode != 0 or not results.is_file():
             row.update(status="process failed", exit=done.returncode, error=_last_error(done))
             return row
+        if not args.keep_recordings:  # a 640x480 survey's two bags are hundreds of MB: keep what was measured
+            for bag in (surveys / name).glob("*.bag"):
+                bag.unlink()
+            shutil.rmtree(processed / name / "keyframes", ignore_errors=True)
     r = json.loads(results.read_text(encoding="utf-8"))
     truth = r.get("truth") or {}
     seeable = (truth.get("seeable") or {}).get("completeness_pct") or {}
@@ -112,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--calibration", type=Path, default=None,
                    help="calibration for live decisions and processing (default: each survey's true one)")
     p.add_argument("--out", type=Path, default=Path("completeness-run"))
+    p.add_argument("--keep-recordings", action="store_true",
+                   help="keep each survey's bags and keyframes after processing (default: delete them, keep the "
+                        "survey's records, clouds, mesh and results.json)")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
     objects = [o.strip() for o in args.objects.split(",") if o.strip()]
