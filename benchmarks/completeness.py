@@ -3,12 +3,13 @@
 
 For every object and placement ``k`` the twin draws the placement itself (``darp collect --twin`` without
 ``--placement``: centre and yaw random, seeded, checked against the workspace) from the survey's seed
-``seed * 1000 + object index * 100 + k``; the survey runs the whole acquisition (coverage planner with
-next best views unless ``--viewpoints orbit``), then ``darp process`` with ``--corrections`` (default
-``fusion``: darp's fusion rules) and the optional processing ``--settings`` file. Each row reads the
-survey's results.json: seeable completeness at 5 mm (``truth.seeable``: the share of the true surface that
-any feasible camera pose of either arm can see which lies within 5 mm of the fused cloud;
-docs/processing.md), the fused cloud's accuracy against the true mesh, the held-out median and the
+``seed * 1000 + object index * 100 + k`` (a paper object's index among the ten, so its surveys do not
+depend on which other objects are listed; mesh files follow, 10, 11, ...). The survey runs the whole
+acquisition (coverage planner with next best views unless ``--viewpoints orbit``), then ``darp process``
+with ``--corrections`` (default ``fusion``: darp's fusion rules) and the optional ``--settings`` file.
+Each row reads the survey's results.json: seeable completeness at 5 mm (``truth.seeable``: the share of
+the true surface that any feasible camera pose of either arm can see which lies within 5 mm of the fused
+cloud; docs/processing.md), the fused cloud's accuracy against the true mesh, the held-out median and the
 cross-arm co-observed share per direction.
 
 The commands are darp's own command line (subprocesses that inherit this environment, OPENBLAS_* too), so
@@ -127,7 +128,9 @@ def main(argv: list[str] | None = None) -> int:
     print("| survey | object | fused points | seeable @5 mm | accuracy median, mm | held-out median, mm | "
           "co-observed (arm110 / arm111) |")
     print("|---|---|---|---|---|---|---|")
-    for i, obj in enumerate(objects):
+    others = [o for o in objects if o not in OBJECT_NAMES]
+    for obj in objects:  # a paper object keeps its seeds whatever the list: its index among the ten
+        i = OBJECT_NAMES.index(obj) if obj in OBJECT_NAMES else len(OBJECT_NAMES) + others.index(obj)
         for k in range(args.placements):
             seed = args.seed * 1000 + i * 100 + k
             name = f"{Path(obj).stem}_s{seed}"
