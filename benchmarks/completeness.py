@@ -54,7 +54,7 @@ def survey(name: str, obj: str, seed: int, args: argparse.Namespace) -> dict[str
     if not results.is_file():
         t0 = time.monotonic()
         if not (surveys / name / "arm_poses.csv").is_file():
-            for stale in (surveys / name, surveys / f"{name}.partial"):  # an interrupted collection: again
+            for stale in (surveys / name, surveys / f"{name}.partial", surveys / f"{name}.rejected"):  # again
                 if stale.exists():
                     shutil.rmtree(stale)
             calib = ["--truth-calibration"] if args.calibration is None else ["--calibration", str(args.calibration)]
