@@ -183,7 +183,13 @@ def test_next_best_views_target_an_occluded_side(sparse) -> None:  # type: ignor
     # nothing is added when everything was observed
     full = CoverageTracker(sparse)
     full.observed[arm][:] = True
+    full.observed_count[arm][:] = sparse.settings.nbv_support_views
     assert full.next_views(arm, sparse.plans[arm].views, remaining_arms=[]) == []
+    # a surface one view glimpsed is still a target: fusion wants it from more than one view
+    once = CoverageTracker(sparse)
+    once.observed[arm][:] = True
+    once.observed_count[arm][:] = 1
+    assert once.next_views(arm, sparse.plans[arm].views, remaining_arms=[])
 
 
 def test_an_envelope_off_the_object_is_caught_by_the_recorded_depth(centred) -> None:  # type: ignore[no-untyped-def]

@@ -95,6 +95,7 @@ class CoverageSettings:
     max_joint_step_rad: float = 2.6  # between consecutive views (every move is path-checked for clearance)
     nbv_max_views: int = 3  # extra views per arm from the next-best-view loop
     nbv_min_gain: float = 0.02  # an extra view must see this share of the surface still unobserved
+    nbv_support_views: int = 2  # ... or observed by fewer than this many recorded views (1: unobserved only)
 
 
 @dataclass(frozen=True)
@@ -639,12 +640,18 @@ class CoverageTracker:
         return u
 
     def next_views(self, arm_id: str, used: list[Candidate], remaining_arms: list[str]) -> list[Candidate]:
-        """Candidates of ``arm_id`` (not yet used) that see the most still-unobserved samples, best first.
+        """Candidates of ``arm_id`` (not yet used) that see the most samples the recorded depth showed in fewer
+        than ``nbv_support_views`` views, best first. Fusion keeps surface that several frames from two
+        viewing directions measured, so a sample one view glimpsed (the face of a thin plate between the arms,
+        seen edge-on) is still a target, not only one no view saw.
 
         Samples the arms still to record (``remaining_arms``) are planned to see are not targets."""
         s, p = self.plan.settings, self.plan
         n = len(p.samples)
-        target = ~self.union()
+        seen_by = np.zeros(n, dtype=np.int_)
+        for count in self.observed_count.values():
+            seen_by += count
+        target = seen_by < max(s.nbv_support_views, 1)
         for b in remaining_arms:
             for c in p.plans[b].views:
                 target &= ~p.view_visibility(b, c)
