@@ -166,6 +166,10 @@ def test_a_partial_view_inside_the_other_estimate_is_consistent_but_a_shift_of_t
     for e in (whole, leg):  # the combined envelope holds both footprints
         gap = np.linalg.norm(np.asarray(combined.centre_m)[:2] - np.asarray(e.centre_m)[:2])
         assert gap + e.radius_m <= combined.radius_m + 1e-9
+    # ... and is the whole L's, not grown by half the gap (a wider envelope sends the views further away)
+    np.testing.assert_allclose(combined.centre_m[:2], whole.centre_m[:2])
+    gap = float(np.linalg.norm(np.asarray(whole.centre_m)[:2] - np.asarray(leg.centre_m)[:2]))
+    assert combined.radius_m == pytest.approx(max(whole.radius_m, gap + leg.radius_m))  # 8.4 cm, not 10.2
     shifted = est("arm111", -0.108 + 0.048, 0.025, r=0.078, h=0.12)  # the whole L, 4.8 cm off
     assert not consistency(whole, shifted, ConfirmSettings())["consistent"]
     outside = est("arm111", -0.108 + 0.09, 0.025, r=0.035, h=0.12)  # a small estimate reaching 4.7 cm out

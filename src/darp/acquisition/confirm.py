@@ -158,14 +158,23 @@ def consistent(a: ObjectEstimate, b: ObjectEstimate, settings: ConfirmSettings) 
     return bool(consistency(a, b, settings)["consistent"])
 
 
-def combine(a: ObjectEstimate, b: ObjectEstimate, stage: str = "confirmed") -> ObjectEstimate:
-    """The conservative envelope of two consistent estimates (centres averaged, larger extents)."""
+def combine(a: ObjectEstimate, b: ObjectEstimate, stage: str = "confirmed", contained: bool = False) -> ObjectEstimate:
+    """The conservative envelope of two consistent estimates (centres averaged, larger extents). With
+    ``contained`` (the smaller footprint inside the larger one: a partial view) it is the larger footprint,
+    grown only as far as it must to hold the smaller one: averaging there would move the centre towards the
+    part one arm saw and grow the radius for nothing, and a wider envelope sends the views further away."""
     ca, cb = np.asarray(a.centre_m, float), np.asarray(b.centre_m, float)
     d = float(np.linalg.norm(ca[:2] - cb[:2]))
     height = max(a.height_m, b.height_m)
     table_z = float(ca[2] - 0.5 * a.height_m)
-    centre = np.array([0.5 * (ca[0] + cb[0]), 0.5 * (ca[1] + cb[1]), table_z + 0.5 * height])
-    radius = max(a.radius_m, b.radius_m) + 0.5 * d
+    if contained:
+        large, small = (a, b) if a.radius_m >= b.radius_m else (b, a)
+        cl = np.asarray(large.centre_m, float)
+        centre = np.array([cl[0], cl[1], table_z + 0.5 * height])
+        radius = max(large.radius_m, d + small.radius_m)
+    else:
+        centre = np.array([0.5 * (ca[0] + cb[0]), 0.5 * (ca[1] + cb[1]), table_z + 0.5 * height])
+        radius = max(a.radius_m, b.radius_m) + 0.5 * d
     arms = a.arm_id if a.arm_id == b.arm_id else f"{a.arm_id}+{b.arm_id}"
     return ObjectEstimate(arms, centre, radius, height, a.n_points + b.n_points,
                           min(a.valid_fraction, b.valid_fraction), stage=stage)
@@ -209,7 +218,7 @@ def decide(primary: LocalisationResult, secondary: LocalisationResult, settings:
                f"{check['centre_tolerance_m'] * 100:.1f} cm" if not check["contained"] else
                f"the smaller estimate lies inside the larger one: a partial view; centres "
                f"{check['centre_distance_m'] * 100:.1f} cm apart")
-        return Decision("consistent", combine(a, b), "combined",
+        return Decision("consistent", combine(a, b, contained=check["contained"]), "combined",
                         f"{a.arm_id} and {b.arm_id} agree ({how}): centres averaged, larger extents kept", steps)
     gap = (f"centres {check['centre_distance_m'] * 100:.1f} cm apart "
            f"(tolerance {check['centre_tolerance_m'] * 100:.1f} cm)")
