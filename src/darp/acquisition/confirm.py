@@ -9,7 +9,7 @@ the first is parked, gives B. :func:`decide` applies these rules, in order, and 
    ``max(height_tolerance_m, height_tolerance_rel * larger height)``. They are **combined**
    (:func:`combine`): centres averaged, the larger radius kept and grown by half the centre distance (so
    the combined cylinder still contains both arms' cylinders' axes), the larger height kept: a
-   conservative envelope.
+   conservative envelope. A partial view keeps the larger footprint, grown only to hold the smaller one.
 2. **One valid estimate** (the other arm saw nothing usable even when looking straight at it): the
    valid one is the reference if its depth support is at least ``fallback_min_points``; otherwise
    the survey terminates (``unconfirmed``).
@@ -215,11 +215,12 @@ def decide(primary: LocalisationResult, secondary: LocalisationResult, settings:
     steps.append({"step": "consistency", **check})
     if check["consistent"]:
         how = (f"centres {check['centre_distance_m'] * 100:.1f} cm apart, tolerance "
-               f"{check['centre_tolerance_m'] * 100:.1f} cm" if not check["contained"] else
+               f"{check['centre_tolerance_m'] * 100:.1f} cm): centres averaged, larger extents kept"
+               if not check["contained"] else
                f"the smaller estimate lies inside the larger one: a partial view; centres "
-               f"{check['centre_distance_m'] * 100:.1f} cm apart")
+               f"{check['centre_distance_m'] * 100:.1f} cm apart): the larger footprint kept, grown to hold both")
         return Decision("consistent", combine(a, b, contained=check["contained"]), "combined",
-                        f"{a.arm_id} and {b.arm_id} agree ({how}): centres averaged, larger extents kept", steps)
+                        f"{a.arm_id} and {b.arm_id} agree ({how}", steps)
     gap = (f"centres {check['centre_distance_m'] * 100:.1f} cm apart "
            f"(tolerance {check['centre_tolerance_m'] * 100:.1f} cm)")
     if s.conflict_policy == "terminate" or reobserve is None:

@@ -156,6 +156,13 @@ def frame_stats(points: np.ndarray, normals: np.ndarray, colours: np.ndarray | N
     )
 
 
+def _runs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The stable order that sorts ``keys`` and the start of each run of equal keys in that order."""
+    order = np.argsort(keys, kind="stable")
+    ordered = keys[order]
+    return order, np.flatnonzero(np.concatenate(([True], ordered[1:] != ordered[:-1])))
+
+
 def merge_stats(parts: list[VoxelStats]) -> VoxelStats:
     """Merge any number of statistics (sorted by key, one row per voxel)."""
     parts = [p for p in parts if len(p)]
@@ -165,15 +172,13 @@ def merge_stats(parts: list[VoxelStats]) -> VoxelStats:
         return parts[0]
     with_colour = all(p.sum_rgb is not None for p in parts)
     keys = np.concatenate([p.keys for p in parts])
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+    order, starts = _runs(keys)
 
     def reduce(values: list[np.ndarray], op: np.ufunc = np.add) -> np.ndarray:
         return op.reduceat(np.concatenate(values)[order], starts, axis=0)
 
     return VoxelStats(
-        keys=keys[starts],
+        keys=keys[order][starts],
         n_points=reduce([p.n_points for p in parts]),
         sum_xyz=reduce([p.sum_xyz for p in parts]),
         sum_normal=reduce([p.sum_normal for p in parts]),
@@ -196,15 +201,13 @@ def cell_stats(frame: VoxelStats, factor: int) -> VoxelStats:
     if len(frame) == 0:
         return frame
     keys = cell_keys(frame.keys, factor)
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    starts = np.flatnonzero(np.concatenate(([True], keys[1:] != keys[:-1])))
+    order, starts = _runs(keys)
 
     def reduce(values: np.ndarray, op: np.ufunc = np.add) -> np.ndarray:
         return op.reduceat(values[order], starts, axis=0)
 
     m = starts.size
-    return VoxelStats(keys=keys[starts], n_points=reduce(frame.n_points), sum_xyz=reduce(frame.sum_xyz),
+    return VoxelStats(keys=keys[order][starts], n_points=reduce(frame.n_points), sum_xyz=reduce(frame.sum_xyz),
                       sum_normal=reduce(frame.sum_normal), sum_rgb=None, n_frames=np.ones(m, np.int32),
                       view_mask=reduce(frame.view_mask, np.bitwise_or), arm_mask=reduce(frame.arm_mask, np.bitwise_or))
 
