@@ -10,7 +10,9 @@ with ``--corrections`` (default ``fusion``: darp's fusion rules) and the optiona
 Each row reads the survey's results.json: seeable completeness at 5 mm (``truth.seeable``: the share of
 the true surface that any feasible camera pose of either arm can see which lies within 5 mm of the fused
 cloud; docs/processing.md), the fused cloud's accuracy against the true mesh, the held-out median and the
-cross-arm co-observed share per direction.
+cross-arm co-observed share per direction, and the co-seeable share (``truth.seeable.co_seeable_pct``: how much of
+the seeable surface feasible poses of *both* arms can see, the ceiling of co-observation; a thin plate whose
+faces point at the arms has about none).
 
 The commands are darp's own command line (subprocesses that inherit this environment, OPENBLAS_* too), so
 a row is exactly what a user gets. A survey already processed in ``--out`` is read again, not redone, so a
@@ -82,7 +84,7 @@ def survey(name: str, obj: str, seed: int, args: argparse.Namespace) -> dict[str
     truth = r.get("truth") or {}
     seeable = (truth.get("seeable") or {}).get("completeness_pct") or {}
     row.update(status="ok", fused=r["clouds"]["fused"],
-               seeable_5mm_pct=seeable.get("5mm"),
+               seeable_5mm_pct=seeable.get("5mm"), co_seeable_pct=(truth.get("seeable") or {}).get("co_seeable_pct"),
                accuracy_median_mm=(truth.get("cloud") or {}).get("accuracy", {}).get("median_mm"),
                heldout_median_mm=r["heldout"]["aggregate"]["median_mm"],
                co_observed_pct=[d["co_observed_pct"] for d in (r.get("cross_arm") or {}).get("directions", [])])
@@ -96,11 +98,12 @@ def _last_error(done: subprocess.CompletedProcess[str]) -> str:
 
 def line(r: dict[str, Any]) -> str:
     if r["status"] != "ok":
-        return f"| {r['survey']} | {r['object']} | {r['status']}: {r.get('error', '')} | | | | |"
+        return f"| {r['survey']} | {r['object']} | {r['status']}: {r.get('error', '')} | | | | | |"
     co = " / ".join(f"{c:.1f}" for c in r["co_observed_pct"]) or "-"
     c5 = "-" if r["seeable_5mm_pct"] is None else f"{r['seeable_5mm_pct']:.1f} %"
+    ceiling = "-" if r.get("co_seeable_pct") is None else f"{r['co_seeable_pct']:.1f} %"
     return (f"| {r['survey']} | {r['object']} | {r['fused']:,} | {c5} | {r['accuracy_median_mm']:.3f} | "
-            f"{r['heldout_median_mm']:.3f} | {co} % |")
+            f"{r['heldout_median_mm']:.3f} | {co} % | {ceiling} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -126,8 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     objects = [o.strip() for o in args.objects.split(",") if o.strip()]
     rows: list[dict[str, Any]] = []
     print("| survey | object | fused points | seeable @5 mm | accuracy median, mm | held-out median, mm | "
-          "co-observed (arm110 / arm111) |")
-    print("|---|---|---|---|---|---|---|")
+          "co-observed (arm110 / arm111) | co-seeable |")
+    print("|---|---|---|---|---|---|---|---|")
     others = [o for o in objects if o not in OBJECT_NAMES]
     for obj in objects:  # a paper object keeps its seeds whatever the list: its index among the ten
         i = OBJECT_NAMES.index(obj) if obj in OBJECT_NAMES else len(OBJECT_NAMES) + others.index(obj)
@@ -142,12 +145,20 @@ def main(argv: list[str] | None = None) -> int:
     ok = [r for r in rows if r["status"] == "ok" and r["seeable_5mm_pct"] is not None]
     print()
     for obj in objects:
-        values = [r["seeable_5mm_pct"] for r in ok if r["object"] == obj]
-        co = [min(r["co_observed_pct"]) for r in ok if r["object"] == obj and r["co_observed_pct"]]
-        if values:
-            print(f"{obj}: seeable @5 mm min {min(values):.1f} / median {statistics.median(values):.1f} % over "
-                  f"{len(values)} placements (>= 95 %: {sum(v >= 95.0 for v in values)}); co-observed, lower arm, "
-                  f"min {min(co):.1f} %" if co else "")
+        done = [r for r in ok if r["object"] == obj]
+        if not done:
+            continue
+        values = [r["seeable_5mm_pct"] for r in done]
+        co = [min(r["co_observed_pct"]) for r in done if r["co_observed_pct"]]
+        # co-observation is possible only where feasible poses of both arms see the surface (co_seeable_pct)
+        geometry_bound = sum(1 for r in done if (r.get("co_seeable_pct") or 0.0) < 10.0
+                             and min(r["co_observed_pct"] or [0.0]) < 10.0)
+        text = (f"{obj}: seeable @5 mm min {min(values):.1f} / median {statistics.median(values):.1f} % over "
+                f"{len(values)} placements (>= 95 %: {sum(v >= 95.0 for v in values)})")
+        if co:
+            text += (f"; co-observed, lower arm, min {min(co):.1f} % (>= 10 %: {sum(c >= 10.0 for c in co)}; "
+                     f"below 10 % where both arms can see < 10 % of the seeable surface: {geometry_bound})")
+        print(text)
     failed = [r for r in rows if r["status"] != "ok"]
     print(f"{len(ok)} of {len(rows)} surveys processed; {len(failed)} failed")
     return 0

@@ -66,6 +66,7 @@ def test_twin_survey_is_accepted(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert json.loads((tmp_path / "mug" / "truth" / "contacts.json").read_text()) == []
     assert (tmp_path / "mug" / "truth" / "camera_poses_arm110.npz").is_file()
     assert json.loads((tmp_path / "mug" / "verification.json").read_text())["passed"] is True
+    assert env.extra["coverage"]["strategy"] == "coverage"  # the default planner; orbit only when asked
 
 
 def test_hardware_branch_runs_the_same_procedure(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
@@ -93,4 +94,5 @@ def test_hardware_branch_runs_the_same_procedure(tmp_path: Path, monkeypatch: py
     assert capsys.readouterr().out.startswith(f"accepted: {tmp_path / 'real'}")
     env = json.loads((tmp_path / "real" / "manip_envelope.json").read_text())
     assert env["localisation"]["calibration"] == load_rig().nominal_calibration().epoch
+    assert env["coverage"]["strategy"] == "coverage"  # the same default planner as on the twin
     assert not (tmp_path / "real" / "truth").exists()

@@ -48,6 +48,25 @@ def test_seeable_completeness_from_the_keyframes_own_poses(processed_path: Path,
     # completeness is at least the seen surface's (tiny survey: 77 % against 67 % at 5 mm)
     assert seen_complete - 2.0 <= out["completeness_pct"]["5mm"] <= 100.0
     assert out["completeness_pct"]["2mm"] <= out["completeness_pct"]["5mm"] <= out["completeness_pct"]["10mm"]
+    assert out["co_seeable_pct"] == 0.0  # one arm: nothing both arms can see
+    # per arm: the share of the seeable surface that both arms' poses see is the intersection of their masks
+    by_arm: dict[str, list[np.ndarray]] = {}
+    for k in iter_keyframes(kf, FUSE):
+        by_arm.setdefault(k.arm, []).append(np.asarray(k.posed_depth(colour=False).T_world_cam))
+    assert len(by_arm) == 2
+    env2 = Envelope(object_name="cube", extra={"coverage": {"feasible_poses": {
+        arm: [T[:3].reshape(-1).tolist() for T in Ts] for arm, Ts in by_arm.items()}}})
+    job2 = types.SimpleNamespace(survey=types.SimpleNamespace(envelope=lambda: env2), keyframes_dir=kf, settings=plain)
+    out2 = seeable_completeness(job2, fused, samples, normals, tv, tt, seen)  # type: ignore[arg-type]
+    assert out2 is not None and out2["samples"] == out["samples"]  # the same poses, grouped by arm
+    from darp.evaluation.truth_metrics import seeable_from_poses
+
+    intr = next(iter_keyframes(kf, FUSE)).posed_depth().intrinsics
+    masks = [seeable_from_poses(samples, normals, tv, tt, Ts, width=intr.width, height=intr.height, fx=intr.fx,
+                                fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy, table_z_m=float(np.min(tv[:, 2])))
+             for Ts in by_arm.values()]
+    both = 100.0 * float((masks[0] & masks[1]).sum()) / float((masks[0] | masks[1]).sum())
+    assert 0.0 < out2["co_seeable_pct"] < 100.0 and abs(out2["co_seeable_pct"] - both) < 1e-3
     # no feasible poses recorded: no seeable section
     bare = types.SimpleNamespace(survey=types.SimpleNamespace(envelope=lambda: Envelope(object_name="cube")),
                                  keyframes_dir=kf, settings=plain)

@@ -2,9 +2,9 @@
 
     darp collect NAME --twin [--object mug|PATH|none] [--scale S] [--placement x,y,yaw_deg] [--seed N]
                       [--profile ideal|realistic|paper | --settings FILE] [--fps 30] [--resolution 640x480]
-                      [-c FILE | --truth-calibration] [--viewpoints orbit|coverage] [--rig RIG.yaml] [-o DIR]
+                      [-c FILE | --truth-calibration] [--viewpoints coverage|orbit] [--rig RIG.yaml] [-o DIR]
                       [--overwrite] [--quiet]
-    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [--viewpoints orbit|coverage] [-o DIR] [--overwrite]
+    darp collect NAME --hardware [--rig RIG.yaml] -c FILE [--viewpoints coverage|orbit] [-o DIR] [--overwrite]
                       [--quiet]
 
 The survey folder is ``<out>/NAME`` when accepted, ``<out>/NAME.rejected`` when rejected (REJECTED.txt
@@ -104,9 +104,10 @@ def collect_command(
     truth_calibration: Annotated[bool, typer.Option("--truth-calibration", help="Twin: decide with the twin's true "
                                                     "calibration instead of --calibration.")] = False,
     viewpoints: Annotated[Viewpoints, typer.Option(
-        "--viewpoints", help="Plan views for coverage of the envelope with a co-observed band and next best "
-        "views (coverage; experimental: fewer views, lower completeness so far), or the paper's fixed orbit per "
-        "arm (orbit).")] = Viewpoints.orbit,
+        "--viewpoints", help="coverage: plan both arms' views for coverage of the envelope's surface (the sides "
+        "between the arms and the top included) with a co-observed band, and add next best views from the "
+        "recorded depth; orbit: the paper's fixed orbit per arm (what darp demo uses to reproduce the paper).",
+        show_default=True)] = Viewpoints.coverage,
     out: Annotated[Path, out_option("Folder that receives the survey folder.", show_default=True)] = Path("."),
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing NAME (and "
                                             "NAME.partial/.rejected).")] = False,
@@ -140,7 +141,7 @@ def _settings(viewpoints: Viewpoints) -> Any:
 
 
 def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: Path, overwrite: bool,
-                      quiet: bool, viewpoints: Viewpoints = Viewpoints.orbit) -> None:
+                      quiet: bool, viewpoints: Viewpoints = Viewpoints.coverage) -> None:
     from darp.acquisition.survey import run_survey
     from darp.formats.calibration import read_calibration
     from darp.hardware.rig import HardwareRig
@@ -157,7 +158,7 @@ def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: 
 def _collect_twin(name: str, obj_name: str, scale: float, placement: Placement | None, settings: Any,
                   fps: int, resolution: Resolution, calibration: Path | None, truth_calibration: bool,
                   rig_file: Path | None, out: Path, overwrite: bool, quiet: bool,
-                  viewpoints: Viewpoints = Viewpoints.orbit) -> None:
+                  viewpoints: Viewpoints = Viewpoints.coverage) -> None:
     """Decisions use ``calibration``, the twin's true one (``truth_calibration``) or else the rig's nominal."""
     from darp.acquisition.survey import run_survey
     from darp.cli.twin import load_object, place_object

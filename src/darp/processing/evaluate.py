@@ -174,7 +174,9 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
     """Completeness against the surface any feasible camera pose can see: the true samples that some feasible
     candidate pose of the survey's planner (``manip_envelope.json`` ``coverage.feasible_poses``) sees
     (:func:`~darp.evaluation.truth_metrics.seeable_from_poses`, with the keyframes' depth image size), and the
-    share of them within each threshold of the fused cloud. None when the survey recorded no feasible poses."""
+    share of them within each threshold of the fused cloud; also ``co_seeable_pct``, the share of that surface
+    which feasible poses of both arms see (the most of it any plan could let the arms compare: a thin plate
+    whose faces point at the arms has none). None when the survey recorded no feasible poses."""
     from scipy.spatial import cKDTree
 
     env = job.survey.envelope()
@@ -182,14 +184,20 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
     by_arm = record.get("feasible_poses") if isinstance(record, dict) else None
     if not isinstance(by_arm, dict) or not by_arm:
         return None
-    poses = [np.asarray(p, np.float64).reshape(3, 4) for arm_poses in by_arm.values() for p in arm_poses]
+    poses_by_arm = {arm: [np.asarray(p, np.float64).reshape(3, 4) for p in arm_poses]
+                    for arm, arm_poses in by_arm.items()}
+    poses = [p for arm_poses in poses_by_arm.values() for p in arm_poses]
     first = next(iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY), None)
     if first is None or not poses:
         return None
     intr = first.posed_depth().intrinsics
-    mask = seeable_from_poses(samples, normals, truth_v, truth_t, poses, width=intr.width, height=intr.height,
-                              fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
-                              table_z_m=float(np.min(truth_v[:, 2])))
+    per_arm = {arm: seeable_from_poses(samples, normals, truth_v, truth_t, arm_poses, width=intr.width,
+                                       height=intr.height, fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
+                                       table_z_m=float(np.min(truth_v[:, 2])))
+               for arm, arm_poses in poses_by_arm.items()}
+    mask = np.logical_or.reduce(list(per_arm.values()))
+    # what any plan could give the arms to compare: the seeable surface that feasible poses of every arm see
+    co_seeable = np.logical_and.reduce(list(per_arm.values())) if len(per_arm) > 1 else np.zeros_like(mask)
     distance = cKDTree(fused).query(samples[mask], k=1)[0] if mask.any() else np.empty(0)
     causes = None
     if job.settings.evaluation.missing_by_cause and mask.any():
@@ -198,6 +206,7 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
         missing[np.flatnonzero(mask)[distance > threshold]] = True
         causes = missing_causes(job, samples, normals, truth_v, truth_t, missing, threshold)
     return {"poses": len(poses), "samples": int(mask.sum()), "of_mesh_pct": round(100.0 * float(mask.mean()), 4),
+            "co_seeable_pct": round(100.0 * float(co_seeable.sum()) / max(1, int(mask.sum())), 4),
             "seen_by_keyframes_pct": round(100.0 * float(np.mean(seen[mask])), 4) if mask.any() else None,
             "completeness_pct": {f"{t * 1000:g}mm": (round(100.0 * float(np.mean(distance <= t)), 4)
                                                      if distance.size else None) for t in TRUTH_THRESHOLDS_M},

@@ -13,9 +13,11 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
     truth           null, or {samples, seen, cloud, mesh, pose_error[, seeable]}: accuracy and completeness
                     statistics (mm, % within 2/5/10 mm), F-score % at 2/5/10 mm, keyframe pose error vs the true
                     poses; seeable (surveys that recorded feasible poses): {poses, samples, of_mesh_pct,
-                    seen_by_keyframes_pct, completeness_pct[, missing_by_cause]} against the surface any
-                    feasible pose can see; missing_by_cause {missing, threshold_mm, count, share_pct}: where
-                    each seeable sample beyond 5 mm of the fused cloud was lost (evaluation.truth_metrics)
+                    co_seeable_pct, seen_by_keyframes_pct, completeness_pct[, missing_by_cause]} against the
+                    surface any feasible pose can see (co_seeable_pct: the share of it feasible poses of both
+                    arms see, the ceiling of cross-arm co-observation); missing_by_cause {missing,
+                    threshold_mm, count, share_pct}: where each seeable sample beyond 5 mm of the fused cloud
+                    was lost (evaluation.truth_metrics)
     figures         {kind: path relative to the survey folder}
     stages          {stage: seconds}
     status          "ok", or "implausible" when ``warnings`` is not empty

@@ -1,0 +1,46 @@
+"""benchmarks/completeness.py's seeds, rows and per-object summary, on processed results it finds (no darp
+run: a survey whose results.json is already in --out is read, not redone)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+from helpers.benchmark_modules import load_benchmark
+
+
+@pytest.fixture(scope="module")
+def completeness() -> ModuleType:
+    return load_benchmark("completeness")
+
+
+def _results(out: Path, name: str, seeable: float, co: tuple[float, float], co_seeable: float) -> None:
+    folder = out / "processed" / name
+    folder.mkdir(parents=True)
+    (folder / "results.json").write_text(json.dumps({
+        "clouds": {"fused": 1234},
+        "heldout": {"aggregate": {"median_mm": 0.4}},
+        "cross_arm": {"directions": [{"co_observed_pct": co[0]}, {"co_observed_pct": co[1]}]},
+        "truth": {"cloud": {"accuracy": {"median_mm": 0.1}},
+                  "seeable": {"completeness_pct": {"5mm": seeable}, "co_seeable_pct": co_seeable}}}))
+
+
+def test_rows_and_summary_say_where_co_observation_is_bounded_by_geometry(
+        completeness: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # picture_frame is the sixth paper object: seeds 500, 501 at --seed 0 whatever else is listed
+    _results(tmp_path, "picture_frame_s500", 99.9, (4.4, 2.9), 0.0)  # faces towards the arms: nothing co-seeable
+    _results(tmp_path, "picture_frame_s501", 94.0, (12.0, 15.0), 6.0)
+    out_json = tmp_path / "c.json"
+    assert completeness.main(["--objects", "picture_frame", "--placements", "2", "--out", str(tmp_path),
+                              "--json", str(out_json)]) == 0
+    text = capsys.readouterr().out
+    assert "| picture_frame_s500 | picture_frame | 1,234 | 99.9 % | 0.100 | 0.400 | 4.4 / 2.9 % | 0.0 % |" in text
+    assert ("picture_frame: seeable @5 mm min 94.0 / median 97.0 % over 2 placements (>= 95 %: 1); co-observed, "
+            "lower arm, min 2.9 % (>= 10 %: 1; below 10 % where both arms can see < 10 % of the seeable surface: 1)"
+            in text)
+    assert "2 of 2 surveys processed; 0 failed" in text
+    rows = json.loads(out_json.read_text())["rows"]
+    assert [r["seed"] for r in rows] == [500, 501] and rows[1]["co_seeable_pct"] == 6.0
