@@ -238,7 +238,8 @@ def run_seed(seed: int, objects: list[str], modes: list[str], args: argparse.Nam
             t0 = time.monotonic()
             darp(["collect", name, "--twin", "--object", name, "--profile", "paper", "--seed", str(seed),
                   "--fps", str(args.fps), "--resolution", args.resolution, "--calibration", str(calibration),
-                  "-o", str(surveys_dir), "--placement", f"{x:.4f},{y:.4f},{yaw:.1f}", "-q"], log)
+                  "-o", str(surveys_dir), "--placement", f"{x:.4f},{y:.4f},{yaw:.1f}", "--viewpoints", "orbit",
+                  "-q"], log)  # the paper's acquisition, as darp demo
             timing[f"collect_{name}_s"] = round(time.monotonic() - t0, 1)
         if folder.exists():
             accepted.append(folder)

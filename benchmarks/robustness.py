@@ -120,7 +120,8 @@ def run_case(scale: float, seed: int, objects: list[str], args: argparse.Namespa
         if not folder.exists():
             code = darp(["collect", name, "--twin", "--object", name, "--settings", str(settings_file),
                          "--fps", str(args.fps), "--resolution", args.resolution, "--calibration", str(calibration),
-                         "-o", str(surveys), "--placement", f"{x:.4f},{y:.4f},{yaw:.1f}", "-q"], log)
+                         "-o", str(surveys), "--placement", f"{x:.4f},{y:.4f},{yaw:.1f}", "--viewpoints",
+                         "orbit", "-q"], log)  # the paper's acquisition, as darp demo
         else:
             code = 0
         row["surveys"][name] = {"accepted": folder.exists(), "exit": code,

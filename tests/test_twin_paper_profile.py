@@ -511,3 +511,28 @@ def test_an_unabsorbed_target_picks_directions_of_that_size_and_keeps_every_magn
         assert arm.kinematic_errors is not None
         assert unabsorbable_mm(arm.kinematic_errors) == pytest.approx(paper.arm_errors.unabsorbed_mm, rel=0.05)
     assert TwinSettings.from_profile("paper").scaled(2.0).arm_errors.unabsorbed_mm == pytest.approx(5.0)
+
+
+def test_the_demo_surveys_with_the_papers_orbit(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``darp collect`` plans for coverage by default; the demo reproduces the paper, so it asks for the orbit."""
+    import darp.cli.demo as demo
+    from darp.cli._options import Profile
+
+    calls: list[list[str]] = []
+
+    class Stop(Exception):
+        pass
+
+    def record(args: list[object]) -> None:
+        calls.append([str(a) for a in args])
+        if calls[-1][0] == "collect":
+            raise Stop
+
+    monkeypatch.setattr(demo, "_call", record)
+    with pytest.raises(Stop):
+        demo.demo_command(out=tmp_path, objects=None, seed=0, fps=6, captures=20, profile=Profile.paper,
+                          settings_file=None)
+    assert [c[0] for c in calls] == ["calib", "calib", "collect"]
+    collect = calls[-1]
+    assert collect[collect.index("--viewpoints") + 1] == "orbit"
+    assert collect[collect.index("--profile") + 1] == "paper"

@@ -85,7 +85,8 @@ def demo_command(
             # The same seed as the calibration: the same true rig (its errors), another placement.
             _call(["collect", name, "--twin", "--object", name, "--seed", seed, *twin_args,
                    "--fps", fps, "--calibration", calibration, "--out", surveys_dir,
-                   "--placement", f"{x_m:.4f},{y_m:.4f},{yaw_deg:.1f}"])
+                   "--placement", f"{x_m:.4f},{y_m:.4f},{yaw_deg:.1f}",
+                   "--viewpoints", "orbit"])  # the paper's fixed orbit: the demo reproduces the paper
         surveys.append(folder)
 
     _step("3/4 processing: poses, keyframes, fusion, meshes, held-out and ground-truth evaluation")
