@@ -279,3 +279,34 @@ def test_dropped_frames_fail_verification_and_reject(tmp_path: Path) -> None:
     assert (outcome.folder / "verification.json").is_file()
     assert "failed check dropped.arm110" in (outcome.folder / "REJECTED.txt").read_text()
     assert (outcome.folder / "arm_poses.csv").is_file()  # the rejected capture is kept
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fraction", [0.0, 1.0])
+def test_next_best_views_stay_within_their_time_budget(tmp_path: Path, fraction: float) -> None:
+    """Every sample stays a target (``nbv_support_views`` above any count), so only the budget or the view cap
+    stops the loop: no view at 0, some at 1, and their rig time is within the budget plus one view."""
+    from dataclasses import replace
+
+    from darp.acquisition.coverage import CoverageSettings
+
+    cov = replace(CoverageSettings(), nbv_support_views=1000, nbv_min_gain=0.0, nbv_max_views=4,
+                  nbv_time_fraction=fraction)
+    rig = FakeRig([OBJECT])
+    outcome = run_survey(rig, rig.rig, tmp_path, "cyl", settings=SurveySettings(viewpoint_strategy="coverage",
+                                                                                 coverage=cov))
+    assert outcome.status == "accepted", outcome.message
+    events = read_events(outcome.folder)
+    record = read_envelope(outcome.folder / "manip_envelope.json").extra["coverage"]
+    added, spent, budget = (record[k] for k in ("next_best_views", "next_best_views_s", "next_best_views_budget_s"))
+    longest = max(e["move_s"] for e in events if e["kind"] in ("view_reached", "next_best_view"))
+    for arm in rig.rig.arm_ids:
+        stopped = [e for e in events if e["kind"] == "next_best_view_budget" and e["arm"] == arm]
+        if fraction == 0.0:
+            assert added[arm] == 0 and spent[arm] == 0.0 and budget[arm] == 0.0
+            assert stopped and stopped[0]["per_view_s"] > 0  # the loop says why it added nothing
+        else:
+            assert added[arm] >= 1 and budget[arm] > 0  # the arm's planned views took time
+            assert spent[arm] <= budget[arm] + longest + 1.0  # a view started within the budget is finished
+            if stopped:  # stopped by the budget: the spent time plus one more view would exceed it
+                assert stopped[0]["spent_s"] + stopped[0]["per_view_s"] > stopped[0]["budget_s"]

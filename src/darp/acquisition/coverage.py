@@ -32,7 +32,8 @@ no feasible candidate can see are reported per face as unreachable (a warning na
 
 **Next best view.** After an arm's planned views the survey asks :meth:`CoverageTracker.next_views`
 for candidates of that arm that see the most still-unobserved samples (at least ``nbv_min_gain`` of
-the surface each, at most ``nbv_max_views`` per arm) and visits them before parking.
+the surface each, at most ``nbv_max_views`` per arm) and visits them before parking, within a time budget
+(``nbv_time_fraction`` of the time the arm's planned views took).
 """
 
 from __future__ import annotations
@@ -96,6 +97,10 @@ class CoverageSettings:
     nbv_max_views: int = 3  # extra views per arm from the next-best-view loop
     nbv_min_gain: float = 0.02  # an extra view must see this share of the surface still unobserved
     nbv_support_views: int = 2  # ... or observed by fewer than this many recorded views (1: unobserved only)
+    # the loop's time budget: an arm's next best views may add at most this share of the time its planned views
+    # took (a view is not started when the time spent plus one planned view's mean time would exceed it), so a
+    # coverage survey stays within about 1.5x the orbit's time (its planned tour: 1.07-1.20x the orbit's)
+    nbv_time_fraction: float = 0.25
 
 
 @dataclass(frozen=True)
@@ -602,6 +607,8 @@ class CoverageTracker:
         self.observed = {a: np.zeros(n, dtype=bool) for a in plan.plans}
         self.observed_count = {a: np.zeros(n, dtype=np.int_) for a in plan.plans}
         self.extra: dict[str, list[Candidate]] = {a: [] for a in plan.plans}
+        self.extra_s: dict[str, float] = dict.fromkeys(plan.plans, 0.0)  # rig time the next best views took
+        self.budget_s: dict[str, float] = dict.fromkeys(plan.plans, 0.0)  # ... and the time they were allowed
         self.cut: dict[str, Any] = {"inside": 0, "outside": 0, "by_face": dict.fromkeys(FACES, 0)}
 
     def observe(self, arm_id: str, depth_m: NDArray[np.floating[Any]], intrinsics: Intrinsics,

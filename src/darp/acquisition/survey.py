@@ -14,7 +14,8 @@ One procedure drives the twin and real hardware through :class:`~darp.backend.Ri
    waits parked; stop the cameras, keep logging a little, stop the log. So the camera interval lies
    inside the log's. With the coverage strategy every view's live depth updates the achieved coverage,
    and after an arm's planned views the next best views (those that see the most surface still
-   unobserved, at most ``coverage.nbv_max_views``) are added before it parks;
+   unobserved, at most ``coverage.nbv_max_views``, within ``coverage.nbv_time_fraction`` of the time its
+   planned views took) are added before it parks;
 5. **verify** the written files (:mod:`~darp.acquisition.verify`) and accept or reject the episode
    (:mod:`~darp.acquisition.episode`), writing ``manip_envelope.json`` with the envelope, the
    standoff, the park and view configurations and the localisation/confirmation record.
@@ -303,11 +304,22 @@ class SurveyRunner:
         q = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
         self.tracker.observe(arm_id, frames.depth_m, frames.depth_intrinsics, model.T_world_cam(q))
 
-    def _next_best_views(self, arm_id: str, plan: ViewPlan, model: Any, later: list[str]) -> None:
-        """Visit the next best views of ``arm_id`` (see :class:`CoverageTracker`), appending them to its plan."""
+    def _next_best_views(self, arm_id: str, plan: ViewPlan, model: Any, later: list[str], tour_s: float) -> None:
+        """Visit the next best views of ``arm_id`` (see :class:`CoverageTracker`), appending them to its plan,
+        within ``coverage.nbv_time_fraction`` of ``tour_s`` (the time its planned views took)."""
         if self.tracker is None or arm_id not in self.tracker.plan.pools:
             return
+        clock = self.backend.clock
+        budget_s = self.s.coverage.nbv_time_fraction * tour_s
+        per_view_s = tour_s / max(1, len(plan.views))  # a view's expected time: the planned views' mean
+        self.tracker.budget_s[arm_id] = budget_s
+        t0 = clock.now()
         for cand in self.tracker.next_views(arm_id, plan.views, later):
+            spent = clock.now() - t0
+            if spent + per_view_s > budget_s:
+                self.events("next_best_view_budget", arm=arm_id, spent_s=round(spent, 3), budget_s=round(budget_s, 3),
+                            per_view_s=round(per_view_s, 3))
+                break
             q_now = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
             if float(np.max(np.abs(cand.joints_rad - q_now))) > self.s.coverage.max_joint_step_rad:
                 continue
@@ -319,6 +331,7 @@ class SurveyRunner:
             plan.views.append(cand)
             self.tracker.extra[arm_id].append(cand)
             self._observe(arm_id, model)
+            self.tracker.extra_s[arm_id] = clock.now() - t0
             self.events("next_best_view", arm=arm_id, candidate=cand.to_record(), move_s=round(took, 3),
                         achieved=round(float(np.mean(self.tracker.union())), 4))
 
@@ -339,6 +352,7 @@ class SurveyRunner:
         t_start = clock.now()
         for n_arm, arm_id in enumerate(self.rig.arm_ids):
             model = self._model(arm_id, obstacle)
+            t_arm = clock.now()
             for k, view in enumerate(list(plans[arm_id].views)):
                 self.progress("record", done / max(total, 1), f"{arm_id} view {k + 1}/{len(plans[arm_id].views)}")
                 took = checked_move(self.backend, model, view.joints_rad, self.s.motion)
@@ -347,7 +361,8 @@ class SurveyRunner:
                             q_rad=[round(float(v), 5) for v in state.q_rad])
                 self._observe(arm_id, model)
                 done += 1
-            self._next_best_views(arm_id, plans[arm_id], model, list(self.rig.arm_ids[n_arm + 1:]))
+            self._next_best_views(arm_id, plans[arm_id], model, list(self.rig.arm_ids[n_arm + 1:]),
+                                  tour_s=clock.now() - t_arm)
             checked_move(self.backend, model, self.park[arm_id], self.s.motion, settle=False)
             self.events("parked", arm=arm_id)
         self.progress("record", 1.0, "stopping the cameras")
@@ -406,6 +421,8 @@ class SurveyRunner:
         if self.tracker is not None and any(m.any() for m in self.tracker.observed.values()):
             record["achieved"] = self.tracker.achieved().to_record()
             record["next_best_views"] = {a: len(v) for a, v in self.tracker.extra.items()}
+            record["next_best_views_s"] = {a: round(t, 3) for a, t in self.tracker.extra_s.items()}
+            record["next_best_views_budget_s"] = {a: round(t, 3) for a, t in self.tracker.budget_s.items()}
             record["envelope_check"], record["envelope_warning"] = self.tracker.envelope_check()
         return record
 
