@@ -11,8 +11,9 @@ Each row reads the survey's results.json: seeable completeness at 5 mm (``truth.
 the true surface that any feasible camera pose of either arm can see which lies within 5 mm of the fused
 cloud; docs/processing.md), the fused cloud's accuracy against the true mesh, the held-out median and the
 cross-arm co-observed share per direction, and the co-seeable share (``truth.seeable.co_seeable_pct``: how much of
-the seeable surface feasible poses of *both* arms can see, the ceiling of co-observation; a thin plate whose
-faces point at the arms has about none).
+the seeable surface feasible poses of *both* arms can see at 60 deg incidence or less). The co-observed share also
+counts surface one arm saw more obliquely, so it is often the higher; where the co-seeable share is about 0 (a thin
+plate whose faces point at the arms) the arms share only rims.
 
 The commands are darp's own command line (subprocesses that inherit this environment, OPENBLAS_* too), so
 a row is exactly what a user gets. A survey already processed in ``--out`` is read again, not redone, so a
@@ -106,9 +107,9 @@ def line(r: dict[str, Any]) -> str:
         return f"| {r['survey']} | {r['object']} | {r['status']}: {r.get('error', '')} | | | | | |"
     co = " / ".join(f"{c:.1f}" for c in r["co_observed_pct"]) or "-"
     c5 = "-" if r["seeable_5mm_pct"] is None else f"{r['seeable_5mm_pct']:.1f} %"
-    ceiling = "-" if r.get("co_seeable_pct") is None else f"{r['co_seeable_pct']:.1f} %"
+    both = "-" if r.get("co_seeable_pct") is None else f"{r['co_seeable_pct']:.1f} %"
     return (f"| {r['survey']} | {r['object']} | {r['fused']:,} | {c5} | {r['accuracy_median_mm']:.3f} | "
-            f"{r['heldout_median_mm']:.3f} | {co} % | {ceiling} |")
+            f"{r['heldout_median_mm']:.3f} | {co} % | {both} |")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -155,7 +156,7 @@ def main(argv: list[str] | None = None) -> int:
             continue
         values = [r["seeable_5mm_pct"] for r in done]
         co = [min(r["co_observed_pct"]) for r in done if r["co_observed_pct"]]
-        # co-observation is possible only where feasible poses of both arms see the surface (co_seeable_pct)
+        # where feasible poses of both arms see little of the surface well (co_seeable_pct), the arms share rims
         geometry_bound = sum(1 for r in done if (r.get("co_seeable_pct") or 0.0) < 10.0
                              and min(r["co_observed_pct"] or [0.0]) < 10.0)
         text = (f"{obj}: seeable @5 mm min {min(values):.1f} / median {statistics.median(values):.1f} % over "

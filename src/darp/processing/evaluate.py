@@ -175,8 +175,9 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
     candidate pose of the survey's planner (``manip_envelope.json`` ``coverage.feasible_poses``) sees
     (:func:`~darp.evaluation.truth_metrics.seeable_from_poses`, with the keyframes' depth image size), and the
     share of them within each threshold of the fused cloud; also ``co_seeable_pct``, the share of that surface
-    which feasible poses of both arms see (the most of it any plan could let the arms compare: a thin plate
-    whose faces point at the arms has none). None when the survey recorded no feasible poses."""
+    which feasible poses of both arms see within the same rules (what a plan can give both arms to compare at
+    good incidence: a thin plate whose faces point at the arms has none). None when the survey recorded no
+    feasible poses."""
     from scipy.spatial import cKDTree
 
     env = job.survey.envelope()
@@ -196,7 +197,7 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
                                        table_z_m=float(np.min(truth_v[:, 2])))
                for arm, arm_poses in poses_by_arm.items()}
     mask = np.logical_or.reduce(list(per_arm.values()))
-    # what any plan could give the arms to compare: the seeable surface that feasible poses of every arm see
+    # what a plan can give the arms to compare at good incidence: the seeable surface feasible poses of every arm see
     co_seeable = np.logical_and.reduce(list(per_arm.values())) if len(per_arm) > 1 else np.zeros_like(mask)
     distance = cKDTree(fused).query(samples[mask], k=1)[0] if mask.any() else np.empty(0)
     causes = None

@@ -15,7 +15,7 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
                     poses; seeable (surveys that recorded feasible poses): {poses, samples, of_mesh_pct,
                     co_seeable_pct, seen_by_keyframes_pct, completeness_pct[, missing_by_cause]} against the
                     surface any feasible pose can see (co_seeable_pct: the share of it feasible poses of both
-                    arms see, the ceiling of cross-arm co-observation); missing_by_cause {missing,
+                    arms see within the seeable rules); missing_by_cause {missing,
                     threshold_mm, count, share_pct}: where each seeable sample beyond 5 mm of the fused cloud
                     was lost (evaluation.truth_metrics)
     figures         {kind: path relative to the survey folder}
