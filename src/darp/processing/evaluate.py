@@ -185,20 +185,19 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
     by_arm = record.get("feasible_poses") if isinstance(record, dict) else None
     if not isinstance(by_arm, dict) or not by_arm:
         return None
-    poses_by_arm = {arm: [np.asarray(p, np.float64).reshape(3, 4) for p in arm_poses]
-                    for arm, arm_poses in by_arm.items()}
-    poses = [p for arm_poses in poses_by_arm.values() for p in arm_poses]
+    poses_by_arm = [[np.asarray(p, np.float64).reshape(3, 4) for p in arm_poses] for arm_poses in by_arm.values()]
+    n_poses = sum(len(arm_poses) for arm_poses in poses_by_arm)
     first = next(iter_keyframes(job.keyframes_dir, FUSE, skip=DEPTH_ONLY), None)
-    if first is None or not poses:
+    if first is None or not n_poses:
         return None
     intr = first.posed_depth().intrinsics
-    per_arm = {arm: seeable_from_poses(samples, normals, truth_v, truth_t, arm_poses, width=intr.width,
-                                       height=intr.height, fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
-                                       table_z_m=float(np.min(truth_v[:, 2])))
-               for arm, arm_poses in poses_by_arm.items()}
-    mask = np.logical_or.reduce(list(per_arm.values()))
+    per_arm = [seeable_from_poses(samples, normals, truth_v, truth_t, arm_poses, width=intr.width, height=intr.height,
+                                  fx=intr.fx, fy=intr.fy, ppx=intr.ppx, ppy=intr.ppy,
+                                  table_z_m=float(np.min(truth_v[:, 2])))
+               for arm_poses in poses_by_arm]
+    mask = np.logical_or.reduce(per_arm)
     # what a plan can give the arms to compare at good incidence: the seeable surface feasible poses of every arm see
-    co_seeable = np.logical_and.reduce(list(per_arm.values())) if len(per_arm) > 1 else np.zeros_like(mask)
+    co_seeable = np.logical_and.reduce(per_arm) if len(per_arm) > 1 else np.zeros_like(mask)
     distance = cKDTree(fused).query(samples[mask], k=1)[0] if mask.any() else np.empty(0)
     causes = None
     if job.settings.evaluation.missing_by_cause and mask.any():
@@ -206,7 +205,7 @@ def seeable_completeness(job: SurveyJob, fused: np.ndarray, samples: np.ndarray,
         missing = np.zeros(len(samples), bool)
         missing[np.flatnonzero(mask)[distance > threshold]] = True
         causes = missing_causes(job, samples, normals, truth_v, truth_t, missing, threshold)
-    return {"poses": len(poses), "samples": int(mask.sum()), "of_mesh_pct": round(100.0 * float(mask.mean()), 4),
+    return {"poses": n_poses, "samples": int(mask.sum()), "of_mesh_pct": round(100.0 * float(mask.mean()), 4),
             "co_seeable_pct": round(100.0 * float(co_seeable.sum()) / max(1, int(mask.sum())), 4),
             "seen_by_keyframes_pct": round(100.0 * float(np.mean(seen[mask])), 4) if mask.any() else None,
             "completeness_pct": {f"{t * 1000:g}mm": (round(100.0 * float(np.mean(distance <= t)), 4)
