@@ -286,6 +286,12 @@ def test_eye_to_hand_recovers_the_fixed_camera(tmp_path: Path) -> None:
 
 # -- the twin path ------------------------------------------------------------------------------------
 
+def assert_same_pose(a: np.ndarray, b: np.ndarray, rot_rad: float = 1e-4, trans_m: float = 5e-5) -> None:
+    """Two 4x4 poses agree within a rotation angle and a translation distance."""
+    r = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    assert np.arccos(r) < rot_rad and np.linalg.norm(a[:3, 3] - b[:3, 3]) < trans_m
+
+
 def test_exported_darp_captures_give_darp_solvers_calibration(tmp_path: Path) -> None:
     """A darp capture folder exported to the generic form solves to darp's own calibration (offsets at 0)."""
     arms = ("arm110", "arm111")
@@ -299,9 +305,11 @@ def test_exported_darp_captures_give_darp_solvers_calibration(tmp_path: Path) ->
     assert export_captures(caps, tmp_path / "generic") == 16
     generic = solve_folder(tmp_path / "generic", folds=0, compare=False)
     assert generic.observations.arms == arms and generic.observations.n_captures == 16
+    # Two solvers of the same problem stop within their convergence tolerance of each other (about 1e-5 rad
+    # and 0.01 mm with numpy 2.4 / scipy 1.17); a convention slip would be millimetres to centimetres off.
     for a in arms:  # generic hand-eye is for the image stream; darp's for the depth frame
-        assert np.allclose(native.params.T_flange_cam[a] @ T_DEPTH_COLOR, generic.params.T_flange_cam[a], atol=1e-5)
-    assert np.allclose(native.params.T_ref_base["arm111"], generic.params.T_ref_base["arm111"], atol=1e-5)
+        assert_same_pose(native.params.T_flange_cam[a] @ T_DEPTH_COLOR, generic.params.T_flange_cam[a])
+    assert_same_pose(native.params.T_ref_base["arm111"], generic.params.T_ref_base["arm111"])
     assert "arm110->arm111" in generic.calibration.report["base_to_base"]
     with pytest.raises(CalibrationError, match="not empty"):
         export_captures(caps, tmp_path / "generic")
