@@ -26,7 +26,7 @@ incidence (a picture frame's faces between the arms) loses fusion's support: 81.
 there against 99.8 % at 640x480 (docs/acquisition.md).
 
     MUJOCO_GL=egl .venv/bin/python benchmarks/completeness.py [--objects mug,cup] [--placements 4]
-        [--seed 0] [--profile realistic] [--fps 6] [--resolution 640x480] [--corrections fusion]
+        [--first-placement 0] [--seed 0] [--profile realistic] [--fps 6] [--resolution 640x480] [--corrections fusion]
         [--settings FILE] [--calibration FILE] [--viewpoints coverage] [--out DIR] [--json FILE]
 """
 
@@ -117,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--objects", default=",".join(OBJECT_NAMES),
                    help="comma-separated twin objects or mesh files (default: the paper's ten)")
     p.add_argument("--placements", type=int, default=4, help="random placements per object")
+    p.add_argument("--first-placement", type=int, default=0,
+                   help="start at placement K (0-based): extends a campaign whose first K are measured elsewhere")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--profile", default="realistic", choices=("ideal", "realistic", "paper"))
     p.add_argument("--fps", type=int, default=6)
@@ -140,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     others = [o for o in objects if o not in OBJECT_NAMES]
     for obj in objects:  # a paper object keeps its seeds whatever the list: its index among the ten
         i = OBJECT_NAMES.index(obj) if obj in OBJECT_NAMES else len(OBJECT_NAMES) + others.index(obj)
-        for k in range(args.placements):
+        for k in range(args.first_placement, args.placements):
             seed = args.seed * 1000 + i * 100 + k
             name = f"{Path(obj).stem}_s{seed}"
             rows.append(survey(name, obj, seed, args))

@@ -44,3 +44,15 @@ def test_rows_and_summary_say_where_co_observation_is_bounded_by_geometry(
     assert "2 of 2 surveys processed; 0 failed" in text
     rows = json.loads(out_json.read_text())["rows"]
     assert [r["seed"] for r in rows] == [500, 501] and rows[1]["co_seeable_pct"] == 6.0
+
+
+def test_first_placement_extends_a_campaign_without_redoing_its_start(
+        completeness: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # placement 0 (seed 600, the mug is the seventh object) is absent: starting at 1 must not collect it
+    _results(tmp_path, "mug_s601", 98.0, (30.0, 25.0), 20.0)
+    assert completeness.main(["--objects", "mug", "--placements", "2", "--first-placement", "1",
+                              "--out", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    assert "mug_s600" not in text and "| mug_s601 | mug |" in text
+    assert "1 of 1 surveys processed; 0 failed" in text
+    assert not (tmp_path / "surveys").exists()  # nothing was collected
