@@ -208,3 +208,19 @@ def test_an_envelope_off_the_object_is_caught_by_the_recorded_depth(centred) -> 
     record, warning = check(Cylinder(0.0, 0.042, RADIUS, HEIGHT))  # the object 42 mm towards +y
     assert record["outside_share"] > 0.2
     assert warning is not None and "most beyond the +y side" in warning
+
+
+def test_a_table_off_its_nominal_height_is_not_counted_as_cut_surface(centred) -> None:  # type: ignore[no-untyped-def]
+    """Kinematics 15 mm off in height (a real rig's calibration error at the table) put the table's points
+    15 mm above the nominal table: they are table, not surface the crop would cut."""
+    tracker = CoverageTracker(centred)
+    for arm, plan in centred.plans.items():
+        model = ArmCollisionModel(RIG, arm)
+        for view in plan.views:
+            T = model.T_world_cam(view.joints_rad)
+            believed = T.copy()
+            believed[2, 3] += 0.015
+            tracker.observe(arm, render_depth(T, INTRINSICS, [Cylinder(0.0, 0.0, RADIUS, HEIGHT)], RIG),
+                            INTRINSICS, believed)
+    record, warning = tracker.envelope_check()
+    assert warning is None and record["outside_share"] < 0.02 and record["inside"] > 1000

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from darp.acquisition.estimate import fit_table_plane
 from darp.acquisition.viewpoints import SHOULDER_BASE_M, Candidate, OrbitShape, ViewPlan, ViewpointPlanner, tour_cost
 from darp.formats.realsense.types import Intrinsics
 
@@ -571,10 +572,14 @@ def _ray_exit(origin: Array, unit: Array, s: SurfaceSamples) -> Array:
 
 def envelope_cut(samples: SurfaceSamples, depth_m: NDArray[np.floating[Any]], intrinsics: Intrinsics,
                  T_world_cam: Array, band_m: float = 0.05, table_gap_m: float = 0.008,
-                 tolerance_m: float = 0.01, stride: int = 2) -> dict[str, Any]:
+                 tolerance_m: float = 0.01, stride: int = 2, table_search_m: float = 0.03) -> dict[str, Any]:
     """Depth points of one frame inside the envelope and in a band ``band_m`` wide just outside it
     (beside or above; points within ``table_gap_m`` of the table are the table). Surface in that band
-    is what the crop to the envelope would cut; counted per face by the direction it lies in."""
+    is what the crop to the envelope would cut; counted per face by the direction it lies in.
+
+    The table is the plane fitted to this frame's points within ``table_search_m`` of the nominal table
+    height (the nominal height when too few are there): with a rig's real errors the table the calibrated
+    kinematics place can sit 1-2 cm off the nominal one, and its points then counted as cut surface."""
     d = np.asarray(depth_m, dtype=float)[::stride, ::stride]
     v, u = np.nonzero(d > 0)
     z = d[v, u]
@@ -584,7 +589,9 @@ def envelope_cut(samples: SurfaceSamples, depth_m: NDArray[np.floating[Any]], in
     p = np.column_stack([x, y, z]) @ T[:3, :3].T + T[:3, 3]
     rel = p[:, :2] - samples.centre_m[:2]
     radial = np.hypot(rel[:, 0], rel[:, 1])
-    h = p[:, 2] - samples.table_z_m
+    plane = fit_table_plane(p, samples.table_z_m, table_search_m)
+    table_z = samples.table_z_m if plane is None else p[:, 0] * plane[0][0] + p[:, 1] * plane[0][1] + plane[0][2]
+    h = p[:, 2] - table_z
     above_table = h > table_gap_m
     r, top = samples.radius_m, samples.height_m
     inside = above_table & (radial <= r + tolerance_m) & (h <= top + tolerance_m)
