@@ -224,3 +224,24 @@ def test_a_table_off_its_nominal_height_is_not_counted_as_cut_surface(centred) -
                             INTRINSICS, believed)
     record, warning = tracker.envelope_check()
     assert warning is None and record["outside_share"] < 0.02 and record["inside"] > 1000
+
+
+def test_free_space_seen_through_the_envelope_is_not_warned_about_as_unseen(centred) -> None:  # type: ignore[no-untyped-def]
+    """An object narrower and lower than its envelope: rays through the envelope's upper sides and top
+    cross it and meet the table beyond. That is free space, not an unseen side; no depth at all still is."""
+    def achieved(render) -> object:  # type: ignore[no-untyped-def]
+        tracker = CoverageTracker(centred)
+        for arm, plan in centred.plans.items():
+            model = ArmCollisionModel(RIG, arm)
+            for view in plan.views:
+                T = model.T_world_cam(view.joints_rad)
+                tracker.observe(arm, render(T), INTRINSICS, T)
+        return tracker.achieved()
+
+    small = achieved(lambda T: render_depth(T, INTRINSICS, [Cylinder(0.0, 0.0, 0.4 * RADIUS, 0.4 * HEIGHT)], RIG))
+    assert small.coverage < 0.8 and min(small.per_face.values()) < 0.6  # surface met inside the envelope
+    assert small.resolved is not None and small.resolved > 0.99 and small.warnings == []
+    record = small.to_record()
+    assert record["resolved"] > 0.99 and set(record["resolved_per_face"]) == set(small.per_face)
+    blind = achieved(lambda T: np.zeros((INTRINSICS.height, INTRINSICS.width)))
+    assert blind.resolved == 0.0 and len(blind.warnings) == 5

@@ -27,8 +27,11 @@ prediction is recomputed on what is left.
 **Achieved coverage** (:class:`CoverageTracker`). At every recorded view the live depth frame is
 compared with the samples the view should see: a sample counts as observed when the depth at its pixel
 lies between the sample's own depth (less a tolerance) and where the ray leaves the envelope (plus
-the tolerance), i.e. the ray entered the envelope at the sample and met a surface inside it. Samples
-no feasible candidate can see are reported per face as unreachable (a warning naming the side).
+the tolerance), i.e. the ray entered the envelope at the sample and met a surface inside it. A ray that
+crossed the whole envelope and met something beyond it saw free space (an object narrower than its
+envelope): its sample is "seen through", which the per-face warnings count as covered, while the next
+best views still look for surface there. Samples no feasible candidate can see are reported per face as
+unreachable (a warning naming the side).
 
 **Next best view.** After an arm's planned views the survey asks :meth:`CoverageTracker.next_views`
 for candidates of that arm that see the most still-unobserved samples (at least ``nbv_min_gain`` of
@@ -188,6 +191,10 @@ class CoveragePrediction:
     # its opening: the arms see opposite faces of its wall there); None without sighting counts
     co_supported: float | None = None
     co_supported_sides: float | None = None
+    # recorded depth only: share of samples whose rays met a surface inside the envelope or passed through it
+    # to the far side (free space there: nothing to see); the per-face warnings count these, None for a plan
+    resolved: float | None = None
+    resolved_per_face: dict[str, float] | None = None
 
     def to_record(self) -> dict[str, Any]:
         def r(v: float | None) -> float | None:
@@ -198,7 +205,10 @@ class CoveragePrediction:
                 "co_supported_sides": r(self.co_supported_sides),
                 "per_face": {k: round(v, 4) for k, v in self.per_face.items()},
                 "reachable_per_face": {k: round(v, 4) for k, v in self.reachable_per_face.items()},
-                "per_arm": {k: round(v, 4) for k, v in self.per_arm.items()}, "warnings": list(self.warnings)}
+                "per_arm": {k: round(v, 4) for k, v in self.per_arm.items()}, "warnings": list(self.warnings),
+                **({} if self.resolved is None else {"resolved": round(self.resolved, 4)}),
+                **({} if self.resolved_per_face is None
+                   else {"resolved_per_face": {k: round(v, 4) for k, v in self.resolved_per_face.items()}})}
 
 
 def _face_shares(samples: SurfaceSamples, seen: BoolArray) -> dict[str, float]:
@@ -212,9 +222,13 @@ def _face_shares(samples: SurfaceSamples, seen: BoolArray) -> dict[str, float]:
 
 def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachable: BoolArray,
             warn_below: float = 0.8, by: str = "the planned views",
-            counts_by_arm: dict[str, NDArray[np.int_]] | None = None) -> CoveragePrediction:
+            counts_by_arm: dict[str, NDArray[np.int_]] | None = None,
+            seen_through: BoolArray | None = None) -> CoveragePrediction:
     """Summarise per-arm visibility (each a (N,) mask) against the reachable mask; with per-arm sighting
-    counts also the co-observed share supported in both arms (at least two sightings each)."""
+    counts also the co-observed share supported in both arms (at least two sightings each). With
+    ``seen_through`` (samples whose rays crossed the envelope without meeting a surface) a face counts as
+    covered where its samples were seen or seen through: an object narrower than its envelope leaves free
+    space there, not unseen surface."""
     arms = list(seen_by_arm)
     union = np.zeros(len(samples), dtype=bool)
     for m in seen_by_arm.values():
@@ -223,13 +237,15 @@ def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachabl
     for m in seen_by_arm.values():
         both &= m
     per_face, reach_face = _face_shares(samples, union), _face_shares(samples, reachable)
+    resolved = None if seen_through is None else union | seen_through
+    covered_face = per_face if resolved is None else _face_shares(samples, resolved)
     warnings = []
     for face in FACES:
         if face in reach_face and reach_face[face] < warn_below:
             warnings.append(f"{FACE_NAMES[face]} cannot be reached: no feasible view sees "
                             f"{100 * (1 - reach_face[face]):.0f} % of it")
-        elif face in per_face and per_face[face] < warn_below:
-            warnings.append(f"{FACE_NAMES[face]} is only {100 * per_face[face]:.0f} % covered by {by}")
+        elif face in covered_face and covered_face[face] < warn_below:
+            warnings.append(f"{FACE_NAMES[face]} is only {100 * covered_face[face]:.0f} % covered by {by}")
     co_sup = co_sides = None
     if counts_by_arm is not None and len(arms) > 1:
         supported = np.logical_and.reduce([np.asarray(c) >= 2 for c in counts_by_arm.values()])
@@ -241,7 +257,9 @@ def predict(samples: SurfaceSamples, seen_by_arm: dict[str, BoolArray], reachabl
         co_observed=float(np.sum(both) / max(1, np.sum(union))) if len(arms) > 1 else 0.0,
         per_face=per_face, reachable_per_face=reach_face,
         per_arm={a: float(np.mean(m)) for a, m in seen_by_arm.items()}, warnings=warnings,
-        co_supported=co_sup, co_supported_sides=co_sides)
+        co_supported=co_sup, co_supported_sides=co_sides,
+        resolved=None if resolved is None else float(np.mean(resolved)),
+        resolved_per_face=None if resolved is None else covered_face)
 
 
 @dataclass
@@ -526,11 +544,20 @@ def observed_samples(samples: SurfaceSamples, depth_m: NDArray[np.floating[Any]]
                      tolerance_m: float = 0.015) -> BoolArray:
     """(N,): samples whose pixel in ``depth_m`` (metres, 0 invalid) shows a surface between the sample and
     where the ray leaves the envelope (see the module docstring); ``candidates`` restricts the test."""
+    return ray_outcomes(samples, depth_m, intrinsics, T_world_cam, candidates, tolerance_m)[0]
+
+
+def ray_outcomes(samples: SurfaceSamples, depth_m: NDArray[np.floating[Any]], intrinsics: Intrinsics,
+                 T_world_cam: Array, candidates: BoolArray | None = None,
+                 tolerance_m: float = 0.015) -> tuple[BoolArray, BoolArray]:
+    """Per sample (N,) each: the ray through it met a surface inside the envelope (observed), or crossed the
+    whole envelope and met something beyond it (seen through: free space, nothing there to see). Samples
+    with no valid depth, or hidden by something in front of them, are neither."""
     n = len(samples)
-    out = np.zeros(n, dtype=bool)
+    out, through = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     idx = np.flatnonzero(candidates) if candidates is not None else np.arange(n)
     if idx.size == 0:
-        return out
+        return out, through
     T_cam_world = np.linalg.inv(np.asarray(T_world_cam, dtype=float))
     p = samples.points[idx]
     pc = p @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
@@ -550,9 +577,11 @@ def observed_samples(samples: SurfaceSamples, depth_m: NDArray[np.floating[Any]]
     unit = ray / length[:, None]
     t_exit = _ray_exit(cam, unit, samples)
     z_exit = z * t_exit / length
-    ok = inside & (d > 0) & (d >= z - tolerance_m) & (d <= z_exit + tolerance_m)
+    reached = inside & (d > 0) & (d >= z - tolerance_m)
+    ok = reached & (d <= z_exit + tolerance_m)
     out[idx[ok]] = True
-    return out
+    through[idx[reached & ~ok]] = True
+    return out, through
 
 
 def _ray_exit(origin: Array, unit: Array, s: SurfaceSamples) -> Array:
@@ -613,6 +642,7 @@ class CoverageTracker:
         n = len(plan.samples)
         self.observed = {a: np.zeros(n, dtype=bool) for a in plan.plans}
         self.observed_count = {a: np.zeros(n, dtype=np.int_) for a in plan.plans}
+        self.seen_through = {a: np.zeros(n, dtype=bool) for a in plan.plans}
         self.extra: dict[str, list[Candidate]] = {a: [] for a in plan.plans}
         self.extra_s: dict[str, float] = dict.fromkeys(plan.plans, 0.0)  # rig time the next best views took
         self.budget_s: dict[str, float] = dict.fromkeys(plan.plans, 0.0)  # ... and the time they were allowed
@@ -623,9 +653,10 @@ class CoverageTracker:
         """Add one view's live depth; returns how many samples it observed."""
         cam = np.asarray(T_world_cam, dtype=float)[:3, 3]
         expect = visibility(self.plan.samples, cam[None], self.plan.settings, min_depth_m=0.0)[0]
-        seen = observed_samples(self.plan.samples, depth_m, intrinsics, T_world_cam, expect,
-                                self.plan.settings.depth_tolerance_m)
+        seen, through = ray_outcomes(self.plan.samples, depth_m, intrinsics, T_world_cam, expect,
+                                     self.plan.settings.depth_tolerance_m)
         self.observed[arm_id] |= seen
+        self.seen_through[arm_id] |= through
         self.observed_count[arm_id] += seen
         cut = envelope_cut(self.plan.samples, depth_m, intrinsics, T_world_cam)
         self.cut["inside"] += cut["inside"]
@@ -690,10 +721,14 @@ class CoverageTracker:
         reachable = np.zeros(len(self.plan.samples), dtype=bool)
         for v in self.plan.pool_vis.values():
             reachable |= v.any(axis=0)
+        through = np.zeros(len(self.plan.samples), dtype=bool)
+        for m in self.seen_through.values():
+            through |= m
         return predict(self.plan.samples, self.observed, reachable, self.plan.settings.warn_below,
-                       by="the recorded depth", counts_by_arm=self.observed_count)
+                       by="the recorded depth", counts_by_arm=self.observed_count, seen_through=through)
 
 
 __all__ = ["FACES", "CoveragePlan", "CoveragePrediction", "CoverageSettings", "CoverageTracker", "SurfaceSamples",
            "coverage_of_plans", "envelope_cut", "feasible_pool", "feasible_poses_record",
-           "candidate_grid", "envelope_surface", "observed_samples", "plan_coverage", "predict", "visibility"]
+           "candidate_grid", "envelope_surface", "observed_samples", "plan_coverage", "predict", "ray_outcomes",
+           "visibility"]
