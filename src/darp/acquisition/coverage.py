@@ -642,7 +642,7 @@ class CoverageTracker:
         n = len(plan.samples)
         self.observed = {a: np.zeros(n, dtype=bool) for a in plan.plans}
         self.observed_count = {a: np.zeros(n, dtype=np.int_) for a in plan.plans}
-        self.seen_through = {a: np.zeros(n, dtype=bool) for a in plan.plans}
+        self.seen_through = np.zeros(n, dtype=bool)  # by any arm: rays that crossed the envelope (free space)
         self.extra: dict[str, list[Candidate]] = {a: [] for a in plan.plans}
         self.extra_s: dict[str, float] = dict.fromkeys(plan.plans, 0.0)  # rig time the next best views took
         self.budget_s: dict[str, float] = dict.fromkeys(plan.plans, 0.0)  # ... and the time they were allowed
@@ -656,7 +656,7 @@ class CoverageTracker:
         seen, through = ray_outcomes(self.plan.samples, depth_m, intrinsics, T_world_cam, expect,
                                      self.plan.settings.depth_tolerance_m)
         self.observed[arm_id] |= seen
-        self.seen_through[arm_id] |= through
+        self.seen_through |= through
         self.observed_count[arm_id] += seen
         cut = envelope_cut(self.plan.samples, depth_m, intrinsics, T_world_cam)
         self.cut["inside"] += cut["inside"]
@@ -721,11 +721,8 @@ class CoverageTracker:
         reachable = np.zeros(len(self.plan.samples), dtype=bool)
         for v in self.plan.pool_vis.values():
             reachable |= v.any(axis=0)
-        through = np.zeros(len(self.plan.samples), dtype=bool)
-        for m in self.seen_through.values():
-            through |= m
         return predict(self.plan.samples, self.observed, reachable, self.plan.settings.warn_below,
-                       by="the recorded depth", counts_by_arm=self.observed_count, seen_through=through)
+                       by="the recorded depth", counts_by_arm=self.observed_count, seen_through=self.seen_through)
 
 
 __all__ = ["FACES", "CoveragePlan", "CoveragePrediction", "CoverageSettings", "CoverageTracker", "SurfaceSamples",
