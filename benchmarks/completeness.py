@@ -27,7 +27,13 @@ there against 99.8 % at 640x480 (docs/acquisition.md).
 
     MUJOCO_GL=egl .venv/bin/python benchmarks/completeness.py [--objects mug,cup] [--placements 4]
         [--first-placement 0] [--seed 0] [--profile realistic] [--fps 6] [--resolution 640x480] [--corrections fusion]
-        [--settings FILE] [--calibration FILE] [--viewpoints coverage] [--out DIR] [--json FILE]
+        [--settings FILE] [--calibration FILE] [--viewpoints coverage] [--out DIR] [--json FILE] [--gallery PNG]
+    .venv/bin/python benchmarks/completeness.py --from-json a.json b.json [--gallery PNG]
+
+``--from-json`` merges the rows of runs made side by side (a campaign split over workers) and prints their
+table and summary without running anything. ``--gallery`` draws, per object, the fused clouds of its least
+complete survey coloured by who saw each point (arm110 only, arm111 only, both: the co-observed band, in the
+cross-arm table's 5 mm cells), so that what the numbers say can be looked at.
 """
 
 from __future__ import annotations
@@ -57,7 +63,7 @@ def darp(*args: str) -> subprocess.CompletedProcess[str]:
 def survey(name: str, obj: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
     """Collect (unless already collected) and process (unless already processed) one survey: its row."""
     surveys, processed = args.out / "surveys", args.out / "processed"
-    row: dict[str, Any] = {"survey": name, "object": obj, "seed": seed}
+    row: dict[str, Any] = {"survey": name, "object": obj, "seed": seed, "processed": str(processed / name)}
     results = processed / name / "results.json"
     if not results.is_file():
         t0 = time.monotonic()
@@ -112,6 +118,118 @@ def line(r: dict[str, Any]) -> str:
             f"{r['heldout_median_mm']:.3f} | {co} % | {both} |")
 
 
+HEADER = ("| survey | object | fused points | seeable @5 mm | accuracy median, mm | held-out median, mm | "
+          "co-observed (arm110 / arm111) | co-seeable |\n|---|---|---|---|---|---|---|---|")
+
+
+def merged_rows(files: list[Path]) -> list[dict[str, Any]]:
+    """The rows of several ``--json`` files, each survey once (the last file's row wins), by object and seed.
+
+    A row written before rows named their processed folder gets it from its file's ``--out``."""
+    by_name: dict[str, dict[str, Any]] = {}
+    for f in files:
+        try:
+            data = json.loads(f.read_text(encoding="utf-8"))
+            out = Path(data["args"]["out"])
+            for r in data["rows"]:
+                r.setdefault("processed", str(out / "processed" / r["survey"]))
+                by_name[r["survey"]] = r
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise SystemExit(f"completeness: {f}: not a --json file of this benchmark ({exc})") from None
+    return sorted(by_name.values(), key=lambda r: (r["object"], r["seed"]))
+
+
+def summary(rows: list[dict[str, Any]], objects: list[str]) -> None:
+    """Per object: seeable completeness and co-observed share over its placements; then the failure count."""
+    ok = [r for r in rows if r["status"] == "ok" and r["seeable_5mm_pct"] is not None]
+    print()
+    for obj in objects:
+        done = [r for r in ok if r["object"] == obj]
+        if not done:
+            continue
+        values = [r["seeable_5mm_pct"] for r in done]
+        co = [min(r["co_observed_pct"]) for r in done if r["co_observed_pct"]]
+        # where feasible poses of both arms see little of the surface well (co_seeable_pct), the arms share rims
+        geometry_bound = sum(1 for r in done if (r.get("co_seeable_pct") or 0.0) < 10.0
+                             and min(r["co_observed_pct"] or [0.0]) < 10.0)
+        text = (f"{obj}: seeable @5 mm min {min(values):.1f} / median {statistics.median(values):.1f} % over "
+                f"{len(values)} placements (>= 95 %: {sum(v >= 95.0 for v in values)})")
+        if co:
+            text += (f"; co-observed, lower arm, min {min(co):.1f} % (>= 10 %: {sum(c >= 10.0 for c in co)}; "
+                     f"below 10 % where both arms can see < 10 % of the seeable surface: {geometry_bound})")
+        print(text)
+    failed = [r for r in rows if r["status"] != "ok"]
+    print(f"{len(ok)} of {len(rows)} surveys processed; {len(failed)} failed")
+
+
+def least_complete(rows: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per object (in first-seen order), its processed survey with the lowest seeable completeness at 5 mm."""
+    worst: dict[str, dict[str, Any]] = {}
+    drawable = [r for r in rows if r["status"] == "ok" and r.get("seeable_5mm_pct") is not None and r.get("processed")]
+    for r in drawable:
+        if r["object"] not in worst or r["seeable_5mm_pct"] < worst[r["object"]]["seeable_5mm_pct"]:
+            worst[r["object"]] = r
+    return worst
+
+
+GALLERY_COLOURS = (("tab:red", "arm110 only"), ("tab:blue", "arm111 only"), ("tab:purple", "both arms"))
+
+
+def gallery(rows: list[dict[str, Any]], path: Path, *, max_points: int = 6000) -> None:
+    """Per object, the least complete survey's two arm clouds, each point coloured by who saw it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    import open3d as o3d
+    from matplotlib.lines import Line2D
+
+    from darp.evaluation.cross_arm import DEFAULT_CELL_M, co_observed
+
+    worst = least_complete(rows)
+    if not worst:
+        raise SystemExit("completeness: --gallery: no processed survey with a seeable completeness to draw")
+    cols = min(5, len(worst))
+    nrows = -(-len(worst) // cols)
+    fig = plt.figure(figsize=(3.2 * cols, 3.4 * nrows + 0.6))
+    rng = np.random.default_rng(0)
+    for k, (obj, r) in enumerate(worst.items()):
+        clouds = []
+        for arm in ("arm110", "arm111"):
+            ply = Path(r["processed"]) / f"{arm}.ply"
+            if not ply.is_file():
+                raise SystemExit(f"completeness: --gallery: {ply} is missing (was the campaign's --out moved?)")
+            clouds.append(np.asarray(o3d.io.read_point_cloud(ply).points))
+        both = [co_observed(clouds[i], clouds[1 - i], DEFAULT_CELL_M) for i in (0, 1)]
+        points = np.vstack(clouds)
+        group = np.concatenate([np.where(both[0], 2, 0), np.where(both[1], 2, 1)])  # index into GALLERY_COLOURS
+        if len(points) > max_points:  # a readable density; one uniform draw keeps the groups' proportions
+            keep = rng.choice(len(points), max_points, replace=False)
+            points, group = points[keep], group[keep]
+        ax = fig.add_subplot(nrows, cols, k + 1, projection="3d")
+        for g, (colour, label) in enumerate(GALLERY_COLOURS):
+            ax.scatter(*(1000.0 * points[group == g].T), s=0.5, c=colour, label=label, depthshade=False,
+                       linewidths=0)
+        ax.set_box_aspect(np.maximum(np.ptp(np.vstack(clouds), axis=0), 1e-6))
+        ax.view_init(elev=25, azim=-60)
+        ax.set_axis_off()
+        co = " / ".join(f"{c:.0f}" for c in r["co_observed_pct"]) or "-"
+        ax.set_title(f"{Path(obj).stem} ({r['survey']})\nseeable {r['seeable_5mm_pct']:.1f} %, "
+                     f"co-observed {co} %", fontsize=8)
+    handles = [Line2D([], [], ls="", marker="o", color=c, label=label) for c, label in GALLERY_COLOURS]
+    fig.legend(handles=handles, loc="lower center", ncol=3, fontsize=8, frameon=False)
+    fig.suptitle("Least complete survey per object: its clouds by the arm that saw each point (world frame)",
+                 fontsize=10)
+    fig.tight_layout(rect=(0.0, 0.04, 1.0, 0.95))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".partial" + path.suffix)
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    print(f"gallery: {path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--objects", default=",".join(OBJECT_NAMES),
@@ -133,12 +251,23 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep each survey's bags and keyframes after processing (default: delete them, keep the "
                         "survey's records, clouds, mesh and results.json)")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--gallery", type=Path, default=None,
+                   help="PNG: per object, the least complete survey's clouds by the arm that saw each point")
+    p.add_argument("--from-json", type=Path, nargs="+", default=None,
+                   help="merge the rows of earlier runs' --json files: print and draw them, run nothing")
     args = p.parse_args(argv)
+    if args.from_json:
+        merged = merged_rows(args.from_json)
+        print(HEADER)
+        for r in merged:
+            print(line(r))
+        summary(merged, list(dict.fromkeys(r["object"] for r in merged)))
+        if args.gallery:
+            gallery(merged, args.gallery)
+        return 0
     objects = [o.strip() for o in args.objects.split(",") if o.strip()]
     rows: list[dict[str, Any]] = []
-    print("| survey | object | fused points | seeable @5 mm | accuracy median, mm | held-out median, mm | "
-          "co-observed (arm110 / arm111) | co-seeable |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(HEADER)
     others = [o for o in objects if o not in OBJECT_NAMES]
     for obj in objects:  # a paper object keeps its seeds whatever the list: its index among the ten
         i = OBJECT_NAMES.index(obj) if obj in OBJECT_NAMES else len(OBJECT_NAMES) + others.index(obj)
@@ -150,25 +279,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.json:
                 args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()}, "rows": rows},
                                                 indent=1), encoding="utf-8")
-    ok = [r for r in rows if r["status"] == "ok" and r["seeable_5mm_pct"] is not None]
-    print()
-    for obj in objects:
-        done = [r for r in ok if r["object"] == obj]
-        if not done:
-            continue
-        values = [r["seeable_5mm_pct"] for r in done]
-        co = [min(r["co_observed_pct"]) for r in done if r["co_observed_pct"]]
-        # where feasible poses of both arms see little of the surface well (co_seeable_pct), the arms share rims
-        geometry_bound = sum(1 for r in done if (r.get("co_seeable_pct") or 0.0) < 10.0
-                             and min(r["co_observed_pct"] or [0.0]) < 10.0)
-        text = (f"{obj}: seeable @5 mm min {min(values):.1f} / median {statistics.median(values):.1f} % over "
-                f"{len(values)} placements (>= 95 %: {sum(v >= 95.0 for v in values)})")
-        if co:
-            text += (f"; co-observed, lower arm, min {min(co):.1f} % (>= 10 %: {sum(c >= 10.0 for c in co)}; "
-                     f"below 10 % where both arms can see < 10 % of the seeable surface: {geometry_bound})")
-        print(text)
-    failed = [r for r in rows if r["status"] != "ok"]
-    print(f"{len(ok)} of {len(rows)} surveys processed; {len(failed)} failed")
+    summary(rows, objects)
+    if args.gallery:
+        gallery(rows, args.gallery)
     return 0
 
 

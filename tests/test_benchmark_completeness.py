@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
 
 from helpers.benchmark_modules import load_benchmark
@@ -56,3 +57,43 @@ def test_first_placement_extends_a_campaign_without_redoing_its_start(
     assert "mug_s600" not in text and "| mug_s601 | mug |" in text
     assert "1 of 1 surveys processed; 0 failed" in text
     assert not (tmp_path / "surveys").exists()  # nothing was collected
+
+
+def _clouds(out: Path, name: str, arm110: np.ndarray, arm111: np.ndarray) -> None:
+    import open3d as o3d
+
+    for arm, points in (("arm110", arm110), ("arm111", arm111)):
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        assert o3d.io.write_point_cloud(str(out / "processed" / name / f"{arm}.ply"), cloud)
+
+
+def test_runs_side_by_side_merge_and_the_gallery_draws_each_objects_least_complete_survey(
+        completeness: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # two workers' runs: the mug in one, the cup in the other; the gallery must read the clouds they left
+    rng = np.random.default_rng(1)
+    shared = rng.uniform(-0.03, 0.03, (300, 3))  # seen by both arms
+    for name, seeable in (("mug_s600", 99.5), ("mug_s601", 97.1), ("cup_s900", 99.0)):
+        _results(tmp_path, name, seeable, (40.0, 35.0), 20.0)
+        _clouds(tmp_path, name, np.vstack([shared, shared[:50] + [0.2, 0, 0]]), shared + 1e-4)
+    assert completeness.main(["--objects", "mug", "--placements", "2", "--out", str(tmp_path),
+                              "--json", str(tmp_path / "a.json")]) == 0
+    assert completeness.main(["--objects", "cup", "--placements", "1", "--out", str(tmp_path),
+                              "--json", str(tmp_path / "b.json")]) == 0
+    capsys.readouterr()
+    png = tmp_path / "gallery.png"
+    assert completeness.main(["--from-json", str(tmp_path / "b.json"), str(tmp_path / "a.json"),
+                              "--gallery", str(png)]) == 0
+    text = capsys.readouterr().out
+    assert text.index("| cup_s900 |") < text.index("| mug_s600 |") < text.index("| mug_s601 |")  # by object, seed
+    assert "3 of 3 surveys processed; 0 failed" in text and f"gallery: {png}" in text
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.partial.png"))
+    rows = completeness.merged_rows([tmp_path / "a.json", tmp_path / "b.json"])
+    assert {o: r["survey"] for o, r in completeness.least_complete(rows).items()} == {"mug": "mug_s601",
+                                                                                       "cup": "cup_s900"}
+
+
+def test_from_json_names_a_file_that_is_not_a_campaign_run(completeness: ModuleType, tmp_path: Path) -> None:
+    bad = tmp_path / "notes.json"
+    bad.write_text('{"rows": []}')
+    with pytest.raises(SystemExit, match="notes.json: not a --json file of this benchmark"):
+        completeness.main(["--from-json", str(bad)])
