@@ -84,7 +84,7 @@ def test_runs_side_by_side_merge_and_the_gallery_draws_each_objects_least_comple
     assert completeness.main(["--from-json", str(tmp_path / "b.json"), str(tmp_path / "a.json"),
                               "--gallery", str(png)]) == 0
     text = capsys.readouterr().out
-    assert text.index("| cup_s900 |") < text.index("| mug_s600 |") < text.index("| mug_s601 |")  # by object, seed
+    assert text.index("| mug_s600 |") < text.index("| mug_s601 |") < text.index("| cup_s900 |")  # by seed
     assert "3 of 3 surveys processed; 0 failed" in text and f"gallery: {png}" in text
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and not list(tmp_path.glob("*.partial.png"))
     rows = completeness.merged_rows([tmp_path / "a.json", tmp_path / "b.json"])
