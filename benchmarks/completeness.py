@@ -196,6 +196,7 @@ def gallery(rows: list[dict[str, Any]], path: Path, *, max_points: int = 6000) -
     nrows = -(-len(worst) // cols)
     fig = plt.figure(figsize=(3.2 * cols, 3.4 * nrows + 0.6))
     rng = np.random.default_rng(0)
+    palette = np.array([colour for colour, _ in GALLERY_COLOURS])
     for k, (obj, r) in enumerate(worst.items()):
         clouds = []
         for arm in ("arm110", "arm111"):
@@ -206,14 +207,11 @@ def gallery(rows: list[dict[str, Any]], path: Path, *, max_points: int = 6000) -
         both = [co_observed(clouds[i], clouds[1 - i], DEFAULT_CELL_M) for i in (0, 1)]
         points = np.vstack(clouds)
         group = np.concatenate([np.where(both[0], 2, 0), np.where(both[1], 2, 1)])  # index into GALLERY_COLOURS
-        if len(points) > max_points:  # a readable density; one uniform draw keeps the groups' proportions, in
-            keep = rng.choice(len(points), max_points, replace=False)  # random order
-            points, group = points[keep], group[keep]
-        else:  # one draw order for all groups: no colour is painted over the others
-            keep = rng.permutation(len(points))
-            points, group = points[keep], group[keep]
+        # a readable density, drawn in random order: the groups keep their proportions and no colour is painted
+        # over the others
+        keep = rng.permutation(len(points))[:max_points]
+        points, group = points[keep], group[keep]
         ax = fig.add_subplot(nrows, cols, k + 1, projection="3d")
-        palette = np.array([colour for colour, _ in GALLERY_COLOURS])
         ax.scatter(*(1000.0 * points.T), s=0.5, c=palette[group], depthshade=False, linewidths=0)
         ax.set_box_aspect(np.maximum(np.ptp(np.vstack(clouds), axis=0), 1e-6))
         ax.view_init(elev=25, azim=-60)
