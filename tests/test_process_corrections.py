@@ -90,7 +90,9 @@ def test_settings_added_later_are_absent_at_their_default_and_recorded_when_chan
     default = ProcessSettings()
     assert name not in default.to_dict()[group]
     value = getattr(getattr(default, group), name)
-    changed = settings_from_dict({group: {name: (not value) if isinstance(value, bool) else value + 1}})
+    another = {"keyframe": "view"}.get(value) if isinstance(value, str) else None  # the other choice of a str
+    changed = settings_from_dict({group: {name: another if another is not None
+                                          else (not value) if isinstance(value, bool) else value + 1}})
     assert changed.to_dict()[group][name] != value
     assert changed.fingerprint(group) != default.fingerprint(group)
     other = "evaluation" if group == "mesh" else "mesh"

@@ -172,6 +172,23 @@ def test_heldout_split_is_deterministic_with_the_expected_fraction(survey_arrays
         KeyframeSettings(heldout_every=1)
 
 
+def test_heldout_views_are_held_out_whole_so_no_fused_keyframe_shares_their_pose(survey_arrays) -> None:
+    t, T, speed, _ = survey_arrays
+    by_frame = KeyframeSettings(settle_s=0.3, per_view=5, heldout_every=4, heldout_offset=1)
+    by_view = KeyframeSettings(settle_s=0.3, per_view=5, heldout_every=4, heldout_offset=1, heldout_unit="view")
+    frames = select_arm_keyframes("arm111", t, T, speed, CENTRE, by_frame, INTR)
+    views = select_arm_keyframes("arm111", t, T, speed, CENTRE, by_view, INTR)
+    assert np.array_equal(frames.indices, views.indices)  # the same keyframes, another split
+    held, fused = set(views.view_ids[views.heldout].tolist()), set(views.view_ids[~views.heldout].tolist())
+    assert held and not held & fused  # whole views: every keyframe of a held-out view is held out
+    in_time_order = list(dict.fromkeys(views.view_ids.tolist()))  # the views by first appearance
+    assert sorted(held) == sorted(in_time_order[1::4])
+    assert set(frames.view_ids[frames.heldout].tolist()) & set(frames.view_ids[~frames.heldout].tolist())
+    assert "heldout_unit" not in by_frame.to_dict() and by_view.to_dict()["heldout_unit"] == "view"
+    with pytest.raises(ReconstructionError, match="heldout_unit must be one of keyframe, view"):
+        KeyframeSettings(heldout_unit="arm")
+
+
 def test_survey_selection_maps_back_to_trajectory_indices(survey_arrays) -> None:
     t, T, speed, _ = survey_arrays
     n = t.size

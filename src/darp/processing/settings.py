@@ -137,6 +137,7 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("evaluation", "missing_by_cause"),
     ("evaluation", "missing_threshold_m"),
     ("mesh", "split_sides"),
+    ("keyframes", "heldout_unit"),
 )
 
 

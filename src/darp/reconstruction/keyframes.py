@@ -30,8 +30,10 @@ settled optical axes (least squares) is used.
 
 **Held-out split**: per arm, in time order, keyframe ``i`` is held out when
 ``i % heldout_every == heldout_offset`` (default every 5th: 20 %, about 22 keyframes for a survey
-of 10 views per arm with 3 frames each, the paper's 224 over ten objects). The rule depends only on
-the selection, so it is reproducible and independent of any random seed.
+of 10 views per arm with 3 frames each, the paper's 224 over ten objects). With ``heldout_unit:
+view`` the rule counts views instead and holds out every keyframe of the chosen views, so that no fused
+keyframe shares a held-out keyframe's pose. The rule depends only on the selection, so it is
+reproducible and independent of any random seed.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ from darp.errors import ReconstructionError
 from darp.formats.realsense.types import Intrinsics
 
 FUSE, HELDOUT = "fuse", "heldout"
+HELDOUT_UNITS = ("keyframe", "view")
 
 
 @dataclass(frozen=True)
@@ -65,6 +68,7 @@ class KeyframeSettings:
     view_margin_px: float = 0.0  # the object centre must project this far inside the image
     heldout_every: int = 5  # held-out split: every n-th keyframe per arm (20 %) ...
     heldout_offset: int = 2  # ... starting with this one
+    heldout_unit: str = "keyframe"  # or "view": every n-th view held out whole (all its keyframes)
 
     def __post_init__(self) -> None:
         if not self.max_joint_speed_rad_s > 0:
@@ -81,9 +85,16 @@ class KeyframeSettings:
             raise ReconstructionError(
                 f"held-out split needs heldout_every >= 2 and 0 <= heldout_offset < heldout_every, "
                 f"got {self.heldout_every}, {self.heldout_offset}")
+        if self.heldout_unit not in HELDOUT_UNITS:
+            raise ReconstructionError(
+                f"heldout_unit must be one of {', '.join(HELDOUT_UNITS)}, got {self.heldout_unit!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """Every setting; ``heldout_unit`` only when not the default, so records made before it are unchanged."""
+        values = asdict(self)
+        if values["heldout_unit"] == "keyframe":
+            del values["heldout_unit"]
+        return values
 
     def still_threshold(self, speed_noise_rad_s: float = 0.0) -> float:
         """The stillness threshold (rad/s) for a log whose one-joint speed noise is ``speed_noise_rad_s``."""
@@ -275,11 +286,26 @@ def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joi
     taken = _diverse_views(members, view_of, directions, T[:, :3, 3] - centre, settings)
     counts["views"] = len(taken)
     indices = np.sort(np.concatenate([members[v] for v in taken]))
-    heldout = (np.arange(indices.size) % settings.heldout_every) == settings.heldout_offset
+    heldout = heldout_split(view_of[indices], settings)
     counts["keyframes"] = int(indices.size)
     counts["heldout"] = int(heldout.sum())
     return ArmKeyframes(arm=arm, indices=indices, view_ids=view_of[indices], heldout=heldout,
                         directions=directions[indices], counts=counts, **noise)
+
+
+def heldout_split(view_ids: np.ndarray, settings: KeyframeSettings) -> np.ndarray:
+    """Held-out mask of one arm's keyframes in time order (``view_ids``: each keyframe's view).
+
+    ``keyframe``: every ``heldout_every``-th keyframe. ``view``: every ``heldout_every``-th view in order of
+    first appearance, all of its keyframes: a held-out frame then has no fused frame from its own pose, so the
+    held-out figures measure how the views disagree, not how one dwell's frames repeat."""
+    if settings.heldout_unit == "keyframe":
+        rank = np.arange(view_ids.size)
+    else:
+        _, first, rank = np.unique(view_ids, return_index=True, return_inverse=True)
+        rank = np.argsort(np.argsort(first))[rank]  # views numbered in time order
+    held: np.ndarray = (rank % settings.heldout_every) == settings.heldout_offset
+    return held
 
 
 def _diverse_views(members: list[np.ndarray], view_of: np.ndarray, directions: np.ndarray,
