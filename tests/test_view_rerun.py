@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -81,6 +82,26 @@ def _entities_so_far(received: Path) -> dict[str, set[str]]:
         return {}
 
 
+def _stop_group(server: subprocess.Popen[str], timeout_s: float = 20.0) -> None:
+    """SIGINT to the server's whole process group, then wait until every process of it has ended.
+
+    The ``rerun`` command is a Python wrapper that runs the real binary as its child: a signal to the wrapper
+    alone ends the wrapper and leaves the binary running (and still writing the file) with no parent."""
+    group = server.pid  # start_new_session: the group's id is the wrapper's pid
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(group, signal.SIGINT)
+    deadline = time.monotonic() + timeout_s
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        server.wait(timeout=timeout_s)
+    while True:
+        try:
+            os.killpg(group, signal.SIGKILL if time.monotonic() > deadline else 0)  # 0: is any of it alive?
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    server.wait()
+
+
 def test_view_connect_delivers_the_entities_to_a_live_viewer(processed_path: Path, tmp_path: Path) -> None:
     """No --save: ``darp view --connect`` streams to a running rerun (headless here: the viewer's own gRPC
     server, which writes what it receives with ``rerun --save``), as a viewer on a desktop receives it."""
@@ -90,7 +111,7 @@ def test_view_connect_delivers_the_entities_to_a_live_viewer(processed_path: Pat
     port, received = _free_port(), tmp_path / "received.rrd"
     server = subprocess.Popen([*_rerun_command(), "--port", str(port), "--save", str(received)],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                              env={**os.environ, "RERUN_ANALYTICS": "0"})
+                              env={**os.environ, "RERUN_ANALYTICS": "0"}, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
         while True:  # the server is up when its port accepts connections
@@ -108,12 +129,7 @@ def test_view_connect_delivers_the_entities_to_a_live_viewer(processed_path: Pat
                 break
             time.sleep(0.5)
     finally:
-        server.send_signal(signal.SIGINT)
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            server.kill()
-            server.wait()
+        _stop_group(server)
     entities = rrd_entities(received)  # the server has stopped: the file is whole now
     for arm in ("arm110", "arm111"):
         for entity, archetype in ARM_ENTITIES.items():
