@@ -90,9 +90,13 @@ def test_settings_added_later_are_absent_at_their_default_and_recorded_when_chan
     default = ProcessSettings()
     assert name not in default.to_dict()[group]
     value = getattr(getattr(default, group), name)
-    another = {"keyframe": "view"}.get(value) if isinstance(value, str) else None  # the other choice of a str
-    changed = settings_from_dict({group: {name: another if another is not None
-                                          else (not value) if isinstance(value, bool) else value + 1}})
+    if isinstance(value, bool):
+        other_value: object = not value
+    elif isinstance(value, str):
+        other_value = {"keyframe": "view"}[value]  # the other choice of a str setting
+    else:
+        other_value = value + 1
+    changed = settings_from_dict({group: {name: other_value}})
     assert changed.to_dict()[group][name] != value
     assert changed.fingerprint(group) != default.fingerprint(group)
     other = "evaluation" if group == "mesh" else "mesh"

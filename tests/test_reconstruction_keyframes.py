@@ -13,6 +13,7 @@ import pytest
 from darp.errors import FormatError, ReconstructionError
 from darp.formats.realsense.types import Intrinsics
 from darp.kinematics.camera_poses import POSED, CameraPoses
+from darp.processing.settings import ProcessSettings
 from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb, project_points
 from darp.reconstruction.keyframe_io import (
     DEPTH_ONLY,
@@ -184,7 +185,9 @@ def test_heldout_views_are_held_out_whole_so_no_fused_keyframe_shares_their_pose
     in_time_order = list(dict.fromkeys(views.view_ids.tolist()))  # the views by first appearance
     assert sorted(held) == sorted(in_time_order[1::4])
     assert set(frames.view_ids[frames.heldout].tolist()) & set(frames.view_ids[~frames.heldout].tolist())
-    assert "heldout_unit" not in by_frame.to_dict() and by_view.to_dict()["heldout_unit"] == "view"
+    recorded = ProcessSettings(keyframes=by_frame).to_dict()["keyframes"]  # what keyframes.json records
+    assert "heldout_unit" not in recorded
+    assert ProcessSettings(keyframes=by_view).to_dict()["keyframes"]["heldout_unit"] == "view"
     with pytest.raises(ReconstructionError, match="heldout_unit must be one of keyframe, view"):
         KeyframeSettings(heldout_unit="arm")
 

@@ -94,12 +94,12 @@ def _stop_group(server: subprocess.Popen[str], timeout_s: float = 20.0) -> None:
     with contextlib.suppress(subprocess.TimeoutExpired):
         server.wait(timeout=timeout_s)
     while True:
+        server.poll()  # reap the wrapper: a zombie still counts as a member of its group
         try:
             os.killpg(group, signal.SIGKILL if time.monotonic() > deadline else 0)  # 0: is any of it alive?
         except ProcessLookupError:
             break
         time.sleep(0.1)
-    server.wait()
 
 
 def test_view_connect_delivers_the_entities_to_a_live_viewer(processed_path: Path, tmp_path: Path) -> None:

@@ -393,7 +393,7 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
     index = KeyframeIndex(folder=folder, survey=job.survey.name,
                           object_name=envelope.object_name,
                           pose_source="truth" if job.truth_poses else "calibration",
-                          settings=job.settings.keyframes.to_dict(), arms=arms, keyframes=entries,
+                          settings=job.settings.to_dict()["keyframes"], arms=arms, keyframes=entries,
                           extra={"calibration_epoch": job.calibration.epoch,
                                  "support_mask": {"source": job.envelope_record()["source"],
                                                   "center_m": list(crop.center_m), "radius_m": crop.radius_m,

@@ -90,11 +90,7 @@ class KeyframeSettings:
                 f"heldout_unit must be one of {', '.join(HELDOUT_UNITS)}, got {self.heldout_unit!r}")
 
     def to_dict(self) -> dict[str, Any]:
-        """Every setting; ``heldout_unit`` only when not the default, so records made before it are unchanged."""
-        values = asdict(self)
-        if values["heldout_unit"] == "keyframe":
-            del values["heldout_unit"]
-        return values
+        return asdict(self)
 
     def still_threshold(self, speed_noise_rad_s: float = 0.0) -> float:
         """The stillness threshold (rad/s) for a log whose one-joint speed noise is ``speed_noise_rad_s``."""
