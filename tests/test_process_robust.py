@@ -149,7 +149,7 @@ def linked_copy(survey: Path, target: Path) -> Path:
 def batch(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     """Four surveys: one good but partial (PARTIAL.txt), one with its joint log in milliseconds, one with
     its envelope centre 1e9 m away, one with every joint at 1e6 rad; processed with an implausibility
-    bound the good one exceeds."""
+    bound the good one exceeds (and a surface share it does not reach)."""
     root = tmp_path_factory.mktemp("batch")
     surveys = root / "surveys"
     good = linked_copy(survey_path, surveys / "a_good")
@@ -174,7 +174,8 @@ def batch(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
             row[j] = "1e6"
     (huge / "arm_poses.csv").write_text("\n".join([lines[0], *(",".join(r) for r in rows)]) + "\n")
     settings = root / "settings.yaml"
-    settings.write_text("evaluation: {max_heldout_median_mm: 0.01, max_truth_accuracy_mm: 0.001, figures: false}\n")
+    settings.write_text("evaluation: {max_heldout_median_mm: 0.01, max_truth_accuracy_mm: 0.001, min_surface_pct: 99, "
+                        "figures: false}\n")
     out = root / "out"
     calibration = str(survey_path / "truth" / "calibration.json")
     return {"root": root, "surveys": surveys, "out": out, "calibration": calibration, "settings": settings}
@@ -205,6 +206,7 @@ def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(batch: dict,
     assert any(w.startswith("partial survey: PARTIAL.txt") for w in per["warnings"])
     assert any("above the plausible bound 0.01 mm" in w for w in per["warnings"])
     assert any("from the true surface (median), above the bound 0.001 mm" in w for w in per["warnings"])
+    assert any(w.startswith("fused cloud almost empty: ") and "below 99 %" in w for w in per["warnings"])
     summary = json.loads((out / "results.json").read_text())
     assert summary["status"] == "failed" and [s["name"] for s in summary["surveys"]] == ["a_good"]
     assert sorted(f["name"] for f in summary["failed"]) == ["b_millis", "c_far", "d_huge"]

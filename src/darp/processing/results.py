@@ -22,8 +22,9 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
     stages          {stage: seconds}
     status          "ok", or "implausible" when ``warnings`` is not empty
     warnings        implausible results, each one line: an arm's cloud empty, fewer keyframes per arm than
-                    keyframes.min_keyframes, no held-out point, a held-out median above
-                    evaluation.max_heldout_median_mm, a twin survey's fused cloud farther from the true
+                    keyframes.min_keyframes, a fused cloud almost empty (its voxels cover less than
+                    evaluation.min_surface_pct of the envelope's top and side), no held-out point, a held-out
+                    median above evaluation.max_heldout_median_mm, a twin survey's fused cloud farther from the true
                     surface than evaluation.max_truth_accuracy_mm, a partial survey (PARTIAL.txt / *.bag.partial)
     paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
                     within 5 / 10 mm, 224 keyframes, 1,563,466 points)
@@ -46,6 +47,7 @@ averaging per-object statistics.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -93,6 +95,10 @@ def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
     for arm in job.arms:
         if int(clouds.get(arm, 0) or 0) == 0:
             warnings.append(f"{arm}: its fused cloud is empty (the arm adds nothing to the result)")
+    sparse = sparse_cloud_warning(int(clouds.get("fused", 0) or 0), results.get("envelope") or {},
+                                  job.settings.fusion_used.voxel_size_m, job.settings.evaluation.min_surface_pct)
+    if sparse:
+        warnings.append(sparse)
     median = (results["heldout"].get("aggregate") or {}).get("median_mm")
     bound = job.settings.evaluation.max_heldout_median_mm
     if median is None:
@@ -108,6 +114,23 @@ def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
                         f"{truth_bound:g} mm, while the held-out median is {shown}: whole views are moved "
                         "together (calibration or kinematic error), which the held-out metric cannot see")
     return warnings
+
+
+def sparse_cloud_warning(points: int, envelope: dict[str, Any], voxel_m: float, min_pct: float) -> str:
+    """One line when ``points`` fused voxels of ``voxel_m`` cover less than ``min_pct`` % of the envelope's top and
+    side (its bottom stands on the table), else "". A surface voxel holds one point, and a surface cuts at least
+    one voxel per ``voxel_m^2`` of its area, so ``points * voxel_m^2`` over-estimates the surface covered: the rule
+    flags only clouds that are almost empty (an arm's cloud emptied by dark or specular parts, low resolution)."""
+    radius, height = envelope.get("radius_m"), envelope.get("height_m")
+    if not (isinstance(radius, (int, float)) and isinstance(height, (int, float)) and radius > 0 and height > 0):
+        return ""
+    area_m2 = math.pi * radius * radius + 2.0 * math.pi * radius * height
+    pct = 100.0 * points * voxel_m * voxel_m / area_m2
+    if points == 0 or pct >= min_pct:
+        return ""  # an empty cloud is named per arm above
+    return (f"fused cloud almost empty: {points} points at {voxel_m * 1000:g} mm voxels cover about {pct:.1f} % of "
+            f"the envelope's top and side ({area_m2 * 1e4:.0f} cm^2), below {min_pct:g} %: the held-out figures "
+            "are measured against almost no surface (dark or specular object, low resolution?)")
 
 
 def rules_used(settings: ProcessSettings) -> dict[str, Any]:

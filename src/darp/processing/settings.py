@@ -46,6 +46,9 @@ class EvaluationSettings:
     # twin surveys: a fused cloud whose median distance to the true mesh is above this is flagged implausible
     # (the held-out median measures self-consistency and cannot see whole views moved together)
     max_truth_accuracy_mm: float = 10.0
+    # a fused cloud whose voxels cover less than this share of the envelope's top and side is flagged implausible
+    # (an almost empty reconstruction: the held-out figures are then measured against almost no surface)
+    min_surface_pct: float = 2.0
     # twin surveys with recorded feasible poses: truth.seeable.missing_by_cause, why each seeable sample farther
     # than missing_threshold_m from the fused cloud is missing (fuses the keyframes a second time: off by default,
     # it made the evaluation stage about 5x slower on a 640x480 survey)
@@ -59,6 +62,8 @@ class EvaluationSettings:
             raise ConfigError("evaluation: missing_threshold_m must be > 0")
         if not (self.max_heldout_median_mm > 0 and self.max_truth_accuracy_mm > 0):
             raise ConfigError("evaluation: max_heldout_median_mm and max_truth_accuracy_mm must be > 0")
+        if not 0 <= self.min_surface_pct <= 100:
+            raise ConfigError(f"evaluation: min_surface_pct must be within 0 .. 100, got {self.min_surface_pct}")
 
 
 CORRECTIONS = ("kinematics", "time", "depth", "refine", "table", "fusion", "mesh")
