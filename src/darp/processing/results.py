@@ -120,7 +120,7 @@ def sparse_cloud_warning(points: int, envelope: dict[str, Any], voxel_m: float, 
     """One line when ``points`` fused voxels of ``voxel_m`` cover less than ``min_pct`` % of the envelope's top and
     side (its bottom stands on the table), else "". A surface voxel holds one point, and a surface cuts at least
     one voxel per ``voxel_m^2`` of its area, so ``points * voxel_m^2`` over-estimates the surface covered: the rule
-    flags only clouds that are almost empty (an arm's cloud emptied by dark or specular parts, low resolution)."""
+    flags only clouds that are almost empty (dark or specular parts dropping out, a low resolution)."""
     radius, height = envelope.get("radius_m"), envelope.get("height_m")
     if not (isinstance(radius, (int, float)) and isinstance(height, (int, float)) and radius > 0 and height > 0):
         return ""
