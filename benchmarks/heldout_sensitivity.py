@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-FIGURES = ("median_mm", "rmse_mm", "p90_mm", "within_5mm_pct", "within_10mm_pct")  # of PAPER_HELDOUT
+FIGURES = ("median_mm", "rmse_mm", "p90_mm", "within_5mm_pct", "within_10mm_pct")  # of darp.paper.HELDOUT
 BAND = 0.25
 BASELINE_M = 0.05  # stereo baseline used to turn disparity errors into depth errors (D435: 50 mm)
 BLUR_SIGMA_PX = 1.0
@@ -177,9 +177,9 @@ def _job(processed: Path, settings: Any) -> Any:
 
 def paper() -> dict[str, float]:
     """The paper's held-out figures this benchmark compares with (darp's own record of them)."""
-    from darp.evaluation.heldout import PAPER_HELDOUT
+    from darp import paper
 
-    return {key: float(PAPER_HELDOUT[key]) for key in FIGURES}
+    return {key: float(paper.HELDOUT[key]) for key in FIGURES}
 
 
 def figures(distances_mm: np.ndarray) -> dict[str, float]:

@@ -12,9 +12,10 @@ import darp
 SRC = Path(darp.__file__).resolve().parent
 
 # Each layer and the layers it may import (besides itself). Lower layers never import higher ones.
-BASE = {"errors"}
+BASE = {"errors", "paper"}
 ALLOWED: dict[str, set[str]] = {
     "errors": set(),
+    "paper": set(),
     "geometry": BASE,
     "formats.realsense": BASE | {"formats"},  # formats here: atomic writes and text reading only
     "formats": BASE | {"formats.realsense"},

@@ -319,12 +319,11 @@ def test_a_settings_file_seed_is_used_unless_seed_is_given(tmp_path: Path) -> No
 
 def test_the_demo_table_shows_the_ratio_to_the_paper() -> None:
     from darp.cli._demo_tables import heldout_table
-    from darp.cli.demo import PAPER_HELDOUT_MM, PAPER_WITHIN
 
     results = {"heldout": {"objects": [], "aggregate": {"keyframes": 9, "count": 100, "median_mm": 2.0,
                                                          "rmse_mm": 6.0, "p90_mm": 6.38, "within_5mm_pct": 83.82,
                                                          "within_10mm_pct": 96.56}}}
-    last = heldout_table(results, PAPER_HELDOUT_MM, PAPER_WITHIN).splitlines()[-1]
+    last = heldout_table(results).splitlines()[-1]
     assert last.startswith("darp / paper")
     assert "0.94" in last and "1.49 !" in last and last.count("1.00") == 3
 

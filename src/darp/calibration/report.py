@@ -14,12 +14,12 @@ from typing import Any
 
 import numpy as np
 
+from darp import paper
 from darp.calibration.model import per_capture, reprojection_errors
 from darp.calibration.solve import METHOD_LABELS, SolveOutcome
 from darp.formats.atomic import atomic_path, write_text_atomic
 from darp.formats.schema import write_json_checked
 
-PAPER_HELDOUT_MM = {"arm110": 3.58, "arm111": 3.93}
 COLOURS = {0: "tab:red", 1: "tab:blue"}
 
 
@@ -92,11 +92,12 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
             top = float(np.percentile(v, 99.5)) * 1.1 if len(v) else 1.0
             ax.hist(np.minimum(v, top), bins=40, range=(0.0, top), color=COLOURS[a], alpha=0.8)
             ax.axvline(float(np.median(v)), color="black", lw=1, label=f"median {np.median(v):.3f} mm")
-            paper = PAPER_HELDOUT_MM.get(arm)
-            if paper is not None and paper <= top:
-                ax.axvline(paper, color="grey", ls="--", lw=1, label=f"paper {paper} mm")
-            elif paper is not None:
-                ax.plot([], [], " ", label=f"paper {paper} mm (off scale, x{paper / max(np.median(v), 1e-9):.0f})")
+            paper_mm = paper.HANDEYE_HELDOUT_MM.get(arm)
+            if paper_mm is not None and paper_mm <= top:
+                ax.axvline(paper_mm, color="grey", ls="--", lw=1, label=f"paper {paper_mm} mm")
+            elif paper_mm is not None:
+                ax.plot([], [], " ", label=f"paper {paper_mm} mm (off scale, "
+                        f"x{paper_mm / max(np.median(v), 1e-9):.0f})")
             ax.set_xlim(0.0, top)
             ax.set_xlabel("held-out 3-D corner error (mm)")
             ax.set_title(arm)

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from darp import paper
 from darp.formats.calibration import read_calibration
 
 
@@ -31,7 +32,7 @@ def _table(title: str, header: list[str], rows: list[list[str]]) -> str:
     return "\n".join([title, fmt(header), line, *(fmt(r) for r in rows)])
 
 
-def calibration_table(calib_dir: Path, paper_heldout_mm: dict[str, float]) -> str:
+def calibration_table(calib_dir: Path) -> str:
     """Held-out hand-eye error per arm (paper's metric) and, on the twin, errors against truth."""
     cal = read_calibration(calib_dir / "calibration.json")
     truth = ((cal.report or {}).get("truth") or {}).get("darp") or {}
@@ -40,8 +41,8 @@ def calibration_table(calib_dir: Path, paper_heldout_mm: dict[str, float]) -> st
         held = (entry.residuals or {}).get("heldout", {}).get("corner_3d_mm", {})
         arm_truth = truth.get("arms", {}).get(arm, {})
         he = arm_truth.get("hand_eye", {})
-        rows.append([arm, _fmt(held.get("median"), 3), _fmt(paper_heldout_mm.get(arm)),
-                     _ratio(held.get("median"), paper_heldout_mm.get(arm)),
+        rows.append([arm, _fmt(held.get("median"), 3), _fmt(paper.HANDEYE_HELDOUT_MM.get(arm)),
+                     _ratio(held.get("median"), paper.HANDEYE_HELDOUT_MM.get(arm)),
                      _fmt(he.get("translation_mm"), 3), _fmt(he.get("rotation_deg"), 3),
                      _fmt(arm_truth.get("max_identifiable_joint_offset_error_deg"), 3)])
     b2b = truth.get("base_to_base", {})
@@ -51,15 +52,15 @@ def calibration_table(calib_dir: Path, paper_heldout_mm: dict[str, float]) -> st
                           "joint-zero deg"], rows)
 
 
-def _ratio(ours: Any, paper: Any) -> str:
-    """``ours / paper`` with a mark when it is within the issue-12 band of +-25 %."""
-    if ours is None or not paper:
+def _ratio(ours: Any, theirs: Any) -> str:
+    """``ours / theirs`` (the paper's) with a mark when it is outside the issue-12 band of +-25 %."""
+    if ours is None or not theirs:
         return "--"
-    r = float(ours) / float(paper)
+    r = float(ours) / float(theirs)
     return f"{r:.2f}{'' if 0.75 <= r <= 1.25 else ' !'}"
 
 
-def heldout_table(results: dict[str, Any], paper_mm: dict[str, float], paper_within: dict[str, float]) -> str:
+def heldout_table(results: dict[str, Any]) -> str:
     """The paper's held-out table: per object, all objects, and the paper's row."""
     held = results.get("heldout") or {}
     header = ["object", "kf", "points", "median", "RMSE", "p90", "<=5mm %", "<=10mm %"]
@@ -73,11 +74,12 @@ def heldout_table(results: dict[str, Any], paper_mm: dict[str, float], paper_wit
             for o in held.get("objects", [])]
     agg = held.get("aggregate", {})
     rows.append(row("all (darp, twin)", agg.get("keyframes", 0), agg))
-    rows.append(["paper (DARP, real)", "224", "1,563,466", _fmt(paper_mm["median"]), _fmt(paper_mm["rmse"]),
-                 _fmt(paper_mm["p90"]), _fmt(paper_within["5 mm"]), _fmt(paper_within["10 mm"])])
+    p = paper.HELDOUT
+    rows.append(["paper (DARP, real)", str(p["keyframes"]), f"{p['points']:,}",
+                 *(_fmt(p[key]) for key in paper.HELDOUT_FIGURES)])
     ours = [agg.get("median_mm"), agg.get("rmse_mm"), agg.get("p90_mm"), agg.get("within_5mm_pct"),
             agg.get("within_10mm_pct")]
-    theirs = [paper_mm["median"], paper_mm["rmse"], paper_mm["p90"], paper_within["5 mm"], paper_within["10 mm"]]
+    theirs = [p[key] for key in paper.HELDOUT_FIGURES]
     rows.append(["darp / paper", "", "", *(_ratio(a, b) for a, b in zip(ours, theirs, strict=True))])
     return _table("Held-out RGB-D evaluation, mm (point-to-mesh, kf keyframes kept out of fusion)",
                   header, rows)

@@ -22,11 +22,6 @@ from darp.errors import DarpError
 
 DEFAULT_OBJECTS = (TwinObject.mug, TwinObject.ketchup, TwinObject.dumbbell)
 
-# The paper's numbers on the real DARP release (held-out table, calibration section).
-PAPER_HELDOUT_MM = {"median": 2.13, "rmse": 4.04, "p90": 6.38}
-PAPER_WITHIN = {"5 mm": 83.82, "10 mm": 96.56}
-PAPER_HANDEYE_HELDOUT_MM = {"arm110": 3.58, "arm111": 3.93}
-
 
 def _step(title: str) -> None:
     typer.secho(f"\n== {title}", bold=True)
@@ -123,8 +118,8 @@ def _print_summary(calib_dir: Path, processed: Path) -> None:
 
     typer.echo("")
     for table in (
-        calibration_table(calib_dir, PAPER_HANDEYE_HELDOUT_MM),
-        heldout_table(_load(processed / "results.json"), PAPER_HELDOUT_MM, PAPER_WITHIN),
+        calibration_table(calib_dir),
+        heldout_table(_load(processed / "results.json")),
         truth_table(_load(processed / "results.json")),
     ):
         if table:

@@ -15,14 +15,11 @@ from typing import Any
 
 import numpy as np
 
+from darp import paper
 from darp.errors import EvaluationError
 from darp.evaluation.point_to_mesh import DEFAULT_THRESHOLDS_M, DistanceStats, MeshDistance, distance_stats
 from darp.reconstruction.backproject import PosedDepth, Region, backproject
 from darp.reconstruction.fusion import FusionSettings
-
-PAPER_HELDOUT = {"keyframes": 224, "points": 1_563_466, "median_mm": 2.13, "rmse_mm": 4.04, "p90_mm": 6.38,
-                 "within_5mm_pct": 83.82, "within_10mm_pct": 96.56}
-"""The paper's held-out numbers (Sec. IV-C), for side-by-side reports."""
 
 
 def heldout_mask(n_keyframes: int, every: int = 5, offset: int = 2) -> np.ndarray:
@@ -119,7 +116,7 @@ class HeldoutSummary:
             "objects": [r.to_dict() for r in self.results],
             "aggregate": {"keyframes": self.n_frames, **self.aggregate().to_dict()},
             "arms": {a: self.aggregate(a).to_dict() for a in arms},
-            "paper": PAPER_HELDOUT,
+            "paper": paper.HELDOUT,
         }
 
     def markdown(self) -> str:
@@ -128,7 +125,7 @@ class HeldoutSummary:
                 "within 10 mm [%] |\n|---|---:|---:|---:|---:|---:|---:|---:|")
         rows = [_row(r.object_name or "-", r.n_frames, r.stats()) for r in self.results]
         rows.append(_row("**all**", self.n_frames, self.aggregate()))
-        p = PAPER_HELDOUT
+        p = paper.HELDOUT
         rows.append(f"| paper (DARP) | {p['keyframes']} | {p['points']:,} | {p['median_mm']:.2f} | "
                     f"{p['rmse_mm']:.2f} | {p['p90_mm']:.2f} | {p['within_5mm_pct']:.2f} | "
                     f"{p['within_10mm_pct']:.2f} |")
@@ -147,5 +144,5 @@ def _row(name: str, frames: int, s: DistanceStats) -> str:
             f"{pct(0.005)} | {pct(0.01)} |")
 
 
-__all__ = ["PAPER_HELDOUT", "HeldoutResult", "HeldoutSummary", "evaluate_heldout", "heldout_mask",
+__all__ = ["HeldoutResult", "HeldoutSummary", "evaluate_heldout", "heldout_mask",
            "heldout_points"]

@@ -31,8 +31,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from darp import paper
 from darp.errors import DarpWarning, FormatError, ReconstructionError
-from darp.evaluation.heldout import PAPER_HELDOUT, evaluate_heldout, heldout_mask
+from darp.evaluation.heldout import evaluate_heldout, heldout_mask
 from darp.evaluation.point_to_mesh import MeshDistance
 from darp.formats.atomic import write_json_atomic
 from darp.formats.realsense.types import Intrinsics
@@ -349,7 +350,7 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
         "clouds": {**{a: len(c) for a, c in result.per_arm.items()}, "fused": len(cloud)},
         "mesh": {"vertices": len(mesh.vertices), "triangles": len(mesh.triangles), "area_m2": mesh_area(mesh)},
         "heldout": held.to_dict(), "cross_arm": None, "truth": None, "figures": figures, "stages": {},
-        "paper": PAPER_HELDOUT,
+        "paper": paper.HELDOUT,
     }
     write_json_atomic(out / RESULTS_FILE, to_jsonable(res))
     return res

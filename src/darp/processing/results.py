@@ -54,8 +54,9 @@ from typing import Any
 
 import numpy as np
 
+from darp import paper
 from darp.errors import EvaluationError, FormatError
-from darp.evaluation.heldout import PAPER_HELDOUT, HeldoutResult, HeldoutSummary
+from darp.evaluation.heldout import HeldoutResult, HeldoutSummary
 from darp.evaluation.point_to_mesh import distance_stats
 from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M
 from darp.formats.atomic import write_json_atomic
@@ -182,7 +183,7 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
         "truth": evaluation.get("truth"),
         "figures": evaluation.get("figures", {}),
         "stages": {name: state.get("seconds") for name, state in stages.items()},
-        "paper": PAPER_HELDOUT,
+        "paper": paper.HELDOUT,
     }
     warnings = plausibility_warnings(results, job)
     results["status"] = "implausible" if warnings else "ok"
@@ -295,7 +296,7 @@ def aggregate_results(folders: Sequence[str | Path],
         "heldout": None if summary is None else summary.to_dict(),
         "cross_arm": {r["survey"]: r.get("cross_arm") for r in per},
         "truth": None if not truth_rows else {"objects": truth_rows, "aggregate": _pooled_truth(paths)},
-        "paper": PAPER_HELDOUT,
+        "paper": paper.HELDOUT,
     }
 
 
