@@ -66,6 +66,10 @@ class EvaluationError(DarpError):
     """Evaluation inputs are missing or inconsistent."""
 
 
+class ProcessingError(DarpError):
+    """A processing run (``darp process``) cannot go on: a survey failed in one of its stages."""
+
+
 class Interrupted(KeyboardInterrupt):
     """SIGTERM or SIGHUP, raised in the main thread by the command line's handler so that the same cleanup
     as for Ctrl-C runs; the command exits with 128 + ``signum``."""
