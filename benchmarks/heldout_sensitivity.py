@@ -155,7 +155,7 @@ def reevaluate(processed: Path, case: Case, settings: Any) -> np.ndarray:
 def _job(processed: Path, settings: Any) -> Any:
     from darp.errors import DarpError
     from darp.formats.calibration import read_calibration
-    from darp.processing.batch import open_job
+    from darp.processing.job import open_job
 
     try:
         record = json.loads((processed / "results.json").read_text())

@@ -52,8 +52,8 @@ def main() -> None:
     from darp.evaluation.point_to_mesh import MeshDistance
     from darp.formats.calibration import read_calibration
     from darp.formats.truth import read_camera_poses
-    from darp.processing.batch import open_job
     from darp.processing.evaluate import read_truth_mesh
+    from darp.processing.job import open_job
     from darp.processing.settings import CorrectionSettings, ProcessSettings
     from darp.reconstruction.backproject import PosedDepth, backproject
     from darp.reconstruction.keyframe_io import DEPTH_ONLY, HELDOUT, iter_keyframes, posed_frames

@@ -230,8 +230,10 @@ def test_switches_off_change_nothing_and_depth_on_corrects_what_keyframes_store(
                                                                                  tmp_path: Path) -> None:
     from darp.formats.calibration import read_calibration
     from darp.formats.survey import open_survey
-    from darp.processing.pipeline import RECONSTRUCTION_STAGES, SurveyJob, process_survey
+    from darp.processing.job import SurveyJob
+    from darp.processing.runner import process_survey
     from darp.processing.settings import CorrectionSettings, ProcessSettings
+    from darp.processing.stages import RECONSTRUCTION_STAGES
     from darp.reconstruction.keyframe_io import load_keyframes, read_keyframe_index
 
     truth_cal = survey_path / "truth" / "calibration.json"

@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 
 def test_darp_rules_keep_more_of_the_seen_surface_at_the_same_accuracy(processed_path: Path,
                                                                         survey_path: Path) -> None:
-    from darp.cli.process import _job
+    from darp.processing.job import open_job, survey_calibration
 
     kf = processed_path / "keyframes"
     tv, tt = read_truth_mesh(survey_path / "truth" / "object.ply")
@@ -34,7 +34,8 @@ def test_darp_rules_keep_more_of_the_seen_surface_at_the_same_accuracy(processed
     figures = {}
     for name, settings in (("paper", ProcessSettings()),
                            ("darp", settings_from_dict({"corrections": {"fusion": True}}))):
-        job = _job(survey_path, processed_path, None, True, settings)
+        job = open_job(survey_path, processed_path, survey_calibration(survey_path, None), settings=settings,
+                       truth_poses=True)
         result = fuse(posed_frames(iter_keyframes(kf, FUSE), colour=False), settings.fusion_used, job.crop())
         points = result.fused.points
         completeness = float(np.mean(cKDTree(points).query(samples[seen])[0] <= 0.005))

@@ -60,12 +60,13 @@ def test_fusion_keeps_its_stages_on_request() -> None:
 def test_missing_causes_on_the_tiny_survey(processed_path: Path, survey_path: Path) -> None:
     from scipy.spatial import cKDTree
 
-    from darp.cli.process import _job
     from darp.processing.evaluate import missing_causes, read_truth_mesh
+    from darp.processing.job import open_job, survey_calibration
     from darp.processing.settings import ProcessSettings
     from darp.reconstruction.cloud_io import read_ply
 
-    job = _job(survey_path, processed_path, None, True, ProcessSettings())
+    job = open_job(survey_path, processed_path, survey_calibration(survey_path, None), settings=ProcessSettings(),
+                   truth_poses=True)
     tv, tt = read_truth_mesh(survey_path / "truth" / "object.ply")
     samples, normals = sample_surface(tv, tt, np.random.default_rng(0), spacing_m=0.002)
     # declare missing the top face where the fused cloud has it (the re-fused stages must end in it) and the

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from darp.processing.pipeline import low_floor_hint
+from darp.processing.diagnostics import low_floor_hint
 from darp.reconstruction.crop import EnvelopeCrop
 
 

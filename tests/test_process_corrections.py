@@ -117,7 +117,7 @@ def test_time_shifted_poses_keep_the_kinematic_model(monkeypatch: pytest.MonkeyP
     import numpy as np
 
     from darp.formats.calibration import ArmCalibration, Calibration
-    from darp.processing import pipeline
+    from darp.processing import job as job_module
 
     calls: list[dict[str, object]] = []
 
@@ -125,11 +125,11 @@ def test_time_shifted_poses_keep_the_kinematic_model(monkeypatch: pytest.MonkeyP
         calls.append(kwargs)
         return types.SimpleNamespace(time_alignment={})
 
-    monkeypatch.setattr(pipeline, "recover_survey_poses", fake_recover)
+    monkeypatch.setattr(job_module, "recover_survey_poses", fake_recover)
     arm = ArmCalibration(serial="1", T_world_base=np.eye(4), T_wrist_cam=np.eye(4))
     arm.time_offset_s = 0.004  # from the calibration: no estimate from frames needed
     cal = Calibration(epoch="e", date="2026-12-02", arms={"arm110": arm})
-    job = pipeline.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",)), out=tmp_path, calibration=cal,
+    job = job_module.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",)), out=tmp_path, calibration=cal,
                              calibration_path=None,
                              settings=ProcessSettings(corrections=CorrectionSettings.parse("kinematics,time")))
     job.poses()
@@ -146,7 +146,7 @@ def test_time_estimator_uses_the_kinematic_model(monkeypatch: pytest.MonkeyPatch
     import numpy as np
 
     from darp.formats.calibration import ArmCalibration, Calibration
-    from darp.processing import pipeline
+    from darp.processing import job as job_module
 
     base_kin = np.eye(4)
     base_kin[:3, 3] = [0.7, 0.0, -0.001]
@@ -163,7 +163,7 @@ def test_time_estimator_uses_the_kinematic_model(monkeypatch: pytest.MonkeyPatch
     log = types.SimpleNamespace(times=lambda a: np.arange(n, dtype=float), joints=lambda a: np.zeros((n, 6)))
     recording = types.SimpleNamespace(stream=lambda k: types.SimpleNamespace(intrinsics=object()), depth_scale=0.001)
     for spec, expect_kin in (("kinematics,time", True), ("time", False)):
-        job = pipeline.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",), arm_poses=lambda: log),
+        job = job_module.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",), arm_poses=lambda: log),
                                  out=tmp_path, calibration=cal, calibration_path=None,
                                  settings=ProcessSettings(corrections=CorrectionSettings.parse(spec)))
         monkeypatch.setattr(job, "recording", lambda a: recording)
@@ -182,7 +182,7 @@ def test_time_estimator_gets_the_backlash_adjusted_joint_log(monkeypatch: pytest
 
     from darp.formats.calibration import ArmCalibration, Calibration
     from darp.kinematics.kinematic_model import KinematicParams
-    from darp.processing import pipeline
+    from darp.processing import job as job_module
     from darp.reconstruction.poses import motion_directions
 
     backlash = np.full(6, 0.002)
@@ -200,7 +200,7 @@ def test_time_estimator_gets_the_backlash_adjusted_joint_log(monkeypatch: pytest
     expected = log_q - backlash * motion_directions(log_q)
     assert np.abs(expected - log_q).max() > 0.001  # the log moved, so the backlash shows
     for spec, want in (("kinematics,time", expected), ("time", log_q)):
-        job = pipeline.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",), arm_poses=lambda: log),
+        job = job_module.SurveyJob(survey=types.SimpleNamespace(arms=("arm110",), arm_poses=lambda: log),
                                  out=tmp_path, calibration=cal, calibration_path=None,
                                  settings=ProcessSettings(corrections=CorrectionSettings.parse(spec)))
         monkeypatch.setattr(job, "recording", lambda a: recording)

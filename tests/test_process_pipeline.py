@@ -12,9 +12,11 @@ import pytest
 
 from darp.formats.survey import open_survey
 from darp.formats.truth import read_camera_poses
-from darp.processing.pipeline import SurveyJob, process_survey, read_stage_state
-from darp.processing.results import PROCESS_STAGES, aggregate_results, read_results
+from darp.processing.job import SurveyJob
+from darp.processing.results import aggregate_results, read_results
+from darp.processing.runner import process_survey, read_stage_state
 from darp.processing.settings import ProcessSettings
+from darp.processing.stages import PROCESS_STAGES
 from darp.reconstruction.backproject import world_points
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
 from darp.reconstruction.keyframe_io import iter_keyframes, read_keyframe_index
@@ -144,7 +146,7 @@ def test_truth_poses_give_the_true_camera_poses(survey_path: Path, tmp_path: Pat
 
 def test_a_corrections_switch_changes_the_poses_fingerprint(survey_path: Path, tmp_path: Path) -> None:
     """--resume re-runs the poses (and everything after) when corrections.kinematics changes."""
-    from darp.processing.pipeline import stage_fingerprints
+    from darp.processing.runner import stage_fingerprints
     from darp.processing.settings import CorrectionSettings
 
     paper = stage_fingerprints(make_job(survey_path, tmp_path), PROCESS_STAGES)

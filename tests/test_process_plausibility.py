@@ -1,4 +1,4 @@
-"""The 'almost empty reconstruction' rule of results.json's warnings (processing.results.sparse_cloud_warning)
+"""The 'almost empty reconstruction' rule of results.json's warnings (processing.diagnostics.sparse_cloud_warning)
 and its setting; the batch test in test_process_robust.py sees it fire through ``darp process``."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 import pytest
 
 from darp.errors import ConfigError
-from darp.processing.results import sparse_cloud_warning
+from darp.processing.diagnostics import sparse_cloud_warning
 from darp.processing.settings import EvaluationSettings, settings_from_dict
 
 ENVELOPE = {"radius_m": 0.059, "height_m": 0.030}  # the paper profile's controller at 424x240

@@ -8,7 +8,7 @@ import pytest
 
 from darp.batch.tasks import process_one
 from darp.processing.batch import FAILED, process_folder
-from darp.processing.pipeline import StageFailure
+from darp.processing.runner import StageFailure
 from darp.processing.settings import ProcessSettings
 
 

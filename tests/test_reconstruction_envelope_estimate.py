@@ -19,7 +19,7 @@ from darp.cli._app import run
 from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
 from darp.formats.survey import open_survey
-from darp.processing.pipeline import SurveyJob
+from darp.processing.job import SurveyJob
 from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.envelope_estimate import (
     EnvelopeEstimate,

@@ -40,7 +40,7 @@ def test_a_known_offset_is_recovered_from_a_small_twin_survey(survey_path: Path,
     sampled at the stamps lag by 15 ms, which the estimator must find within its std (and a few ms)."""
     from darp.formats.calibration import read_calibration
     from darp.formats.survey import open_survey
-    from darp.processing.pipeline import SurveyJob
+    from darp.processing.job import SurveyJob
     from darp.processing.settings import CorrectionSettings, ProcessSettings
 
     shifted = tmp_path / survey_path.name

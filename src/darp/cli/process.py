@@ -61,27 +61,6 @@ def _settings(path: Path | None, corrections: str | None = None) -> Any:
         raise typer.BadParameter(err.message, param_hint="'--corrections'") from None
 
 
-def _job(survey_path: Path, out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
-         progress: Any = None) -> Any:
-    """Open the survey with the calibration's serial mapping; the twin's true calibration with --truth-poses."""
-    from darp.formats.calibration import read_calibration
-    from darp.formats.survey import open_survey
-    from darp.processing.pipeline import SurveyJob
-
-    if calibration is not None:
-        cal = read_calibration(calibration)
-    else:
-        from darp.twin.truth import read_truth
-
-        cal = read_truth(survey_path).calibration
-    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in cal.arms.items()},
-                         mapping_source=calibration)
-    for note in survey.notes:
-        _warn(f"{survey.name}: {note}")
-    return SurveyJob(survey=survey, out=out, calibration=cal, calibration_path=calibration, settings=settings,
-                     truth_poses=truth_poses, progress=progress)
-
-
 def _need_calibration(calibration: Path | None, truth_poses: bool) -> None:
     if calibration is None and not truth_poses:
         raise typer.BadParameter("required (only --truth-poses on a twin survey can do without)",
@@ -131,12 +110,16 @@ def keyframes(
     from rich.console import Console
     from rich.table import Table
 
-    from darp.processing.pipeline import stage_keyframes, stage_poses
+    from darp.processing.job import open_job, survey_calibration
+    from darp.processing.stages import stage_keyframes, stage_poses
 
     settings = _settings(settings_file, corrections)
     with _progress_bars() as progress:
-        job = _job(survey, out, calibration, truth_poses, settings, _stage_callback(progress, survey.name))
-        job.keyframes_folder = out
+        job = open_job(survey, out, survey_calibration(survey, calibration), calibration_path=calibration,
+                       settings=settings, truth_poses=truth_poses, progress=_stage_callback(progress, survey.name),
+                       keyframes_folder=out)
+        for note in job.survey.notes:
+            _warn(f"{job.survey.name}: {note}")
         try:
             stage_poses(job)
             summary = stage_keyframes(job)

@@ -17,13 +17,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from darp.errors import DarpError, FormatError
-from darp.formats.calibration import Calibration, read_calibration
-from darp.formats.survey import open_survey
+from darp.errors import DarpError
+from darp.formats.calibration import Calibration
 from darp.processing.imported import is_imported, process_imported
-from darp.processing.pipeline import ProgressFn, StageFailure, SurveyJob, process_survey
-from darp.processing.results import PROCESS_STAGES, read_results
+from darp.processing.job import ProgressFn, open_job, survey_calibration
+from darp.processing.results import read_results
+from darp.processing.runner import StageFailure, process_survey
 from darp.processing.settings import ProcessSettings
+from darp.processing.stages import PROCESS_STAGES
 
 DONE, FAILED = "done", "failed"
 
@@ -52,16 +53,6 @@ class SurveyOutcome:
                 "status": self.status, "stage": self.stage, "reason": self.reason, "warnings": list(self.warnings)}
 
 
-def open_job(survey_path: str | Path, out: str | Path, calibration: Calibration, *,
-             calibration_path: Path | None = None, settings: ProcessSettings | None = None,
-             truth_poses: bool = False, progress: ProgressFn | None = None) -> SurveyJob:
-    """The processing job of one survey folder (its serials mapped with the calibration's)."""
-    survey = open_survey(survey_path, serial_to_arm={arm.serial: name for name, arm in calibration.arms.items()},
-                         mapping_source=calibration_path)
-    return SurveyJob(survey=survey, out=Path(out), calibration=calibration, calibration_path=calibration_path,
-                     settings=settings or ProcessSettings(), truth_poses=truth_poses, progress=progress)
-
-
 def process_survey_folder(survey_path: str | Path, out: str | Path, calibration: Calibration, *,
                           calibration_path: Path | None = None, settings: ProcessSettings | None = None,
                           truth_poses: bool = False, resume: bool = False,
@@ -83,18 +74,6 @@ def process_survey_folder(survey_path: str | Path, out: str | Path, calibration:
             on_note(note)
     process_survey(job, PROCESS_STAGES, resume=resume)
     return read_results(job.out)
-
-
-def survey_calibration(survey_path: str | Path, calibration_path: str | Path | None) -> Calibration:
-    """The calibration a survey is processed with: ``calibration_path``, or the twin's true one
-    (``<survey>/truth/calibration.json``) when it is None."""
-    if calibration_path is not None:
-        return read_calibration(calibration_path)
-    truth = Path(survey_path) / "truth" / "calibration.json"
-    if not truth.is_file():
-        raise FormatError("no truth/calibration.json (only twin surveys have one): give a calibration",
-                        Path(survey_path))
-    return read_calibration(truth)
 
 
 def process_folder(survey_path: str | Path, out: str | Path, calibration_path: str | Path | None, *,
@@ -147,5 +126,5 @@ def process_batch(folders: Sequence[Path], out: Path, run_one: Callable[[Path, P
     return outcomes
 
 
-__all__ = ["DONE", "FAILED", "SurveyOutcome", "open_job", "outcome_of_failure", "process_batch", "process_folder",
-           "process_survey_folder", "survey_calibration"]
+__all__ = ["DONE", "FAILED", "SurveyOutcome", "outcome_of_failure", "process_batch", "process_folder",
+           "process_survey_folder"]

@@ -1,4 +1,4 @@
-"""The pipeline's evaluation stage: held-out, cross-arm and truth metrics of one processed survey, and figures.
+"""The evaluation stage's computations: held-out, cross-arm and truth metrics of one processed survey, and figures.
 
 Inputs are the stage outputs in ``<out>/<survey>/`` (keyframes, clouds, mesh); the raw survey is read
 only for the release-composition row and, for a twin survey, the ``truth/`` folder (true object mesh
@@ -28,7 +28,7 @@ from darp.evaluation.truth_metrics import (
     visible_in_frames,
 )
 from darp.formats.atomic import atomic_path
-from darp.processing.pipeline import FIGURES_DIR, FUSED_FILE, MESH_FILE, SurveyJob
+from darp.processing.job import FIGURES_DIR, FUSED_FILE, MESH_FILE, SurveyJob
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
 from darp.reconstruction.keyframe_io import DEPTH_ONLY, iter_keyframes, posed_frames, read_keyframe_index
 from darp.reconstruction.keyframes import FUSE, HELDOUT

@@ -41,7 +41,7 @@ from darp.formats.schema import to_jsonable
 from darp.formats.trajectories import frame_key
 from darp.kinematics.transforms import invert_transform
 from darp.processing.evaluate import EVALUATION_DIR, HELDOUT_DISTANCES, _save_arrays, draw_figures
-from darp.processing.pipeline import FIGURES_DIR
+from darp.processing.job import FIGURES_DIR
 from darp.processing.results import RESULTS_FILE, SCHEMA
 from darp.reconstruction.backproject import PosedDepth, backproject
 from darp.reconstruction.fusion import FusionSettings, VoxelFusion, write_voxel_cloud

@@ -21,11 +21,12 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
     figures         {kind: path relative to the survey folder}
     stages          {stage: seconds}
     status          "ok", or "implausible" when ``warnings`` is not empty
-    warnings        implausible results, each one line: an arm's cloud empty, fewer keyframes per arm than
-                    keyframes.min_keyframes, a fused cloud almost empty (its voxels cover less than
-                    evaluation.min_surface_pct of the envelope's top and side), no held-out point, a held-out
-                    median above evaluation.max_heldout_median_mm, a twin survey's fused cloud farther from the true
-                    surface than evaluation.max_truth_accuracy_mm, a partial survey (PARTIAL.txt / *.bag.partial)
+    warnings        implausible results, each one line (:mod:`darp.processing.diagnostics`): an arm's cloud
+                    empty, fewer keyframes per arm than keyframes.min_keyframes, a fused cloud almost empty (its
+                    voxels cover less than evaluation.min_surface_pct of the envelope's top and side), no held-out
+                    point, a held-out median above evaluation.max_heldout_median_mm, a twin survey's fused cloud
+                    farther from the true surface than evaluation.max_truth_accuracy_mm, a partial survey
+                    (PARTIAL.txt / *.bag.partial)
     paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
                     within 5 / 10 mm, 224 keyframes, 1,563,466 points)
 
@@ -41,13 +42,13 @@ Across surveys (``<out>/results.json``, schema ``darp-results-summary/1``)::
     paper           as above
 
 Pooled statistics are computed from the raw distances each survey keeps in ``evaluation/``, never by
-averaging per-object statistics.
+averaging per-object statistics. The evaluation stage (:mod:`darp.processing.stages`) writes a survey's
+document with :func:`survey_results`; ``darp process`` writes the summary with :func:`write_summary`.
 """
 
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -61,77 +62,15 @@ from darp.evaluation.point_to_mesh import distance_stats
 from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M
 from darp.formats.atomic import write_json_atomic
 from darp.formats.schema import to_jsonable
-from darp.processing.evaluate import (
-    EVALUATION_DIR,
-    HELDOUT_DISTANCES,
-    TRUTH_DISTANCES,
-    evaluate_processed_survey,
-    load_distances,
-)
-from darp.processing.pipeline import (
-    RECONSTRUCTION_STAGES,
-    Stage,
-    SurveyJob,
-    read_stage_state,
-    unfinished_reason,
-)
+from darp.processing.diagnostics import plausibility_warnings
+from darp.processing.evaluate import EVALUATION_DIR, HELDOUT_DISTANCES, TRUTH_DISTANCES, load_distances
+from darp.processing.job import SurveyJob
+from darp.processing.runner import read_stage_state, unfinished_reason
 from darp.processing.settings import DEPTH_FILTER_RULES, FUSION_RULES, MESH_RULES, ProcessSettings
 
 RESULTS_FILE = "results.json"
 SCHEMA = "darp-results/1"
 SUMMARY_SCHEMA = "darp-results-summary/1"
-
-
-def plausibility_warnings(results: dict[str, Any], job: SurveyJob) -> list[str]:
-    """The implausible parts of one survey's results, each one line (empty when nothing is implausible)."""
-    warnings: list[str] = []
-    if job.survey.partial is not None:
-        warnings.append(f"partial survey: {job.survey.partial}")
-    min_kf = job.settings.keyframes.min_keyframes
-    for arm, counts in (results["keyframes"].get("arms") or {}).items():
-        n = int(counts.get("keyframes", 0) or 0)
-        if n < min_kf:
-            warnings.append(f"{arm}: {n} keyframes, fewer than the minimum {min_kf}")
-    clouds = results.get("clouds") or {}
-    for arm in job.arms:
-        if int(clouds.get(arm, 0) or 0) == 0:
-            warnings.append(f"{arm}: its fused cloud is empty (the arm adds nothing to the result)")
-    sparse = sparse_cloud_warning(int(clouds.get("fused", 0) or 0), results.get("envelope") or {},
-                                  job.settings.fusion_used.voxel_size_m, job.settings.evaluation.min_surface_pct)
-    if sparse:
-        warnings.append(sparse)
-    median = (results["heldout"].get("aggregate") or {}).get("median_mm")
-    bound = job.settings.evaluation.max_heldout_median_mm
-    if median is None:
-        warnings.append("no held-out point: the held-out evaluation measured nothing")
-    elif median > bound:
-        warnings.append(f"held-out median {median:.2f} mm above the plausible bound {bound:g} mm "
-                        "(calibration or poses off?)")
-    accuracy = (((results.get("truth") or {}).get("cloud") or {}).get("accuracy") or {}).get("median_mm")
-    truth_bound = job.settings.evaluation.max_truth_accuracy_mm
-    if accuracy is not None and accuracy > truth_bound:
-        shown = "n/a" if median is None else f"{median:.2f} mm"
-        warnings.append(f"fused cloud {accuracy:.2f} mm from the true surface (median), above the bound "
-                        f"{truth_bound:g} mm, while the held-out median is {shown}: whole views are moved "
-                        "together (calibration or kinematic error), which the held-out metric cannot see")
-    return warnings
-
-
-def sparse_cloud_warning(points: int, envelope: dict[str, Any], voxel_m: float, min_pct: float) -> str:
-    """One line when ``points`` fused voxels of ``voxel_m`` cover less than ``min_pct`` % of the envelope's top and
-    side (its bottom stands on the table), else "". A surface voxel holds one point, and a surface cuts at least
-    one voxel per ``voxel_m^2`` of its area, so ``points * voxel_m^2`` over-estimates the surface covered: the rule
-    flags only clouds that are almost empty (dark or specular parts dropping out, a low resolution)."""
-    radius, height = envelope.get("radius_m"), envelope.get("height_m")
-    if not (isinstance(radius, (int, float)) and isinstance(height, (int, float)) and radius > 0 and height > 0):
-        return ""
-    area_m2 = math.pi * radius * radius + 2.0 * math.pi * radius * height
-    pct = 100.0 * points * voxel_m * voxel_m / area_m2
-    if points == 0 or pct >= min_pct:
-        return ""  # an empty cloud is named per arm above
-    return (f"fused cloud almost empty: {points} points at {voxel_m * 1000:g} mm voxels cover about {pct:.1f} % of "
-            f"the envelope's top and side ({area_m2 * 1e4:.0f} cm^2), below {min_pct:g} %: the held-out figures "
-            "are measured against almost no surface (dark or specular object, low resolution?)")
 
 
 def rules_used(settings: ProcessSettings) -> dict[str, Any]:
@@ -189,23 +128,6 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
     results["status"] = "implausible" if warnings else "ok"
     results["warnings"] = warnings
     return results
-
-
-def stage_evaluation(job: SurveyJob) -> dict[str, Any]:
-    """Evaluate and write ``results.json`` (the last stage of :data:`PROCESS_STAGES`)."""
-    evaluation = evaluate_processed_survey(job)
-    results = survey_results(job, evaluation)
-    write_json_atomic(job.out / RESULTS_FILE, to_jsonable(results))
-    heldout = evaluation["heldout"]["aggregate"]
-    return {"heldout_median_mm": heldout.get("median_mm"), "heldout_points": heldout.get("count"),
-            "truth": evaluation["truth"] is not None}
-
-
-PROCESS_STAGES: tuple[Stage, ...] = (
-    *RECONSTRUCTION_STAGES,
-    Stage("evaluation", stage_evaluation, (RESULTS_FILE,), ("evaluation",)),
-)
-"""poses -> keyframes -> fusion -> mesh -> evaluation: what ``darp process`` runs."""
 
 
 # -- reading and aggregating --------------------------------------------------------------------------------
@@ -309,16 +231,14 @@ def write_summary(out: str | Path, folders: Sequence[str | Path], failed: Sequen
 
 
 __all__ = [
-    "PROCESS_STAGES",
     "RESULTS_FILE",
     "SCHEMA",
     "SUMMARY_SCHEMA",
     "aggregate_results",
     "find_survey_results",
     "find_unfinished",
-    "plausibility_warnings",
     "read_results",
-    "stage_evaluation",
+    "rules_used",
     "survey_results",
     "write_summary",
 ]
