@@ -183,26 +183,38 @@ def batch(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
     return {"root": root, "surveys": surveys, "out": out, "calibration": calibration, "settings": settings}
 
 
+@pytest.fixture(scope="module")
+def processed_batch(batch: dict) -> dict:
+    """``darp process`` of the batch, run once for the tests that read its outputs (in any order): its exit
+    code, stdout and stderr."""
+    import contextlib
+    import io
+
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        rc = run(["process", str(batch["surveys"]), "-c", batch["calibration"], "--settings", str(batch["settings"]),
+                  "--out", str(batch["out"])])
+    return {**batch, "rc": rc, "out_text": stdout.getvalue(), "err_text": stderr.getvalue()}
+
+
 @pytest.mark.slow
-def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(batch: dict, capsys) -> None:
-    out = batch["out"]
-    rc = run(["process", str(batch["surveys"]), "-c", batch["calibration"], "--settings", str(batch["settings"]),
-              "--out", str(out)])
-    captured = capsys.readouterr()
+def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(processed_batch: dict, capsys) -> None:
+    out = processed_batch["out"]
+    rc, captured_out, captured_err = processed_batch["rc"], processed_batch["out_text"], processed_batch["err_text"]
     assert rc == 2
-    errors = [line for line in captured.err.splitlines() if line.startswith("darp: error:")]
+    errors = [line for line in captured_err.splitlines() if line.startswith("darp: error:")]
     # each names the survey, the stage and the file to blame (a sanity check where the file is read may
     # catch it before the keyframes stage does)
     assert any("survey b_millis" in e and " failed: " in e and "arm_poses.csv" in e for e in errors), errors
     assert any("survey c_far" in e and " failed: " in e and "manip_envelope.json" in e for e in errors), errors
     assert any("survey d_huge" in e and " failed: " in e and "arm_poses.csv" in e for e in errors), errors
     assert errors[-1].startswith("darp: error: 3 of 4 surveys failed: b_millis, c_far, d_huge")
-    assert "Traceback" not in captured.err
+    assert "Traceback" not in captured_err
     # the good survey went on, flagged: partial survey and a held-out median above the (tiny) bound
-    table = " ".join(captured.out.split())
-    assert "a_good (!) calib" in table and "b_millis FAILED" in table and "c_far FAILED" in table, captured.out
+    table = " ".join(captured_out.split())
+    assert "a_good (!) calib" in table and "b_millis FAILED" in table and "c_far FAILED" in table, captured_out
     assert "d_huge FAILED" in table
-    assert any("a_good: partial survey" in line for line in captured.err.splitlines())
+    assert any("a_good: partial survey" in line for line in captured_err.splitlines())
     per = json.loads((out / "a_good" / "results.json").read_text())
     assert per["status"] == "implausible"
     assert any(w.startswith("partial survey: PARTIAL.txt") for w in per["warnings"])
@@ -229,10 +241,9 @@ def test_a_batch_goes_on_past_failed_surveys_lists_them_and_exits_2(batch: dict,
 
 
 @pytest.mark.slow
-def test_report_names_unfinished_and_missing_surveys(batch: dict, capsys) -> None:
-    out = batch["out"]
-    if not (out / "a_good" / "results.json").is_file():
-        pytest.skip("needs the batch test's output")
+def test_report_names_unfinished_and_missing_surveys(processed_batch: dict, capsys) -> None:
+    out = processed_batch["out"]
+    assert (out / "a_good" / "results.json").is_file()
     copy = out.parent / "out_copy"
     shutil.copytree(out, copy)
     (copy / "a_good" / UNFINISHED_FILE).write_text("running: mesh\n")  # as an interrupted run leaves it
