@@ -91,7 +91,6 @@ for _arr in NAMED_CONFIGS.values():
 
 # Tool frames: offset along link06 x (m); orientation is link06's.
 WRIST_FRAMES: dict[str, float] = {"flange": 0.0618, "gripper": 0.1}
-WRIST_FRAME = "flange"
 FRAME_OFFSETS_M: dict[str, float] = {"link06": 0.0, **WRIST_FRAMES}
 
 LIMIT_SETS = ("urdf", "sdk")
