@@ -8,7 +8,7 @@ import trimesh
 
 from darp.errors import EvaluationError
 from darp.evaluation.heldout import HeldoutSummary, evaluate_heldout, heldout_mask
-from darp.evaluation.point_to_mesh import MeshDistance, distance_stats
+from darp.evaluation.point_to_mesh import MeshDistance
 from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
 from helpers.synthetic_depth import Scene, box, look_at, small_intrinsics, table
@@ -55,17 +55,24 @@ def test_per_arm_per_object_and_pooled_statistics(setup) -> None:
               held_out_frame(scene, "arm111", 0, (0.0, 0.0, 0.4), 0.006)]
     one = evaluate_heldout(frames, mesh, object_name="a", region=CROP)
     assert one.frames == {"arm110": 2, "arm111": 1}
-    assert one.stats("arm111").median_m == pytest.approx(0.006, abs=3e-5)
-    assert one.stats("arm110").median_m == pytest.approx(0.0015, abs=6e-4)
-    pooled = np.concatenate([one.distances["arm110"], one.distances["arm111"]])
-    assert one.stats().median_m == pytest.approx(distance_stats(pooled).median_m)
-    assert one.stats().within_pct[0.005] == pytest.approx(100.0 * np.mean(pooled <= 0.005))
+    # the top face from straight above: each frame gives the same pixels, every point off by its pose error
+    n = one.stats("arm111").count
+    assert n > 1000 and one.stats("arm110").count == 2 * n and one.stats().count == 3 * n
+    assert one.stats("arm111").median_m == pytest.approx(0.006, abs=1e-7)
+    assert one.stats("arm110").median_m == pytest.approx(0.0015, abs=1e-7)  # n points at 1 mm, n at 2 mm
+    # pooled by hand: thirds at 1, 2 and 6 mm
+    pooled = one.stats()
+    assert pooled.median_m == pytest.approx(0.002, abs=1e-7)
+    assert pooled.p90_m == pytest.approx(0.006, abs=1e-7)
+    assert pooled.rmse_m == pytest.approx(1e-3 * np.sqrt((1 + 4 + 36) / 3), abs=1e-7)
+    assert pooled.within_pct == pytest.approx({0.005: 200 / 3, 0.01: 100.0})
     two = evaluate_heldout(frames[:1], mesh, object_name="b", region=CROP)
     summary = HeldoutSummary((one, two))
     assert summary.n_frames == 4
-    everything = np.concatenate([pooled, two.distances["arm110"]])
-    assert summary.aggregate().count == everything.size
-    assert summary.aggregate().rmse_m == pytest.approx(np.sqrt(np.mean(everything.astype(np.float64) ** 2)))
+    # four frames' points: quarters at 1, 2, 6 and 1 mm
+    assert summary.aggregate().count == 4 * n
+    assert summary.aggregate().median_m == pytest.approx(0.0015, abs=1e-7)
+    assert summary.aggregate().rmse_m == pytest.approx(1e-3 * np.sqrt((1 + 4 + 36 + 1) / 4), abs=1e-7)
     table = summary.markdown()
     assert "| a | 3 |" in table and "| b | 1 |" in table and "| **all** | 4 |" in table
     assert "2.13" in table  # the paper's row for comparison

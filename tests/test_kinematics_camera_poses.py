@@ -9,21 +9,7 @@ from scipy.spatial.transform import Rotation
 from darp.errors import KinematicsError
 from darp.kinematics import camera_poses as cp
 from darp.kinematics import z1
-
-# An FK written independently of darp.kinematics.z1 from the joint table in facts/z1-kinematics.md:
-# a plain chain of scipy rotations (z1 uses a column-mixing recursion instead).
-_ORIGINS = [(0, 0, 0.0585), (0, 0, 0.045), (-0.35, 0, 0), (0.218, 0, 0.057), (0.07, 0, 0), (0.0492, 0, 0)]
-_AXES = ["z", "y", "y", "y", "z", "x"]
-_FLANGE_X_M = 0.0618
-
-
-def reference_T_base_flange(q: np.ndarray) -> tuple[Rotation, np.ndarray]:
-    R = Rotation.identity()
-    p = np.zeros(3)
-    for origin, axis, angle in zip(_ORIGINS, _AXES, q, strict=True):
-        p = p + R.apply(origin)
-        R = R * Rotation.from_euler(axis, angle)
-    return R, p + R.apply([_FLANGE_X_M, 0.0, 0.0])
+from helpers.z1_reference import reference_fk
 
 
 def random_rigid(rng: np.random.Generator, scale_m: float = 0.5) -> np.ndarray:
@@ -124,7 +110,8 @@ def test_eq1_composition_matches_an_independent_computation() -> None:
     p_cam = np.array([[0.0, 0.0, 0.0], [0.1, -0.05, 0.4]])
     for i, t in enumerate(frames):
         q = np.array([np.interp(t, t_log, q_log[:, j]) for j in range(6)]) + dq
-        R_bf, t_bf = reference_T_base_flange(q)
+        T_bf = reference_fk(q)  # written independently of darp.kinematics.z1, from the facts table
+        R_bf, t_bf = Rotation.from_matrix(T_bf[:3, :3]), T_bf[:3, 3]
         p_world = R_wb.apply(R_bf.apply(R_fc.apply(p_cam) + t_fc) + t_bf) + t_wb
         got = p_cam @ res.T_world_cam[i, :3, :3].T + res.T_world_cam[i, :3, 3]
         np.testing.assert_allclose(got, p_world, atol=1e-9)

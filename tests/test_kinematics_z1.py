@@ -1,4 +1,5 @@
-"""The Z1 model: FK against the facts and against MuJoCo, Jacobian against finite differences."""
+"""The Z1 model: its table against the facts, FK against an independent chain (scipy), Pinocchio and MuJoCo
+built from the facts table, Jacobian against Pinocchio, MuJoCo and finite differences."""
 
 from __future__ import annotations
 
@@ -8,8 +9,15 @@ import pytest
 from darp.errors import KinematicsError
 from darp.kinematics import transforms as tf
 from darp.kinematics import z1
+from helpers.z1_reference import FACTS_JOINTS, FACTS_TOOL_X_M, reference_fk, reference_links, reference_urdf
 
 RNG_SEED = 7
+
+
+def test_joint_table_is_the_facts_table() -> None:
+    assert [(j.name, j.origin_xyz_m, j.axis, j.lower_rad, j.upper_rad) for j in z1.Z1_JOINTS] == list(FACTS_JOINTS)
+    assert [(j.parent, j.child) for j in z1.Z1_JOINTS] == [(f"link0{i}", f"link0{i + 1}") for i in range(6)]
+    assert z1.FRAME_OFFSETS_M == FACTS_TOOL_X_M
 
 
 def test_joint_positions_at_zero_match_the_facts() -> None:
@@ -74,25 +82,46 @@ def test_fk_batch_equals_fk_per_row() -> None:
     np.testing.assert_allclose(links[:, 6] @ tf.make_transform(t=[0.0618, 0, 0]), z1.fk_batch(Q), atol=1e-15)
 
 
-def test_fk_equals_chain_of_matrix_products() -> None:
-    """An independent FK: explicit 4x4 products of translation and axis rotation per joint."""
-    rot = {"x": tf.rot_x, "y": tf.rot_y, "z": tf.rot_z}
-    for q in z1.random_configurations(20, RNG_SEED + 1):
-        T = np.eye(4)
-        for joint, angle in zip(z1.Z1_JOINTS, q, strict=True):
-            T = T @ tf.make_transform(rot[joint.axis](angle), joint.origin_xyz_m)
-        T = T @ tf.make_transform(t=[z1.WRIST_FRAMES["gripper"], 0, 0])
-        np.testing.assert_allclose(z1.fk(q, "gripper"), T, atol=1e-14)
+def test_fk_matches_an_independent_chain_of_scipy_rotations() -> None:
+    """The oracle shares neither darp's table nor its transforms: the facts table, one scipy rotation per joint."""
+    Q = z1.random_configurations(20, RNG_SEED + 1)
+    for frame in ("flange", "gripper", "link06"):
+        expected = np.array([reference_fk(q, frame) for q in Q])
+        np.testing.assert_allclose(z1.fk_batch(Q, frame), expected, atol=1e-14)
+        for q, T in zip(Q, expected, strict=True):
+            np.testing.assert_allclose(z1.fk(q, frame), T, atol=1e-14)
+    for q in Q[:5]:
+        np.testing.assert_allclose(z1.link_transforms(q), np.array(reference_links(q)), atol=1e-14)
 
 
 def test_fk_outside_limits_and_at_half_turns() -> None:
     """The closed form has no hidden range assumption: half turns, multiple turns, tiny angles."""
     Q = np.array([[np.pi, -np.pi, np.pi, -np.pi, np.pi, np.pi], [7.0, -9.5, 12.0, 3.3, -4.0, 20.0],
                   [1e-300, -1e-12, 1e-9, 0.0, -0.0, 5e-324], [3 * np.pi, 0.5, -2.0, 1.0, -0.3, -np.pi / 2]])
-    chain = z1.link_transforms_batch(Q)[:, 6] @ tf.make_transform(t=[z1.WRIST_FRAMES["flange"], 0, 0])
-    np.testing.assert_allclose(z1.fk_batch(Q), chain, atol=2e-15)
-    for q, T in zip(Q, chain, strict=True):
-        np.testing.assert_allclose(z1.fk(q), T, atol=2e-15)
+    expected = np.array([reference_fk(q) for q in Q])
+    np.testing.assert_allclose(z1.fk_batch(Q), expected, atol=1e-14)
+    np.testing.assert_allclose(z1.link_transforms_batch(Q)[:, 6, :3, :3], expected[:, :3, :3], atol=1e-14)
+    for q, T in zip(Q, expected, strict=True):
+        np.testing.assert_allclose(z1.fk(q), T, atol=1e-14)
+
+
+def test_fk_and_jacobian_agree_with_pinocchio() -> None:
+    """Pinocchio loads the facts table as a URDF: link placements, tool frames and frame Jacobians."""
+    pin = pytest.importorskip("pinocchio")
+    model = pin.buildModelFromXML(reference_urdf())
+    data = model.createData()
+    np.testing.assert_allclose(model.lowerPositionLimit, z1.JOINT_LOWER)
+    np.testing.assert_allclose(model.upperPositionLimit, z1.JOINT_UPPER)
+    for q in z1.random_configurations(25, RNG_SEED + 6):
+        pin.framesForwardKinematics(model, data, q)
+        links = z1.link_transforms(q)
+        for i in range(1, 7):
+            np.testing.assert_allclose(links[i], data.oMi[i].homogeneous, atol=1e-12)
+        for frame in ("flange", "gripper"):
+            fid = model.getFrameId(frame)
+            np.testing.assert_allclose(z1.fk(q, frame), data.oMf[fid].homogeneous, atol=1e-12)
+            J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL_WORLD_ALIGNED)  # base axes, frame origin
+            np.testing.assert_allclose(z1.jacobian(q, frame), J, atol=1e-12)
 
 
 def test_fk_batch_blocks_and_out_buffer() -> None:
@@ -109,13 +138,13 @@ def test_fk_batch_blocks_and_out_buffer() -> None:
 def _mujoco_model() -> tuple[object, object]:
     mujoco = pytest.importorskip("mujoco")
     xml, close = "", ""
-    for joint in z1.Z1_JOINTS:
-        axis = " ".join(str(v) for v in np.eye(3)["xyz".index(joint.axis)])
-        pos = " ".join(str(v) for v in joint.origin_xyz_m)
-        xml += f'<body name="{joint.child}" pos="{pos}"><joint name="{joint.name}" axis="{axis}"/>'
+    for i, (name, origin, axis_name, _, _) in enumerate(FACTS_JOINTS):  # the facts table, not darp's
+        axis = " ".join(str(v) for v in np.eye(3)["xyz".index(axis_name)])
+        pos = " ".join(str(v) for v in origin)
+        xml += f'<body name="link0{i + 1}" pos="{pos}"><joint name="{name}" axis="{axis}"/>'
         xml += '<geom type="sphere" size="0.01" mass="0.1"/>'
         close += "</body>"
-    xml += f'<site name="flange" pos="{z1.WRIST_FRAMES["flange"]} 0 0"/>'
+    xml += f'<site name="flange" pos="{FACTS_TOOL_X_M["flange"]} 0 0"/>'
     model = mujoco.MjModel.from_xml_string(f"<mujoco><worldbody>{xml}{close}</worldbody></mujoco>")
     return model, mujoco.MjData(model)
 

@@ -3,7 +3,7 @@ values per field, the sanity ranges of docs/reliability.md, and writes that fail
 
 Each case asserts the one outcome darp allows: the value is read, or a DarpError whose message starts with the file
 (and names the field or line) - never another exception - and the input file is unchanged. The fuzzing is
-property-based (hypothesis, a fresh sample each run, no example database).
+property-based (hypothesis, derandomized: the same examples every run, so a failure reruns as it failed).
 """
 
 from __future__ import annotations
@@ -20,15 +20,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from darp.errors import DarpError
+from darp.errors import DarpError, FormatError
 from darp.formats.arm_poses import read_arm_poses
 from darp.formats.atomic import write_json_atomic, write_text_atomic
 from darp.formats.calibration import calibration_to_dict, read_calibration
 from darp.formats.envelope import Envelope, envelope_to_dict, read_envelope
+from darp.formats.limits import MAX_JSON_BYTES
 from darp.kinematics.rig import default_rig_path, load_rig
 from darp.twin.waypoints import load_waypoints
 
-FUZZ = settings(max_examples=40, deadline=None, database=None,
+FUZZ = settings(max_examples=40, deadline=None, database=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 ARM_POSES = ("time_s,arm,q1,q2,q3,q4,q5,q6\n"
@@ -179,6 +180,22 @@ def test_implausible_values_are_refused_naming_the_file_and_field(case: str, tmp
     message = str(caught.value)
     assert message.startswith(str(path)) and words in message, message
     assert path.read_bytes() == before
+
+
+@pytest.mark.parametrize("kind", ["calibration", "envelope"])
+def test_a_json_file_over_the_size_limit_is_refused_unread_in_one_line(kind: str, tmp_path: Path) -> None:
+    """A sparse file one byte over MAX_JSON_BYTES (no disk used): refused from its size, naming the file."""
+    name, valid, reader = FORMATS[kind]
+    path = tmp_path / name
+    with path.open("wb") as f:
+        f.write(valid())
+        f.truncate(MAX_JSON_BYTES + 1)
+    with pytest.raises(FormatError) as caught:
+        reader(path)
+    message = str(caught.value)
+    assert message == f"{path}: {MAX_JSON_BYTES + 1} bytes, larger than any darp JSON file (limit 256 MiB)"
+    path.write_bytes(valid())  # the same file at its real size is read
+    reader(path)
 
 
 def test_yaml_floats_are_read_the_same_in_both_spellings(tmp_path: Path) -> None:

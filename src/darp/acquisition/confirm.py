@@ -43,7 +43,6 @@ from darp.acquisition.localise import LocalisationResult, ObjectEstimate
 from darp.errors import AcquisitionError
 
 CONFLICT_POLICIES = ("reobserve", "terminate")
-STATUSES = ("consistent", "fallback", "terminated")
 
 Reobserve = Callable[[str, ObjectEstimate], "ObjectEstimate | None"]
 """``reobserve(arm_id, hint)``: the arm looks straight at ``hint`` and returns its estimate (or None)."""

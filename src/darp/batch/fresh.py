@@ -183,12 +183,6 @@ def call_pickled_in_fresh_process(payload: bytes, *, what: str = "task", threads
     return data
 
 
-def run_fresh(fn: Callable[..., Any], *args: Any, threads: int | None = None) -> Any:
-    """``fn(*args)`` in a fresh forked process (see the module docstring), its libraries' thread pools
-    sized to ``threads`` when given. (darp's executor runs :func:`run_pickled` instead.)"""
-    return call_in_fresh_process(fn, args, what=getattr(fn, "__name__", "task"), threads=threads)
-
-
 def run_pickled(payload: bytes, what: str, threads: int | None = None) -> bytes:
     """What one Ray task runs (``isolation="fork"``): a call pickled by the driver (:func:`dumps_call`), in
     a fresh forked process, its libraries' thread pools sized to ``threads``; the child's answer goes back
@@ -220,5 +214,5 @@ def idle(sleep_s: float = 0.0) -> int:
 
 
 __all__ = ["PRELOAD", "ChildCrashed", "call_in_fresh_process", "call_pickled_in_fresh_process", "dumps_call",
-           "exit_reason", "forkserver_context", "idle", "loads_answer", "run_fresh", "run_pickled",
+           "exit_reason", "forkserver_context", "idle", "loads_answer", "run_pickled",
            "run_with_threads"]

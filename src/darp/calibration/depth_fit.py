@@ -145,14 +145,6 @@ def _irls(z: np.ndarray, target: np.ndarray, quad: bool, zc: float, huber_k: flo
     return p_u, w, scale
 
 
-def robust_fit(z: np.ndarray, target: np.ndarray, quad: bool, huber_k: float = 1.5,
-               iterations: int = 30) -> tuple[np.ndarray, float]:
-    """IRLS Huber fit of ``target ~ [z, 1, (z^2)] @ p``; returns (p, robust residual scale in metres)."""
-    zc = float(np.median(z)) if z.size else 0.0
-    p_u, _, scale = _irls(z, target, quad, zc, huber_k, iterations)
-    return _uncentre(p_u, zc), scale
-
-
 def _fit_with_bootstrap(used: Sequence[BoardDepthSamples], quad: bool, s: DepthFitSettings
                         ) -> tuple[np.ndarray, np.ndarray, float]:
     """(parameters, bootstrap std over captures, robust residual scale). The bootstrap keeps the full fit's
@@ -252,4 +244,4 @@ def estimate_depth_corrections(captures: CaptureSet, detections: Sequence[Detect
 
 
 __all__ = ["BoardDepthSamples", "DepthFitSettings", "board_depth_samples", "capture_depth_samples",
-           "estimate_depth_corrections", "fit_depth_correction", "robust_fit"]
+           "estimate_depth_corrections", "fit_depth_correction"]

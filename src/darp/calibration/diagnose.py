@@ -7,8 +7,8 @@ poses inverted (flange-from-base, or camera-from-world, given as base-from-flang
 data solved as eye-in-hand and the reverse) and the quaternion's scalar at the other end. When a
 misreading places the boards together much better, the solve stops and says by how much. (The screw
 invariants of AX = XB, rotation angle and pitch, cannot see an inversion: both are unchanged by it,
-so the rotation-angle test is used only to report the quaternion order.) Translations far beyond an
-arm's reach mean millimetres declared as metres (and the reverse).
+which is why the test is the boards' agreement.) Translations far beyond an arm's reach mean
+millimetres declared as metres (and the reverse).
 """
 
 from __future__ import annotations
@@ -23,7 +23,6 @@ from darp.kinematics.transforms import (
     invert_transform,
     quaternion_to_rotation,
     rotation_to_quaternion,
-    rotation_to_rotvec,
 )
 
 if TYPE_CHECKING:
@@ -32,43 +31,6 @@ if TYPE_CHECKING:
 
 MAX_REACH_M = 5.0  # flange positions beyond this from the base: not metres
 MIN_SPREAD_M = 0.005  # all flange positions within 5 mm of each other when read as mm: not millimetres
-
-
-def _angles(R: np.ndarray) -> np.ndarray:
-    return np.asarray(np.degrees(np.arccos(np.clip((np.trace(R, axis1=-2, axis2=-1) - 1) / 2, -1.0, 1.0))), float)
-
-
-def _screws(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(angle deg, translation along the rotation axis m) of motions (n, 3, 3), (n, 3)."""
-    w = rotation_to_rotvec(R)
-    ang = np.linalg.norm(w, axis=1)
-    k = w / np.maximum(ang, 1e-12)[:, None]
-    return np.degrees(ang), np.sum(k * t, axis=1)
-
-
-def screw_residuals(A: np.ndarray, B: np.ndarray, invert_a: bool = False) -> tuple[float, float]:
-    """Median screw-invariant mismatch of AX = XB over capture pairs: (angle deg, pitch mm).
-
-    A: base-from-flange (inverted first when ``invert_a``), B: camera-from-board. For the true hand-eye,
-    ``A_i^-1 A_j`` and ``B_i B_j^-1`` are conjugate motions: same rotation angle and same translation
-    along the rotation axis, whatever X is. The angle alone cannot tell an inverted pose (the trace of
-    ``R_i^T R_j`` and ``R_j R_i^T`` is the same); the pitch can.
-    """
-    A = invert_transform(A) if invert_a else A
-    i, j = np.triu_indices(len(A), 1)
-    MA = invert_transform(A[i]) @ A[j]
-    MB = B[i] @ invert_transform(B[j])
-    a_ang, a_d = _screws(MA[:, :3, :3], MA[:, :3, 3])
-    b_ang, b_d = _screws(MB[:, :3, :3], MB[:, :3, 3])
-    keep = ((a_ang > 5.0) | (b_ang > 5.0)) & (a_ang < 170.0) & (b_ang < 170.0)  # a real rotation, axis defined
-    if not np.any(keep):
-        return 0.0, 0.0
-    return float(np.median(np.abs(a_ang - b_ang)[keep])), float(1e3 * np.median(np.abs(a_d - b_d)[keep]))
-
-
-def invariant_residual_deg(A: np.ndarray, B: np.ndarray, invert_a: bool = False) -> float:
-    """The angle part of :func:`screw_residuals` (deg)."""
-    return screw_residuals(A, B, invert_a)[0]
 
 
 def swap_quaternion_order(R: np.ndarray, declared: str) -> np.ndarray:
@@ -146,5 +108,4 @@ def check_pose_conventions(folder: CaptureFolder, obs: Observations, arm: str, r
     return res
 
 
-__all__ = ["check_pose_conventions", "check_translation_unit", "consistency_mm", "invariant_residual_deg",
-           "screw_residuals", "swap_quaternion_order"]
+__all__ = ["check_pose_conventions", "check_translation_unit", "consistency_mm", "swap_quaternion_order"]

@@ -193,14 +193,5 @@ def per_capture(values: np.ndarray, obs: Observations, reduce: str = "median") -
     return np.array([fn(values[obs.corner_capture == m]) for m in range(obs.n_captures)])
 
 
-def pnp_pixels(obs: Observations) -> np.ndarray:
-    """The single-image PnP prediction of every corner (C, 2): how well one image alone fits."""
-    T = obs.T_stream_depth @ obs.T_depth_board_pnp
-    Tc = T[obs.corner_capture]
-    P = np.einsum("cij,cj->ci", Tc[:, :3, :3], obs.P_board) + Tc[:, :3, 3]
-    K = obs.K[obs.corner_capture]
-    return np.stack([K[:, 0, 0] * P[:, 0] / P[:, 2] + K[:, 0, 2], K[:, 1, 1] * P[:, 1] / P[:, 2] + K[:, 1, 2]], 1)
-
-
 __all__ = ["ChainParams", "Observations", "board_in_stream", "build_observations", "camera_poses", "flange_poses",
-           "move_directions", "per_capture", "pnp_pixels", "predict_pixels", "predict_points", "reprojection_errors"]
+           "move_directions", "per_capture", "predict_pixels", "predict_points", "reprojection_errors"]

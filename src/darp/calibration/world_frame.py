@@ -19,12 +19,10 @@ origins is, to a fraction of a millimetre. The twin draws its truth in the same 
 
 from __future__ import annotations
 
-from typing import cast
-
 import numpy as np
 
 from darp.errors import CalibrationError, KinematicsError
-from darp.kinematics.transforms import invert_transform, world_from_base_origins
+from darp.kinematics.transforms import world_from_base_origins
 
 WORLD_FRAME_TEXT = (
     "origin on the table surface midway between the base origins, x from arm110's base towards arm111's, "
@@ -62,9 +60,4 @@ def tilt_deg(T_world_x: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(np.asarray(T_world_x)[2, 2], -1.0, 1.0))))
 
 
-def reexpress(T_old_world_new: np.ndarray, T_old_x: np.ndarray) -> np.ndarray:
-    """``T_new_x`` from ``T_old_x``."""
-    return cast(np.ndarray, invert_transform(T_old_world_new) @ T_old_x)
-
-
-__all__ = ["WORLD_FRAME_TEXT", "board_up", "canonical_world", "reexpress", "tilt_deg", "world_from_reference"]
+__all__ = ["WORLD_FRAME_TEXT", "board_up", "canonical_world", "tilt_deg", "world_from_reference"]

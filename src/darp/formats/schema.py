@@ -18,14 +18,22 @@ import numpy as np
 
 from darp.errors import FormatError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.limits import MAX_JSON_BYTES
 from darp.formats.text import read_utf8_text
 
 RIGID_TOLERANCE = 1e-5  # max |R^T R - I| entry and |det R - 1| accepted for a stored rotation
 
 
 def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -> dict[str, Any]:
-    """Read a JSON file whose top level is an object; syntax errors name the line and column."""
+    """Read a JSON file whose top level is an object; syntax errors name the line and column. A file over
+    ``MAX_JSON_BYTES`` is refused before it is read (none of darp's JSON files comes near it)."""
     path = Path(path)
+    try:
+        size = path.stat().st_size
+    except OSError:  # missing or unreadable: the read below says which
+        size = 0
+    if size > MAX_JSON_BYTES:
+        raise error(f"{size} bytes, larger than any darp JSON file (limit {MAX_JSON_BYTES // 2**20} MiB)", path)
     text = read_utf8_text(path, "a JSON file", error)
     if not text.strip():
         raise error("empty file: expected a JSON object", path)

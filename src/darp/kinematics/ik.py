@@ -117,7 +117,7 @@ def _select(Q: Array, q_ref: Array) -> IndexArray:
 
 
 def solve_ik(T_base_target: ArrayLike, *, frame: str = "flange", q_init: ArrayLike | None = None,
-             seeds: ArrayLike | None = None, seed: int | np.random.Generator | None = 0,
+             seeds: ArrayLike | None = None, seed: int | np.random.Generator = 0,
              limits: str = "urdf", method: str = "auto", tol_pos: float = 1e-9, tol_rot: float = 1e-9,
              max_iters: int = 100, n_random_seeds: int = 8) -> IKResult:
     """Joint angles placing ``frame`` at the full 6-D pose ``T_base_target``.

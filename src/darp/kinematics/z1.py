@@ -91,7 +91,6 @@ for _arr in NAMED_CONFIGS.values():
 
 # Tool frames: offset along link06 x (m); orientation is link06's.
 WRIST_FRAMES: dict[str, float] = {"flange": 0.0618, "gripper": 0.1}
-WRIST_FRAME = "flange"
 FRAME_OFFSETS_M: dict[str, float] = {"link06": 0.0, **WRIST_FRAMES}
 
 LIMIT_SETS = ("urdf", "sdk")
@@ -333,9 +332,9 @@ def within_limits(q: ArrayLike, limits: str = "urdf", tol_rad: float = 0.0) -> b
     return bool(ok) if arr.ndim == 1 else ok
 
 
-def random_configurations(n: int, rng: np.random.Generator | int | None = None,
-                          limits: str = "urdf") -> Array:
-    """n joint vectors drawn uniformly inside the joint limits (deterministic for a seed)."""
+def random_configurations(n: int, rng: np.random.Generator | int, limits: str = "urdf") -> Array:
+    """n joint vectors drawn uniformly inside the joint limits, from ``rng`` (a generator or a seed: never the
+    clock, so that a run repeats)."""
     gen = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     lower, upper = joint_limits(limits)
     return lower + (upper - lower) * gen.random((n, N_JOINTS))

@@ -145,12 +145,6 @@ def mesh_arrays(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray
     return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.triangles, np.int64)
 
 
-def mesh_from_arrays(vertices: np.ndarray, triangles: np.ndarray) -> o3d.geometry.TriangleMesh:
-    """An Open3D mesh from vertex and triangle arrays."""
-    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(vertices, np.float64)),
-                                     o3d.utility.Vector3iVector(np.asarray(triangles, np.int32)))
-
-
 def mesh_area(mesh: o3d.geometry.TriangleMesh) -> float:
     """Total triangle area (m^2)."""
     v, t = mesh_arrays(mesh)
@@ -177,7 +171,6 @@ __all__ = [
     "normal_sides",
     "mesh_area",
     "mesh_arrays",
-    "mesh_from_arrays",
     "point_spacing",
     "write_mesh",
 ]

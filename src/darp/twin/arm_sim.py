@@ -199,11 +199,6 @@ class SimArm(ArmBackend):
         return self.true_state(t_ns)[0]
 
     @property
-    def target_true_q(self) -> np.ndarray:
-        """Where the current (or last) move ends, in true angles."""
-        return self._move.q_end.copy()
-
-    @property
     def move_end_ns(self) -> int:
         return self._move.end_ns
 

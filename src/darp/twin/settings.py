@@ -40,7 +40,6 @@ from darp.formats.text import read_yaml_mapping
 SCHEMA = "darp-twin-settings/1"
 PROFILES = ("ideal", "realistic", "paper")
 DEPTH_NOISE_PROFILES = ("ideal", "realistic", "paper")
-CAMERA_STREAMS = ("depth", "color", "ir1", "ir2")
 
 
 def _check_nonneg(obj: Any, prefix: str, names: tuple[str, ...]) -> None:
@@ -455,7 +454,7 @@ PAPER_IMAGES = ImageErrorSettings(blur_sigma_px=0.8, shading_pct=20.0, noise_dn=
 
 
 __all__ = [
-    "CAMERA_STREAMS", "OPTIONAL_GROUPS", "PROFILES", "ArmErrorSettings", "CameraSettings", "DepthErrorSettings",
+    "OPTIONAL_GROUPS", "PROFILES", "ArmErrorSettings", "CameraSettings", "DepthErrorSettings",
     "ImageErrorSettings", "JointErrorSettings", "LightingSettings", "MotionSettings", "MountErrorSettings",
     "SyncSettings",
     "TimingSettings", "TwinSettings", "paper_profile",
