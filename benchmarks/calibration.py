@@ -28,8 +28,8 @@ import numpy as np
 from darp.calibration import handeye
 from darp.calibration.captures import read_captures
 from darp.calibration.solve import METHODS, SolveSettings, solve_captures
-from darp.cli._calib_twin import capture_twin
 from darp.formats.calibration import read_calibration
+from darp.twin.calib_capture import capture_twin
 
 TARGETS = {"hand_eye_mm": 1.0, "hand_eye_deg": 0.1, "b2b_mm": 1.0, "b2b_deg": 0.05, "dq_deg": 0.05,
            "heldout_mm": 1.0}

@@ -63,7 +63,7 @@ def main() -> None:
     if args.captures is None:
         import tempfile
 
-        from darp.cli._calib_twin import capture_twin
+        from darp.twin.calib_capture import capture_twin
 
         args.captures = Path(tempfile.mkdtemp(prefix="darp-depthcorr-")) / "captures"
         print(f"capturing 20 per arm on the twin (paper profile, seed 0) into {args.captures}")

@@ -27,7 +27,7 @@ import numpy as np
 
 from darp.calibration.captures import read_captures
 from darp.calibration.solve import SolveSettings, solve_captures
-from darp.cli._calib_twin import capture_twin
+from darp.twin.calib_capture import capture_twin
 from darp.twin.settings import TwinSettings, paper_profile
 
 SOURCES = ("paper", "no_backlash", "no_repeat", "no_encoder", "no_intrinsics", "no_images", "no_sync",

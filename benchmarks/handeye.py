@@ -65,7 +65,7 @@ def doosan_folder(real: Path, root: Path) -> Path:
 def twin_folder(cache: Path, seed: int, n: int, profile: str = "realistic") -> tuple[Path, Path]:
     from darp.calibration.anyarm_export import export_captures
     from darp.calibration.captures import read_captures
-    from darp.cli._calib_twin import capture_twin
+    from darp.twin.calib_capture import capture_twin
 
     native, generic = cache / f"twin-{profile}-{seed}-{n}", cache / f"twin-{profile}-{seed}-{n}-generic"
     if not (native / "captures.json").is_file():

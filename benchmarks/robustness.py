@@ -74,11 +74,11 @@ def last_error(log: Path) -> str:
 
 
 def placements(seed: int, count: int) -> list[tuple[float, float, float]]:
-    """The demo's seeded placements (darp.cli.demo._placements)."""
+    """The demo's seeded placements (:func:`darp.twin.placement.seeded_placements`)."""
     sys.path.insert(0, str(ROOT / "src"))
-    from darp.cli.demo import _placements
+    from darp.twin.placement import seeded_placements
 
-    return _placements(seed, count)
+    return seeded_placements(seed, count)
 
 
 def run_case(scale: float, seed: int, objects: list[str], args: argparse.Namespace, work: Path) -> dict[str, Any]:
