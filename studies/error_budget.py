@@ -8,7 +8,7 @@ then ``solve_captures`` with each ``--models`` entry (5-fold held-out; no OpenCV
 per solve (``solve_<model>.json``: held-out median 3-D corner error per arm of the paper model, "darp",
 and of the richer one, "darp_model") and a table on stdout. Existing captures and solves are reused.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/error_budget.py --work /tmp/budget --seeds 0,1 \\
+    MUJOCO_GL=egl .venv/bin/python studies/error_budget.py --work /tmp/budget --seeds 0,1 \\
         --sources paper,no_backlash,no_unmodelled --models kinematic+compliance,kinematic+compliance+backlash
 
 Results: docs/accuracy.md, "Error budget of the richer model, and backlash".

@@ -38,7 +38,7 @@ and ``TwinRig`` construction in the process is counted).
 
 Prints one line per survey and a summary; ``--json`` writes every row.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/safety.py [--surveys 100] [--invalid 3] [--seed 0]
+    MUJOCO_GL=egl .venv/bin/python studies/safety.py [--surveys 100] [--invalid 3] [--seed 0]
         [--start 0] [--fps 6] [--resolution 424x240] [--profiles realistic,paper] [--solved-share 0.333]
         [--solved-pool 4] [--calib-captures 12] [--json safety.json] [--out DIR] [--self-check]
         [--dense-hz 1000] [--resume]
