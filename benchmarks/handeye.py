@@ -77,9 +77,9 @@ def twin_folder(cache: Path, seed: int, n: int, profile: str = "realistic") -> t
 
 
 def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray] | None = None
-          ) -> dict[str, list[dict[str, Any]]]:
+          ) -> dict[str, list[dict[str, Any] | None]]:
     """Print each solver's k-fold held-out board consistency per fold seed; returns them (a failed split: None)."""
-    results: dict[str, list[dict[str, Any]]] = {}
+    results: dict[str, list[dict[str, Any] | None]] = {}
     f = load_capture_folder(folder)
     dets, cams, _ = detect_folder(f)
     obs, _ = build_generic_observations(f, dets, cams)
@@ -134,19 +134,20 @@ def twin_path_equivalence(caps: object, generic: Path) -> None:
           f"base-to-base {b2b:.2e} (matrix elements, m)")
 
 
-def _rows(data: str, results: dict[str, list[dict[str, Any]]]) -> list[Any]:
-    """darp against the best OpenCV method (the least of its fold-seed means), mean and max over the splits."""
+def _rows(data: str, by_solver: dict[str, list[dict[str, Any] | None]]) -> list[Any]:
+    """darp against the best OpenCV method: each solver's held-out board-centre distance (mean, and max, over the
+    withheld captures) averaged over the fold seeds; the best OpenCV method is the one with the least."""
     from results import Target, row
 
     target = Target("ratio", "<=", 1.0, "issue 13: at least as good as the best OpenCV method")
     out = []
     for stat in ("mean", "max"):
         def figure(name: str, stat: str = stat) -> float:
-            runs = results.get(name, [])
+            runs = by_solver.get(name, [])
             ok = [r["mm"][stat] for r in runs if r is not None]
             return float(np.mean(ok)) if ok and len(ok) == len(runs) else float("nan")  # a failed split: none
 
-        peers = {name: figure(name) for name in results if name != "darp"}
+        peers = {name: figure(name) for name in by_solver if name != "darp"}
         best = min(peers, key=lambda k: (np.isnan(peers[k]), peers[k]))
         out.append(row("handeye", f"{data}: held-out board centre, {stat} over captures", "mm", figure("darp"),
                        peers[best], f"OpenCV {best}, the best of {len(peers)}", target))
