@@ -1,7 +1,7 @@
 # darp: two commands on a fresh machine.
 #   make demo   set everything up, then run the main job on the embedded digital twin
 #   make test   set everything up, then lint (ruff), type-check (mypy strict) and run the whole test suite
-#   make bench  set everything up, then run the benchmarks (darp next to its peers)
+#   make bench  set everything up, then run the benchmarks (darp next to its peers): one table in .bench/
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(DARP) demo
 
 lint: $(STAMP)
-	$(PY) -m ruff check src tests benchmarks scripts
+	$(PY) -m ruff check src tests benchmarks studies scripts
 	$(PY) -m mypy
 
 test: lint
@@ -39,7 +39,7 @@ test-fast: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile -q -m "not slow"
 
 bench: $(STAMP)
-	@set -e; for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b; done
+	$(PY) benchmarks/run.py
 
 clean:
 	rm -rf $(VENV) build dist src/*.egg-info .pytest_cache

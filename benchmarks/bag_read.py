@@ -45,6 +45,7 @@ from darp.formats.realsense.bag.reader import BagRecording
 from darp.formats.realsense.bag.writer import BagWriter
 from darp.formats.realsense.rosbag1.lz4 import native
 from darp.formats.realsense.types import DeviceInfo, Intrinsics, StreamProfile
+from results import Row, Target, row
 
 W, H = 640, 480
 KEYS = ("depth", "color", "ir1", "ir2")
@@ -56,6 +57,7 @@ TARGET_RATIO = 2.0  # darp / pyrealsense2 2.59 frames/s (wall), in every file, s
 PLAIN_READ_SHARE = 0.5  # darp's all-stream payload MB/s (uncompressed, copy) / a plain read's MB/s
 READS = {"depth": "depth only", "all": "all four streams"}  # what the DARP pipeline reads: all four
 RS2 = "pyrealsense2 2.59 playback"
+FILES = {"lz4": "LZ4", "none": "uncompressed"}  # the results table's names of the two recordings
 
 
 # -- the recording --------------------------------------------------------------------------------
@@ -266,7 +268,8 @@ def _readers(compression: str, keys: tuple[str, ...], copy: bool, path: Path) ->
     return readers
 
 
-def speed_table(files: dict, framesets: int, repeats: int) -> None:
+def speed_table(files: dict, framesets: int, repeats: int) -> dict:
+    """Print the speed table and the targets' verdicts; returns the summary they are made from."""
     print(f"\nSPEED (short recordings; best of {repeats} interleaved runs; MB = 10^6 bytes; {load()})")
     print("  frames/s: frames delivered per second of wall time, open included")
     print("  CPU ms/frame: least CPU time (user + system, all threads of the process) per frame")
@@ -307,12 +310,14 @@ def speed_table(files: dict, framesets: int, repeats: int) -> None:
                           f"{rs_cpu / cpu:5.2f}x {load_1min:5.2f}")
                     summary[compression, label, mode, reader] = (rs_wall / wall, nbytes / wall / 1e6,
                                                                  nbytes / cpu / 1e6, rs_cpu / cpu, load_1min)
+                    summary[compression, label, mode, reader, "frames/s"] = frames / wall
             print()
     for compression in ("lz4", "none"):
         opened, listed = min(darp_index(files[compression, framesets]) for _ in range(repeats))
         print(f"darp {compression}: open (index + description) {opened * 1e3:.1f} ms; then timestamps of all "
               f"{4 * framesets} frames (frame table, one pass over the chunks) {listed * 1e3:.0f} ms")
     print_targets(summary)
+    return summary
 
 
 def print_targets(summary: dict) -> None:
@@ -342,6 +347,30 @@ def print_targets(summary: dict) -> None:
           f"read's {plain:.0f} MB/s (target >= {PLAIN_READ_SHARE:.0%}: {'met' if ok else 'MISSED'}); "
           f"per CPU second: {payload_cpu / plain_cpu:.1%}; load {load_1min:.2f}")
     print(f"  {met} of {total} targets met")
+
+
+def rows(framesets: int = 120, repeats: int = 3) -> list[Row]:
+    """The results table's rows: every target of :func:`print_targets` (frames/s against pyrealsense2, and the
+    plain-read share), on the short recordings only (the long ones serve the memory table)."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    with tempfile.TemporaryDirectory(prefix="darp-bag-bench-") as tmp:
+        files = {(c, framesets): write_recording(Path(tmp) / f"{c}_{framesets}.bag", c, framesets)
+                 for c in ("lz4", "none")}
+        summary = speed_table(files, framesets, repeats)
+    out = []
+    ratio_target = Target("ratio", ">=", TARGET_RATIO, "bag_read.py TARGET_RATIO")
+    for compression in ("lz4", "none"):
+        for label, read in READS.items():
+            for mode in ("copy", "view"):
+                out.append(row("bag_read", f"{FILES[compression]} bag, {read}, consumer {mode}", "frames/s",
+                               summary[compression, label, mode, "darp", "frames/s"],
+                               summary[compression, label, mode, RS2, "frames/s"], RS2, ratio_target))
+    _, payload, _, _, _ = summary["none", "all", "copy", "darp"]
+    plain, _ = summary["none", "plain"]
+    out.append(row("bag_read", "uncompressed bag, all four streams, consumer copy: payload vs plain read", "MB/s",
+                   payload, plain, "plain read, 8 MiB blocks", Target("ratio", ">=", PLAIN_READ_SHARE,
+                                                                     "bag_read.py PLAIN_READ_SHARE")))
+    return out
 
 
 def memory_table(files: dict, framesets: int) -> None:

@@ -28,8 +28,9 @@ import numpy as np
 from darp.calibration import handeye
 from darp.calibration.captures import read_captures
 from darp.calibration.solve import METHODS, SolveSettings, solve_captures
-from darp.cli._calib_twin import capture_twin
 from darp.formats.calibration import read_calibration
+from darp.twin.calib_capture import capture_twin
+from results import Row, Target, row
 
 TARGETS = {"hand_eye_mm": 1.0, "hand_eye_deg": 0.1, "b2b_mm": 1.0, "b2b_deg": 0.05, "dq_deg": 0.05,
            "heldout_mm": 1.0}
@@ -60,22 +61,17 @@ def _row(name: str, t: dict, held: dict | None) -> dict[str, float]:
     return row
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
-    parser.add_argument("--n", type=int, default=30, help="captures per arm")
-    parser.add_argument("--folds", type=int, default=5)
-    parser.add_argument("--cache", type=Path, default=None, help="keep/reuse twin captures here")
-    args = parser.parse_args()
-    cache = args.cache or Path(tempfile.mkdtemp(prefix="darp-calib-bench-"))
-    cache.mkdir(parents=True, exist_ok=True)
+def measure(seeds: list[int], n: int, folds: int, cache: Path
+            ) -> tuple[dict[str, list[dict[str, float]]], list[tuple[int, float, float, float, float, float]]]:
+    """Capture (or reuse), solve and compare every seed; print the tables; returns the rows per method and the
+    times per seed (seed, capture, detection, darp solve, OpenCV alone, evaluation)."""
     rows: dict[str, list[dict[str, float]]] = {m: [] for m in METHODS}
     timing = []
-    for seed in args.seeds:
-        folder, t_capture = _captures(cache, seed, args.n)
+    for seed in seeds:
+        folder, t_capture = _captures(cache, seed, n)
         caps = read_captures(folder)
         truth = read_calibration(folder / "truth" / "calibration.json")
-        out = solve_captures(caps, SolveSettings(folds=args.folds, seed=seed), truth=truth)
+        out = solve_captures(caps, SolveSettings(folds=folds, seed=seed), truth=truth)
         obs = out.observations
         t0 = time.perf_counter()
         for arm in obs.arms:
@@ -92,7 +88,7 @@ def main() -> None:
 
     cols = ["hand_eye_mm", "hand_eye_deg", "b2b_mm", "b2b_deg", "dq_deg", "cam_mm", "heldout_arm110",
             "heldout_arm111"]
-    print(f"\nErrors against the twin's truth, {len(args.seeds)} seeds x 2 x {args.n} captures (median / max "
+    print(f"\nErrors against the twin's truth, {len(seeds)} seeds x 2 x {n} captures (median / max "
           "over seeds; hand-eye = worse arm)")
     print(f"{'method':22s}" + "".join(f"{c:>22s}" for c in cols))
     for m in METHODS:
@@ -117,6 +113,51 @@ def main() -> None:
     solve = np.array([t[3] for t in timing])
     print(f"  darp solve median {np.median(solve):.2f} s (target <= 10 s), with detection "
           f"{np.median(solve + np.array([t[2] for t in timing])):.2f} s; cores: {os.cpu_count()}")
+    return rows, timing
+
+
+def rows(seeds: tuple[int, ...] = (0,), n: int = 30, folds: int = 5) -> list[Row]:
+    """The results table's rows: darp's joint refinement against OpenCV alone (hand-eye against calibrateHandEye,
+    base-to-base against calibrateRobotWorldHandEye), errors against the twin's truth with darp's targets, and
+    the solve time with its target (2 x 30 captures in 10 s on 2 cores)."""
+    with tempfile.TemporaryDirectory(prefix="darp-calib-bench-") as tmp:
+        by_method, timing = measure(list(seeds), n, folds, Path(tmp))
+
+    def median(method: str, column: str) -> float:
+        values = np.array([r.get(column, np.nan) for r in by_method[method]], dtype=float)
+        return float(np.nanmedian(values)) if not np.all(np.isnan(values)) else float("nan")
+
+    seed_list = f"seed{'s' if len(seeds) > 1 else ''} {','.join(map(str, seeds))}"
+    where = f"twin, realistic profile, {seed_list}, 2 x {n} captures"
+    peers = {"opencv_hand_eye": "OpenCV calibrateHandEye alone, best of 5 methods",
+             "opencv_robot_world": "OpenCV calibrateRobotWorldHandEye alone, best of 2"}
+    out = []
+    for column, unit, peer, what in (("hand_eye_mm", "mm", "opencv_hand_eye", "hand-eye error vs truth (worse arm)"),
+                                     ("hand_eye_deg", "deg", "opencv_hand_eye", "hand-eye error vs truth (worse arm)"),
+                                     ("b2b_mm", "mm", "opencv_robot_world", "base-to-base error vs truth"),
+                                     ("b2b_deg", "deg", "opencv_robot_world", "base-to-base error vs truth"),
+                                     ("heldout_arm110", "mm", "opencv_hand_eye", "held-out 3-D corner error, arm110"),
+                                     ("heldout_arm111", "mm", "opencv_hand_eye", "held-out 3-D corner error, arm111")):
+        limit = TARGETS["heldout_mm" if column.startswith("heldout") else column]
+        out.append(row("calibration", f"{what}, {where}", unit, median("darp", column), median(peer, column),
+                       peers[peer], Target("darp", "<=", limit, "issue 5")))
+    solve = float(np.median([t[3] for t in timing]))
+    opencv = float(np.median([t[4] for t in timing]))
+    out.append(row("calibration", f"time to solve, {where}", "s", solve, opencv,
+                   "OpenCV alone: 5 hand-eye methods + 2 robot-world", Target("darp", "<=", 10.0, "issue 5")))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
+    parser.add_argument("--n", type=int, default=30, help="captures per arm")
+    parser.add_argument("--folds", type=int, default=5)
+    parser.add_argument("--cache", type=Path, default=None, help="keep/reuse twin captures here")
+    args = parser.parse_args()
+    cache = args.cache or Path(tempfile.mkdtemp(prefix="darp-calib-bench-"))
+    cache.mkdir(parents=True, exist_ok=True)
+    measure(args.seeds, args.n, args.folds, cache)
     print(f"\ncaptures kept in {cache}")
 
 

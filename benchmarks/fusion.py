@@ -40,6 +40,10 @@ from darp.reconstruction.crop import EnvelopeCrop, support_mask
 from darp.reconstruction.fusion import FusionSettings, VoxelFusion
 from darp.reconstruction.mesh import ball_pivoting_mesh, mesh_arrays
 from helpers.synthetic_depth import D435_INTRINSICS, Scene, add_depth_noise, box, orbit_poses, table, to_z16
+from results import Row, Target, row
+
+FUSION_TARGET = Target("ratio", ">=", 2.0, "issue 7")  # fusion keyframes/s at least 2x Open3D's TSDF
+POINT_TO_MESH_TARGET = Target("darp", ">=", 1.0, "issue 7")  # point-to-mesh at least 1 M points/s
 
 CENTRE = np.array([0.01, 0.0, 0.05])
 
@@ -117,25 +121,21 @@ def memory_run(frames: list[PosedDepth], settings: FusionSettings, crop: Envelop
     tracemalloc.stop()
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=100)
-    parser.add_argument("--voxel", type=float, default=0.0015)
-    args = parser.parse_args()
-
+def measure(n_frames: int, voxel_m: float) -> dict[str, float | None]:
+    """Print the four parts of the report; returns the figures the results table compares."""
     t0 = time.perf_counter()
-    frames, obj = render_keyframes(args.frames)
+    frames, obj = render_keyframes(n_frames)
     print(f"rendered {len(frames)} keyframes 640x480 in {time.perf_counter() - t0:.1f} s (not timed below)")
-    settings = FusionSettings(voxel_size_m=args.voxel)
+    settings = FusionSettings(voxel_size_m=voxel_m)
     crop = EnvelopeCrop(tuple(CENTRE), 0.06, 0.10, table_z_m=0.0, margin_m=settings.envelope_margin_m,
                         table_margin_m=settings.table_margin_m)
 
     time_darp(frames[:5], settings, crop)  # warm caches (rays, imports)
     stream, final, result = time_darp(frames, settings, crop)
-    tsdf_raw, _ = time_tsdf(frames, args.voxel, None)
-    tsdf_masked, vbg_masked = time_tsdf(frames, args.voxel, crop)
+    tsdf_raw, _ = time_tsdf(frames, voxel_m, None)
+    tsdf_masked, vbg_masked = time_tsdf(frames, voxel_m, crop)
     n = len(frames)
-    print(f"\n1. fusion at {args.voxel * 1000:.1f} mm voxels, {n} keyframes "
+    print(f"\n1. fusion at {voxel_m * 1000:.1f} mm voxels, {n} keyframes "
           f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores: wall rates suffer when it is high)")
     print(f"   {'':52s} {'keyframes/s':>11s} {'per CPU-s':>10s}")
     rows = [("darp stream (backproject+filters+crop+accumulate)", n / stream.wall, n / stream.cpu),
@@ -148,7 +148,7 @@ def main() -> None:
         print(f"   darp stream / TSDF on {label}: {peer.wall / stream.wall:.1f}x wall, "
               f"{peer.cpu / stream.cpu:.1f}x CPU; incl. final step {peer.wall / (stream.wall + final.wall):.1f}x wall")
 
-    print("\n2. memory while streaming the keyframes three times (300 distinct frames)")
+    print(f"\n2. memory while streaming the keyframes three times ({3 * n} distinct frames)")
     memory_run(frames, settings, crop)
 
     fused = result.fused
@@ -161,6 +161,10 @@ def main() -> None:
     with Clock() as query:
         d = md.distances(held)
     m = len(held) / 1e6
+    figures: dict[str, float | None] = {
+        "darp_kf_s": n / stream.wall, "darp_kf_cpu": n / stream.cpu, "tsdf_raw_kf_s": n / tsdf_raw.wall,
+        "tsdf_raw_kf_cpu": n / tsdf_raw.cpu, "tsdf_masked_kf_s": n / tsdf_masked.wall,
+        "darp_mpts_s": m / query.wall, "darp_mpts_cpu": m / query.cpu, "libigl_mpts_s": None}
     print(f"\n3. point-to-mesh on {len(held):,} held-out-style points, mesh {len(mesh.triangles):,} triangles "
           f"(ball pivoting took {t_mesh:.1f} s)")
     print(f"   darp MeshDistance (Open3D RaycastingScene): {m / query.wall:.2f} M points/s, "
@@ -178,6 +182,7 @@ def main() -> None:
               f"{m / peer.cpu:.2f} M points per CPU-s")
         print(f"   ratio darp/libigl {peer.wall / query.wall:.1f}x wall, {peer.cpu / query.cpu:.1f}x CPU; "
               f"max disagreement {agree * 1e6:.2f} um")
+        figures["libigl_mpts_s"] = m / peer.wall
     print(f"   held-out median {np.median(d) * 1e3:.3f} mm, within 5 mm {100 * np.mean(d <= 0.005):.2f} %")
 
     truth_v, truth_t = mesh_arrays(obj)
@@ -191,6 +196,34 @@ def main() -> None:
     if acc_tsdf is not None:
         print(f"   TSDF (masked) surface points: {len(tsdf_pts):,} pts, median {acc_tsdf.median_m * 1e3:.3f} mm, "
               f"RMSE {acc_tsdf.rmse_m * 1e3:.3f} mm, p90 {acc_tsdf.p90_m * 1e3:.3f} mm")
+    figures["darp_median_mm"] = acc.median_m * 1e3
+    figures["tsdf_median_mm"] = acc_tsdf.median_m * 1e3 if acc_tsdf is not None else None
+    return figures
+
+
+def rows(frames: int = 60, voxel_m: float = 0.0015) -> list[Row]:
+    """The results table's rows: fusion against Open3D's TSDF (raw and darp-masked depth), point-to-mesh
+    against libigl, and both fusions' accuracy against the true surface."""
+    f = measure(frames, voxel_m)
+    scene = f"{frames} keyframes 640x480, {voxel_m * 1000:g} mm voxels"
+    cpu = f"per CPU-s: darp {f['darp_kf_cpu']:.1f}, TSDF {f['tsdf_raw_kf_cpu']:.1f}"  # steadier on a shared machine
+    return [row("fusion", f"fusion stream, {scene}", "keyframes/s", f["darp_kf_s"], f["tsdf_raw_kf_s"],
+                "Open3D VoxelBlockGrid TSDF, raw depth", FUSION_TARGET, note=cpu),
+            row("fusion", f"fusion stream, {scene}", "keyframes/s", f["darp_kf_s"], f["tsdf_masked_kf_s"],
+                "Open3D TSDF, depth masked by darp"),
+            row("fusion", "point-to-mesh, held-out points against the fused mesh", "M points/s", f["darp_mpts_s"],
+                f["libigl_mpts_s"], "libigl point_mesh_squared_distance", POINT_TO_MESH_TARGET,
+                note=f"darp {f['darp_mpts_cpu']:.2f} M points per CPU-s"),
+            row("fusion", "fused surface against the true mesh, median", "mm", f["darp_median_mm"],
+                f["tsdf_median_mm"], "Open3D TSDF (masked) surface points")]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--voxel", type=float, default=0.0015)
+    args = parser.parse_args()
+    measure(args.frames, args.voxel)
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ import argparse
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -65,7 +66,7 @@ def doosan_folder(real: Path, root: Path) -> Path:
 def twin_folder(cache: Path, seed: int, n: int, profile: str = "realistic") -> tuple[Path, Path]:
     from darp.calibration.anyarm_export import export_captures
     from darp.calibration.captures import read_captures
-    from darp.cli._calib_twin import capture_twin
+    from darp.twin.calib_capture import capture_twin
 
     native, generic = cache / f"twin-{profile}-{seed}-{n}", cache / f"twin-{profile}-{seed}-{n}-generic"
     if not (native / "captures.json").is_file():
@@ -75,7 +76,10 @@ def twin_folder(cache: Path, seed: int, n: int, profile: str = "realistic") -> t
     return native, generic
 
 
-def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray] | None = None) -> None:
+def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray] | None = None
+          ) -> dict[str, list[dict[str, Any] | None]]:
+    """Print each solver's k-fold held-out board consistency per fold seed; returns them (a failed split: None)."""
+    results: dict[str, list[dict[str, Any] | None]] = {}
     f = load_capture_folder(folder)
     dets, cams, _ = detect_folder(f)
     obs, _ = build_generic_observations(f, dets, cams)
@@ -95,8 +99,10 @@ def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray
                 r = heldout_consistency(obs, solve, centre, folds, s)
                 cells.append(f"{r['mm']['mean']:6.3f} / {r['mm']['max']:6.3f}, {r['deg']['mean']:5.3f} / "
                              f"{r['deg']['max']:5.3f}")
+                results.setdefault(name, []).append(r)
             except Exception as err:
                 cells.append(f"failed ({err})"[:40])
+                results.setdefault(name, []).append(None)
         row = f"{name:12s}" + "".join(f" | {c:37s}" for c in cells)
         if truth is not None:
             from darp.kinematics.transforms import pose_error
@@ -106,6 +112,7 @@ def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray
             row += f" | {1e3 * max(e[0] for e in errs):.3f} / {np.degrees(max(e[1] for e in errs)):.3f}"
         print(row)
     print()
+    return results
 
 
 def twin_path_equivalence(caps: object, generic: Path) -> None:
@@ -125,6 +132,57 @@ def twin_path_equivalence(caps: object, generic: Path) -> None:
     b2b = float(np.abs(native.params.T_ref_base[arms[-1]] - gen.params.T_ref_base[arms[-1]]).max())
     print(f"twin path: generic folder vs darp's solver (offsets at 0): hand-eye max |diff| {max(diffs):.2e}, "
           f"base-to-base {b2b:.2e} (matrix elements, m)")
+
+
+def _rows(data: str, by_solver: dict[str, list[dict[str, Any] | None]]) -> list[Any]:
+    """darp against the best OpenCV method: each solver's held-out board-centre distance (mean, and max, over the
+    withheld captures) averaged over the fold seeds; the best OpenCV method is the one with the least."""
+    from results import Target, row
+
+    target = Target("ratio", "<=", 1.0, "issue 13: at least as good as the best OpenCV method")
+    out = []
+    for stat in ("mean", "max"):
+        def figure(name: str, stat: str = stat) -> float:
+            runs = by_solver.get(name, [])
+            ok = [r["mm"][stat] for r in runs if r is not None]
+            return float(np.mean(ok)) if ok and len(ok) == len(runs) else float("nan")  # a failed split: none
+
+        peers = {name: figure(name) for name in by_solver if name != "darp"}
+        best = min(peers, key=lambda k: (np.isnan(peers[k]), peers[k]))
+        out.append(row("handeye", f"{data}: held-out board centre, {stat} over captures", "mm", figure("darp"),
+                       peers[best], f"OpenCV {best}, the best of {len(peers)}", target))
+    return out
+
+
+def rows(twin_seed: int = 7, n: int = 20, folds: int = 5, fold_seeds: int = 3) -> list[Any]:
+    """The results table's rows: on the real Doosan pairs (when shared/realdata holds them) and on a twin
+    capture run, darp's held-out board consistency against the best of OpenCV's hand-eye methods."""
+    from darp.calibration.captures import read_captures
+
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        if REAL_DEFAULT.is_dir():
+            out += _rows("real Doosan A0509 + D435, 31 captures",
+                         table(doosan_folder(REAL_DEFAULT, Path(tmp) / "doosan"), folds, fold_seeds))
+        native, generic = twin_folder(Path(tmp), twin_seed, n)
+        caps = read_captures(native)
+        out += _rows(f"twin, realistic profile, seed {twin_seed}, 2 x {n} captures",
+                     table(generic, folds, fold_seeds, _twin_truth(caps)))
+    return out
+
+
+def _twin_truth(caps: Any) -> dict[str, np.ndarray]:
+    """The generic solve's truth per arm: the image stream's hand-eye with joint 6's offset folded in."""
+    from darp.calibration.evaluate import effective_hand_eye
+    from darp.formats.calibration import read_calibration
+
+    true = read_calibration(caps.truth_calibration_path())
+    truth = {}
+    for arm in caps.arms:
+        rec = caps.for_arm(arm)[0]
+        truth[arm] = effective_hand_eye(true.arms[arm].T_wrist_cam, true.arms[arm].joint_offsets_rad) \
+            @ np.asarray(rec.T_depth_stream)
+    return truth
 
 
 def main() -> None:
@@ -151,21 +209,11 @@ def main() -> None:
             print(f"(no real data at {a.real})")
         if not a.no_twin:
             from darp.calibration.captures import read_captures
-            from darp.formats.calibration import read_calibration
 
             native, generic = twin_folder(cache, a.twin_seed, a.n, a.profile)
             caps = read_captures(native)
-            true = read_calibration(caps.truth_calibration_path())
-            # truth for the generic solve: the image stream's hand-eye with joint 6's offset folded in
-            from darp.calibration.evaluate import effective_hand_eye
-
-            truth = {}
-            for arm in caps.arms:
-                rec = caps.for_arm(arm)[0]
-                truth[arm] = effective_hand_eye(true.arms[arm].T_wrist_cam, true.arms[arm].joint_offsets_rad) \
-                    @ np.asarray(rec.T_depth_stream)
             print(f"== twin: seed {a.twin_seed}, {a.n} captures per arm, {a.profile} profile, images ==")
-            table(generic, a.folds, a.fold_seeds, truth)
+            table(generic, a.folds, a.fold_seeds, _twin_truth(caps))
             twin_path_equivalence(caps, generic)
 
 

@@ -20,6 +20,10 @@ import numpy as np
 
 from darp.kinematics import collision, ik, z1
 from darp.kinematics import transforms as tf
+from results import Row, Target, row
+
+FK_TARGET = Target("ratio", ">=", 5.0, "issue 3")  # batched FK at least 5x Pinocchio's per-call loop
+IK_TARGET = Target("darp", "<=", 2.0, "issue 3")  # IK median at most 2 ms per pose
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:
@@ -45,7 +49,8 @@ def pinocchio_model() -> tuple[object, object, int]:
     return model, model.createData(), frame_id
 
 
-def bench_fk(n: int) -> None:
+def bench_fk(n: int) -> dict[str, float]:
+    """Flange poses of ``n`` random configurations: darp's ``fk_batch`` and Pinocchio's loop (configurations/s)."""
     import pinocchio as pin
 
     Q = z1.random_configurations(n, np.random.default_rng(0))
@@ -77,9 +82,12 @@ def bench_fk(n: int) -> None:
     print(f"  darp fk, one call per pose    {1 / t_single:12,.0f} configurations/s")
     t_jac = best_time(lambda: z1.jacobian_batch(Q), 5)
     print(f"  darp jacobian_batch           {n / t_jac:12,.0f} configurations/s")
+    return {"darp": n / t_darp, "pinocchio": n / t_pin}
 
 
-def bench_ik(poses: int) -> None:
+def bench_ik(poses: int) -> dict[str, float]:
+    """IK on random reachable poses: median ms per pose of each method."""
+    medians = {}
     Q = z1.random_configurations(poses, np.random.default_rng(1))
     T = z1.fk_batch(Q)
     for label, kwargs in (("closed form (auto)", {}), ("damped least squares", {"method": "numeric"})):
@@ -94,11 +102,13 @@ def bench_ik(poses: int) -> None:
         print(f"  median {np.median(times) * 1e3:.3f} ms/pose (p95 {np.percentile(times, 95) * 1e3:.3f}; "
               f"target <= 2 ms), success {100 * len(ok) / count:.1f} %, max residual "
               f"{max(r.position_error_m for r in ok):.1e} m / {max(r.rotation_error_rad for r in ok):.1e} rad")
+        medians[label] = float(np.median(times)) * 1e3
     t_batch = best_time(lambda: ik.solve_ik_batch(T), 3)
     print(f"  solve_ik_batch (closed form)  {poses / t_batch:,.0f} poses/s")
     far = tf.make_transform(t=[1.5, 0.0, 0.3])
     t_fail = best_time(lambda: ik.solve_ik(far), 20)
     print(f"  unreachable target rejected in {t_fail * 1e3:.3f} ms")
+    return medians
 
 
 def bench_look_at(n: int) -> None:
@@ -128,6 +138,15 @@ def bench_collision(n: int) -> None:
     print(f"collision, {n} random configurations (with camera): self {t_self * 1e3:.2f} ms, "
           f"arm-arm {t_arms * 1e3:.2f} ms, arm-table {t_table * 1e3:.3f} ms per query; "
           f"{100 * hits:.1f} % of random in-limit configurations self-collide")
+
+
+def rows(n: int = 10_000, poses: int = 500) -> list[Row]:
+    """The results table's rows: batched FK against Pinocchio, IK median time against its target."""
+    fk, ik_ms = bench_fk(n), bench_ik(poses)
+    return [row("kinematics", f"FK, {n:,} random configurations", "configurations/s", fk["darp"], fk["pinocchio"],
+                "Pinocchio per-call loop", FK_TARGET),
+            *(row("kinematics", f"IK {label}, median per pose", "ms", ms,  # the target is on darp's default IK
+                  target=IK_TARGET if label.startswith("closed form") else None) for label, ms in ik_ms.items())]
 
 
 def main() -> None:

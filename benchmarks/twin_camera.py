@@ -35,6 +35,7 @@ from darp.twin.camera.sensor import TwinCamera, TwinCameraSettings
 from darp.twin.camera.spec import make_camera_spec
 from darp.twin.camera.stereo import StereoMatcher, StereoSettings
 from darp.twin.objects.board import add_charuco_board
+from results import Row, row
 
 FRAME_BUDGET_MS = 1000.0 / 30.0
 
@@ -95,19 +96,12 @@ def timed_ms(fn: Callable[[], object], repeats: int) -> tuple[float, float, floa
     return 1e3 * float(np.median(wall)), 1e3 * float(np.percentile(wall, 10)), 1e3 * float(np.median(cpu))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=30)
-    parser.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        help="llvmpipe and OpenCV threads (1: as in a camera worker on 2 cores)",
-    )
-    args = parser.parse_args()
-    n = args.repeats
-    os.environ.setdefault("LP_NUM_THREADS", "0" if args.threads <= 1 else str(args.threads))  # before any GL
-    cv2.setNumThreads(0 if args.threads <= 1 else args.threads)
+def measure(n: int, threads: int) -> dict[str, tuple[float, str, float]]:
+    """Print the stage and whole-camera tables (``n`` repeats each); returns darp's median ms, the peer's name and
+    the peer's ms of every line that has a peer."""
+    os.environ.setdefault("LP_NUM_THREADS", "0" if threads <= 1 else str(threads))  # before any GL
+    cv2.setNumThreads(0 if threads <= 1 else threads)
+    compared: dict[str, tuple[float, str, float]] = {}
 
     model, data = build_scene()
     spec = make_camera_spec()
@@ -191,7 +185,7 @@ def main() -> None:
     load = os.getloadavg()[0]
     print(
         f"{os.cpu_count()} CPUs, 1-min load average {load:.2f} at start (timings scale with contention), "
-        f"{args.threads} thread(s) for llvmpipe and OpenCV"
+        f"{threads} thread(s) for llvmpipe and OpenCV"
     )
     header = f"{'darp ms':>8s} {'p10 ms':>7s} {'cpu ms':>7s}   {'peer':22s} {'peer ms':>8s} {'ratio':>6s}"
     print(f"{'stage (640x480)':34s} {header}")
@@ -199,6 +193,8 @@ def main() -> None:
         ms, p10, cpu = timed_ms(fn, n)
         line = f"{name:34s} {ms:8.2f} {p10:7.2f} {cpu:7.2f}"
         print(line if peer_ms is None else f"{line}   {peer:22s} {peer_ms:8.2f} {peer_ms / ms:5.2f}x")
+        if peer_ms is not None:
+            compared[name] = (ms, peer, peer_ms)
     renderer.close()
 
     print()
@@ -234,10 +230,33 @@ def main() -> None:
             f"{FRAME_BUDGET_MS / ms:5.2f}x  {FRAME_BUDGET_MS / (2 * ms):.2f}, {FRAME_BUDGET_MS / (2 * p10):.2f}, "
             f"{FRAME_BUDGET_MS / cpu:.2f}"
         )
+        if settings is rig and not dropouts:
+            compared[f"whole camera, {name} (as TwinRig records)"] = (ms, "30 fps frame period", FRAME_BUDGET_MS)
     print(
         "CPU ms per capture by stage (realistic, no seg., dark dropouts): "
         + ", ".join(f"{k} {v:.2f}" for k, v in split.items())
     )
+    return compared
+
+
+def rows(repeats: int = 10, threads: int = 1) -> list[Row]:
+    """The results table's rows: each stage that has a peer (MuJoCo's CPU ray caster, the facts' reference
+    timings) and the whole camera as the twin's rig records against the 30 fps frame period; no target stated."""
+    return [row("twin_camera", f"{name}, 640x480, median", "ms", ms, peer_ms, peer)
+            for name, (ms, peer, peer_ms) in measure(repeats, threads).items()]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=30)
+    parser.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        help="llvmpipe and OpenCV threads (1: as in a camera worker on 2 cores)",
+    )
+    args = parser.parse_args()
+    measure(args.repeats, args.threads)
 
 
 if __name__ == "__main__":

@@ -51,6 +51,7 @@ from darp.acquisition.motion_check import ArmCollisionModel, envelope_obstacle
 from darp.acquisition.viewpoints import RELAXATIONS, Candidate, ViewpointPlanner, orbit_shape
 from darp.errors import TwinError
 from darp.kinematics.rig import Rig, load_rig
+from results import Row, Target, row
 
 LEVELS = (0.80, 0.90, 0.95)
 SPEED_RAD_S, QUINTIC, SETTLE_S = 0.6, 1.875, 0.5
@@ -237,8 +238,57 @@ def _median(values: list[Any]) -> str:
     return f"{np.median(v):.1f}" + (f" ({missing} never)" if missing else "")
 
 
+def measure(objects: list[str], n_placements: int, seed: int, samples: int, all_relaxations: bool = False,
+            settings: CoverageSettings | None = None) -> dict[str, list[dict[str, Any]]]:
+    """Plan and score every object at ``n_placements`` random placements; print the table; returns the runs."""
+    from darp.twin.objects.model import make_object
+
+    rig = load_rig()
+    rng = np.random.default_rng(seed)
+    results: dict[str, list[dict[str, Any]]] = {}
+    print("object         strategy  views  80%   90%   95%  (views, median)  t80 s  t90 s  t95 s  "
+          "cov/seeable  co-obs  time s  sup/seeable  co-obs sup")
+    for name in objects:
+        obj = make_object(name)
+        runs = [run_one(rig, obj, pl, samples, seed + k, all_relaxations, settings)
+                for k, pl in enumerate(placements(rig, obj.radius_m, obj.height_m, n_placements, rng))]
+        results[name] = runs
+        for strat in ("darp", "orbit", "random"):
+            r = [run["strategies"][strat] for run in runs]
+            print(f"{name:14s} {strat:8s} {np.median([x['views'] for x in r]):5.0f} "
+                  f"{_median([x['views_80'] for x in r]):>5s} {_median([x['views_90'] for x in r]):>5s} "
+                  f"{_median([x['views_95'] for x in r]):>5s}                  "
+                  f"{_median([x['time_80_s'] for x in r]):>6s} {_median([x['time_90_s'] for x in r]):>6s} "
+                  f"{_median([x['time_95_s'] for x in r]):>6s}  "
+                  f"{np.median([x['coverage_of_seeable'] for x in r]) * 100:10.1f}  "
+                  f"{np.median([x['co_observed'] for x in r]) * 100:5.1f}  {np.median([x['time_s'] for x in r]):6.1f}"
+                  f"  {np.median([x['supported_of_seeable'] for x in r]) * 100:10.1f}"
+                  f"  {np.median([x['co_observed_supported'] for x in r]) * 100:9.1f}")
+        sys.stdout.flush()
+    return results
+
+
+def rows(objects: tuple[str, ...] = ("mug", "cup", "picture_frame"), n_placements: int = 2, seed: int = 0,
+         samples: int = 4000) -> list[Row]:
+    """The results table's rows, per object (medians over its placements): darp's coverage planner against the
+    paper's fixed orbit in tour time (target: at most 1.5x the orbit's, issue 14) and in coverage of the
+    surface any feasible camera pose can see."""
+    out = []
+    for name, runs in measure(list(objects), n_placements, seed, samples).items():
+        def median(strategy: str, key: str, runs: list[dict[str, Any]] = runs) -> float:
+            return float(np.median([run["strategies"][strategy][key] for run in runs]))
+
+        where = f"{name}, {n_placements} random placements"
+        out.append(row("viewpoints", f"tour time (rig), {where}", "s", median("darp", "time_s"),
+                       median("orbit", "time_s"), "the paper's fixed orbit", Target("ratio", "<=", 1.5, "issue 14")))
+        out.append(row("viewpoints", f"coverage of the seeable surface, {where}", "%",
+                       100 * median("darp", "coverage_of_seeable"), 100 * median("orbit", "coverage_of_seeable"),
+                       "the paper's fixed orbit"))
+    return out
+
+
 def main() -> None:
-    from darp.twin.objects.model import OBJECT_NAMES, make_object
+    from darp.twin.objects.model import OBJECT_NAMES
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--objects", default=",".join(OBJECT_NAMES))
@@ -254,28 +304,7 @@ def main() -> None:
     a = p.parse_args()
     kw = {k: v for k, v in (("support_views", a.support_views), ("max_views", a.max_views)) if v is not None}
     settings = CoverageSettings(**kw)
-    rig = load_rig()
-    rng = np.random.default_rng(a.seed)
-    results: dict[str, list[dict[str, Any]]] = {}
-    print("object         strategy  views  80%   90%   95%  (views, median)  t80 s  t90 s  t95 s  "
-          "cov/seeable  co-obs  time s  sup/seeable  co-obs sup")
-    for name in a.objects.split(","):
-        obj = make_object(name)
-        runs = [run_one(rig, obj, pl, a.samples, a.seed + k, a.all_relaxations, settings)
-                for k, pl in enumerate(placements(rig, obj.radius_m, obj.height_m, a.placements, rng))]
-        results[name] = runs
-        for strat in ("darp", "orbit", "random"):
-            r = [run["strategies"][strat] for run in runs]
-            print(f"{name:14s} {strat:8s} {np.median([x['views'] for x in r]):5.0f} "
-                  f"{_median([x['views_80'] for x in r]):>5s} {_median([x['views_90'] for x in r]):>5s} "
-                  f"{_median([x['views_95'] for x in r]):>5s}                  "
-                  f"{_median([x['time_80_s'] for x in r]):>6s} {_median([x['time_90_s'] for x in r]):>6s} "
-                  f"{_median([x['time_95_s'] for x in r]):>6s}  "
-                  f"{np.median([x['coverage_of_seeable'] for x in r]) * 100:10.1f}  "
-                  f"{np.median([x['co_observed'] for x in r]) * 100:5.1f}  {np.median([x['time_s'] for x in r]):6.1f}"
-                  f"  {np.median([x['supported_of_seeable'] for x in r]) * 100:10.1f}"
-                  f"  {np.median([x['co_observed_supported'] for x in r]) * 100:9.1f}")
-        sys.stdout.flush()
+    results = measure(a.objects.split(","), a.placements, a.seed, a.samples, a.all_relaxations, settings)
     if a.json is not None:
         a.json.write_text(json.dumps(results, indent=1))
 

@@ -43,7 +43,7 @@ def test_invalid_placements_are_refused_before_anything_moves(tmp_path: Path, ca
 
 
 def test_a_placement_just_inside_the_clearance_names_a_distance_below_it() -> None:
-    # the mushroom-like mesh of benchmarks/safety.py at 19.6 mm from arm111's shoulder motor read "20 mm from"
+    # the mushroom-like mesh of studies/safety.py at 19.6 mm from arm111's shoulder motor read "20 mm from"
     import re
 
     cup = make_object("cup")

@@ -1,7 +1,7 @@
 """The autonomous survey on the digital twin (realistic profile): accuracy, safety and clean endings.
 
 Reduced frame rate and resolution (6 fps, 424x240) keep the surveys short; the full sweep over the ten
-objects at ten placements each is ``benchmarks/acquisition.py``.
+objects at ten placements each is ``studies/acquisition.py``.
 """
 
 from __future__ import annotations

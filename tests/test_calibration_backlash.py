@@ -150,8 +150,8 @@ def test_eq1_model_hands_the_backlash_to_the_log_and_paper_mode_ignores_it() -> 
 
 @pytest.mark.slow
 def test_twin_captures_record_the_direction_of_the_move_that_brought_the_arm(tmp_path) -> None:
-    from darp.cli._calib_twin import capture_twin
     from darp.kinematics.rig import load_rig
+    from darp.twin.calib_capture import capture_twin
 
     caps = capture_twin(tmp_path / "caps", seed=2, profile="ideal", n_per_arm=4, resolution=(424, 240))
     rig = load_rig()

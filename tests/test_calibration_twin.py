@@ -17,9 +17,9 @@ import pytest
 from darp.calibration.captures import read_captures
 from darp.calibration.check import check_calibration
 from darp.calibration.solve import SolveSettings, solve_captures
-from darp.cli._calib_twin import capture_twin
 from darp.formats.calibration import read_calibration, write_calibration
 from darp.kinematics.transforms import axis_angle_to_rotation, make_transform
+from darp.twin.calib_capture import capture_twin
 from helpers.calibration_synthetic import shared_once
 
 pytestmark = pytest.mark.slow

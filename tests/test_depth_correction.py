@@ -155,7 +155,7 @@ def test_captures_store_depth_and_folders_without_it_still_read(tmp_path: Path) 
 # -- on the twin: a small capture set whose cameras have known depth errors ---------------------------------
 @pytest.fixture(scope="module")
 def twin_depth_captures(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
-    from darp.cli._calib_twin import capture_twin
+    from darp.twin.calib_capture import capture_twin
     from darp.twin.settings import DepthErrorSettings, TwinSettings
 
     settings = TwinSettings.from_profile("realistic", seed=5)

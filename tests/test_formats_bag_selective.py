@@ -14,8 +14,8 @@ import pytest
 from darp.formats.realsense.bag.reader import BagRecording
 from darp.reconstruction.keyframe_io import frameset_at
 from helpers.bag_samples import write_sample
-from helpers.benchmark_modules import load_benchmark
 from helpers.realsense_playback import play_back
+from helpers.script_modules import load_study
 
 IMAGES = ("depth", "color", "ir1", "ir2")
 
@@ -85,11 +85,11 @@ def test_frame_table_asks_for_no_uncompressed_chunk(tmp_path: Path, compression:
 
 
 def _evict(path: Path) -> None:
-    load_benchmark("process_io").evict([path])
+    load_study("process_io").evict([path])
 
 
 def _cached_bytes(path: Path) -> int:
-    return int(load_benchmark("process_io").cached_bytes([path]))
+    return int(load_study("process_io").cached_bytes([path]))
 
 
 @pytest.mark.skipif(shutil.which("fincore") is None or not hasattr(os, "posix_fadvise"), reason="needs fincore")

@@ -87,9 +87,9 @@ def test_missing_causes_on_the_tiny_survey(processed_path: Path, survey_path: Pa
 
 
 def test_the_benchmark_row_reads_results_json() -> None:
-    from helpers.benchmark_modules import load_benchmark
+    from helpers.script_modules import load_study
 
-    bench = load_benchmark("missing_by_cause")
+    bench = load_study("missing_by_cause")
     results = {"object": "mug", "clouds": {"fused": 1234},
                "heldout": {"aggregate": {"median_mm": 0.5, "rmse_mm": 1.0, "within_10mm_pct": 99.5}},
                "cross_arm": {"directions": [{"co_observed_pct": 12.0}, {"co_observed_pct": 9.5}]},

@@ -161,8 +161,8 @@ def capture_command(
             bar.update(task, advance=1, description=f"capturing {arm}")
 
         if twin:
-            from darp.cli._calib_twin import capture_twin
             from darp.kinematics.rig import load_rig
+            from darp.twin.calib_capture import capture_twin
 
             settings = twin_settings(profile, seed, settings_file)
             caps = capture_twin(out, seed=settings.seed, profile=settings.profile, settings=settings,

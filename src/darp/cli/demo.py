@@ -49,6 +49,8 @@ def demo_command(
     settings_file: SettingsFile = None,
 ) -> None:
     """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores)."""
+    from darp.twin.placement import seeded_placements  # numpy and the kinematics load only when the demo runs
+
     started = time.monotonic()
     twin_args: list[Any] = ["--profile", profile.value]
     label = profile.value
@@ -74,7 +76,7 @@ def demo_command(
 
     _step(f"2/4 autonomous surveys of {', '.join(names)} at {fps} fps (same twin rig, seed {seed})")
     surveys = []
-    for name, (x_m, y_m, yaw_deg) in zip(names, _placements(seed, len(names)), strict=True):
+    for name, (x_m, y_m, yaw_deg) in zip(names, seeded_placements(seed, len(names)), strict=True):
         folder = surveys_dir / name
         if not folder.exists():
             # The same seed as the calibration: the same true rig (its errors), another placement.
@@ -93,15 +95,6 @@ def demo_command(
     _print_summary(calib_dir, processed)
     typer.secho(f"\ndemo finished in {time.monotonic() - started:.0f} s; report: {processed / 'report.html'}",
                 bold=True)
-
-
-def _placements(seed: int, count: int) -> list[tuple[float, float, float]]:
-    """Object placements anywhere near the middle of the shared workspace, any yaw (seeded)."""
-    import numpy as np
-
-    rng = np.random.default_rng([seed, 7])
-    return [(float(rng.uniform(-0.08, 0.08)), float(rng.uniform(-0.12, 0.12)), float(rng.uniform(0.0, 360.0)))
-            for _ in range(count)]
 
 
 def _load(path: Path) -> dict[str, Any]:

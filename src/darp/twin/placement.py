@@ -68,4 +68,13 @@ def validate_placement(rig: Any, radius_m: float, height_m: float, placement: An
                         f"workspace's {ws.z_range_m[1] * 1000:.0f} mm")
 
 
-__all__ = ["PLACEMENT_CLEARANCE_M", "validate_placement"]
+def seeded_placements(seed: int, count: int) -> list[tuple[float, float, float]]:
+    """``count`` object placements ``(x_m, y_m, yaw_deg)`` near the middle of the shared workspace, any yaw,
+    drawn from ``seed`` (``darp demo``'s placements; the studies reuse them to survey what the demo surveys).
+    Not validated: :func:`validate_placement` refuses a bad one when the twin is built."""
+    rng = np.random.default_rng([seed, 7])
+    return [(float(rng.uniform(-0.08, 0.08)), float(rng.uniform(-0.12, 0.12)), float(rng.uniform(0.0, 360.0)))
+            for _ in range(count)]
+
+
+__all__ = ["PLACEMENT_CLEARANCE_M", "seeded_placements", "validate_placement"]

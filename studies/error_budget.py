@@ -8,7 +8,7 @@ then ``solve_captures`` with each ``--models`` entry (5-fold held-out; no OpenCV
 per solve (``solve_<model>.json``: held-out median 3-D corner error per arm of the paper model, "darp",
 and of the richer one, "darp_model") and a table on stdout. Existing captures and solves are reused.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/error_budget.py --work /tmp/budget --seeds 0,1 \\
+    MUJOCO_GL=egl .venv/bin/python studies/error_budget.py --work /tmp/budget --seeds 0,1 \\
         --sources paper,no_backlash,no_unmodelled --models kinematic+compliance,kinematic+compliance+backlash
 
 Results: docs/accuracy.md, "Error budget of the richer model, and backlash".
@@ -27,7 +27,7 @@ import numpy as np
 
 from darp.calibration.captures import read_captures
 from darp.calibration.solve import SolveSettings, solve_captures
-from darp.cli._calib_twin import capture_twin
+from darp.twin.calib_capture import capture_twin
 from darp.twin.settings import TwinSettings, paper_profile
 
 SOURCES = ("paper", "no_backlash", "no_repeat", "no_encoder", "no_intrinsics", "no_images", "no_sync",

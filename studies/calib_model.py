@@ -15,7 +15,7 @@ richer model, then N pool captures per arm are added either by the greedy D-opti
 (:mod:`darp.calibration.plan_model`, which sees only the pool's joint configurations) or at random
 (``--random-draws`` draws), and each calibration is scored on the test set (median 3-D corner error).
 
-    .venv/bin/python benchmarks/calib_model.py CAPTURES [--models paper,kinematic,kinematic+compliance+backlash]
+    .venv/bin/python studies/calib_model.py CAPTURES [--models paper,kinematic,kinematic+compliance+backlash]
         [--plan 6 --base 8 --test 12 --random-draws 3] [--json out.json]
 """
 

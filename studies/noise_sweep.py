@@ -10,7 +10,7 @@ threshold (``keyframes.noise_factor: 0``) and once with the defaults (threshold 
 Printed per noise level and mode: measured speed noise, threshold, settled frames and keyframes per
 arm, held-out median / RMSE / within 10 mm, or the failure line.
 
-    .venv/bin/python benchmarks/noise_sweep.py [--noise-deg 0.005,0.02,0.05,0.08] [--seed 11]
+    .venv/bin/python studies/noise_sweep.py [--noise-deg 0.005,0.02,0.05,0.08] [--seed 11]
         [--bias-deg 3] [--keep DIR]
 """
 
@@ -48,7 +48,7 @@ def record(folder: Path, noise_deg: float, seed: int, bias_deg: float) -> None:
 
 
 def process(survey: Path, out: Path, fixed: bool) -> dict[str, Any]:
-    args = [sys.executable, "-c", "from darp.cli import main; main()", "process", str(survey),
+    args = [sys.executable, "-m", "darp", "process", str(survey),
             "-c", str(survey / "truth" / "calibration.json"), "--out", str(out)]
     if fixed:
         settings = out.parent / f"{out.name}.yaml"

@@ -12,7 +12,7 @@ stream with their payload bytes, LZ4 chunks decoded. ``--hash`` prints the sha25
 (``results.json`` and ``stages.json`` without their timings), to check that a change to the reader leaves
 the outputs byte-identical.
 
-    .venv/bin/python benchmarks/process_io.py [SURVEY ...] [--out DIR] [--warm] [--json out.json] [--hash]
+    .venv/bin/python studies/process_io.py [SURVEY ...] [--out DIR] [--warm] [--json out.json] [--hash]
 
 Without a survey it makes one tiny twin survey (424x240, 6 fps, 2 views per arm) in a temporary folder.
 
@@ -223,7 +223,7 @@ def main() -> None:
     work = Path(tempfile.mkdtemp(prefix="darp-process-io-"))
     if args.out is None:
         args.out = work / "processed"
-    if not args.surveys:  # `make bench` runs every benchmark without arguments: a tiny twin survey
+    if not args.surveys:  # without arguments: a tiny twin survey
         from darp.batch.generate import plan_surveys, record_generated
 
         (spec,) = plan_surveys(1, 0, ["mug"], views=2, fps=6, width=424, height=240)

@@ -12,7 +12,7 @@ of each stage, the survey's length, and the ratio survey seconds / processing se
 real rig, which records in real time: a ratio above 1 means processing keeps up with acquisition),
 plus the subprocess's peak resident memory (ru_maxrss) for both lengths: flat means streaming.
 
-    .venv/bin/python benchmarks/process.py [--cache DIR] [--lengths 30,60] [--fps 30] [--resolution 640x480]
+    .venv/bin/python studies/process.py [--cache DIR] [--lengths 30,60] [--fps 30] [--resolution 640x480]
 """
 
 from __future__ import annotations

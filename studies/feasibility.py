@@ -16,7 +16,7 @@ and prints per arm and geometry the views found and the refusals by reason (each
 calibration's differences from the nominal rig (base, the shoulder's height as the survey's calibration check
 measures it, hand-eye, joint zeros).
 
-    .venv/bin/python benchmarks/feasibility.py --calibration CAL.json [--truth TRUTH.json]
+    .venv/bin/python studies/feasibility.py --calibration CAL.json [--truth TRUTH.json]
         (--survey SURVEY.rejected | --object mug --placement X,Y,YAW) [--json out.json]
 """
 

@@ -8,9 +8,9 @@ written intrinsics' focal error; used here only for evaluation). Printed per cam
 its standard errors, and the error of the corrected depth at 0.3 .. 0.7 m, with and without the
 colour focal error that PnP's range inherits.
 
-    .venv/bin/python benchmarks/depth_correction.py [CAPTURES] [--json out.json]
+    .venv/bin/python studies/depth_correction.py [CAPTURES] [--json out.json]
 
-Without CAPTURES (``make bench``) it first captures 20 per arm on the twin's paper profile, seed 0
+Without CAPTURES it first captures 20 per arm on the twin's paper profile, seed 0
 (about two minutes), into a temporary folder.
 """
 
@@ -63,7 +63,7 @@ def main() -> None:
     if args.captures is None:
         import tempfile
 
-        from darp.cli._calib_twin import capture_twin
+        from darp.twin.calib_capture import capture_twin
 
         args.captures = Path(tempfile.mkdtemp(prefix="darp-depthcorr-")) / "captures"
         print(f"capturing 20 per arm on the twin (paper profile, seed 0) into {args.captures}")

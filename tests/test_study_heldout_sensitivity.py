@@ -1,4 +1,4 @@
-"""benchmarks/heldout_sensitivity.py on the session's processed tiny twin survey: the baseline reproduces the
+"""studies/heldout_sensitivity.py on the session's processed tiny twin survey: the baseline reproduces the
 pipeline's own held-out distances; injected errors are seeded, change what they should, and bad input is named."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from helpers.benchmark_modules import load_benchmark
+from helpers.script_modules import load_study
 
 
 @pytest.fixture(scope="module")
 def sensitivity() -> ModuleType:
-    return load_benchmark("heldout_sensitivity")
+    return load_study("heldout_sensitivity")
 
 
 def _recorded_mm(processed: Path) -> np.ndarray:

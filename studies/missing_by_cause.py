@@ -7,7 +7,7 @@ missing samples x the missing share; see docs/processing.md section 8), the fuse
 against the true mesh, the held-out figures and the cross-arm co-observed share. Surveys without
 ``truth.seeable`` (no recorded feasible poses, or not a twin survey) are skipped with a note.
 
-    python benchmarks/missing_by_cause.py processed/ [processed-variant/ ...]
+    python studies/missing_by_cause.py processed/ [processed-variant/ ...]
 """
 
 from __future__ import annotations

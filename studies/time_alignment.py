@@ -7,9 +7,9 @@ poses (``truth/camera_poses_<arm>.npz``, evaluation only) for moving frames (lar
 0.15 rad/s) and settled frames, with the offset at 0 (paper mode), at the estimate, and at each
 ``--offset-ms`` given (e.g. the twin's true latency, 5 ms on the paper profile).
 
-    .venv/bin/python benchmarks/time_alignment.py SURVEY CALIBRATION [--offset-ms 5] [--json out.json]
+    .venv/bin/python studies/time_alignment.py SURVEY CALIBRATION [--offset-ms 5] [--json out.json]
 
-Without arguments (``make bench``) it says what it needs and exits: recording a paper-profile survey
+Without arguments it says what it needs and exits: recording a paper-profile survey
 takes several minutes (``darp collect mug --twin --profile paper --fps 6``).
 """
 

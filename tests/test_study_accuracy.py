@@ -1,4 +1,4 @@
-"""benchmarks/accuracy.py's argument, mode and table logic (no darp run: cheap)."""
+"""studies/accuracy.py's argument, mode and table logic (no darp run: cheap)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from types import ModuleType
 
 import pytest
 
-from helpers.benchmark_modules import load_benchmark
+from helpers.script_modules import load_study
 
 
 @pytest.fixture(scope="module")
 def accuracy() -> ModuleType:
-    return load_benchmark("accuracy")
+    return load_study("accuracy")
 
 
 def test_modes_parse_in_a_fixed_order_and_reject_unknown(accuracy: ModuleType) -> None:

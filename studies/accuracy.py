@@ -6,7 +6,7 @@ On the twin's ``paper`` error profile, per seed: the rig is calibrated from simu
 calibration model also gets ``darp calib solve --model kinematic+compliance+backlash`` when this darp's CLI offers
 ``--model``), each object is surveyed once (``darp collect --twin``, placements seeded as in ``darp demo``)
 and the SAME surveys are processed once per mode (``darp process --corrections SPEC``). Every step is a darp
-command in its own interpreter (the helpers of benchmarks/robustness.py), timed.
+command in its own interpreter (the helpers of studies/robustness.py), timed.
 
 Modes map to ``--corrections`` specs: ``paper`` (none: poses from calibration and kinematics, as the
 paper), ``kinematics``, ``time``, ``depth``, ``refine``, ``table``, ``fusion``, ``mesh`` (one
@@ -21,12 +21,12 @@ p90, % within 5 / 10 mm), the fused cloud's accuracy (median distance to the tru
 removing the world gauge: docs/accuracy.md "Accuracy against truth") and completeness
 (% of the seen true surface within 5 mm), keyframe pose error against the true poses (median translation),
 and the seconds of each step (calibration solve, processing, refinement). A plot (``--plot``) shows the
-main figures per mode with the issue's targets.
+main figures per mode with the issue's targets. Both default to ``.bench/accuracy/`` (ignored by git).
 
-    .venv/bin/python benchmarks/accuracy.py [--objects mug,ketchup] [--seeds 0] [--fps 6]
+    .venv/bin/python studies/accuracy.py [--objects mug,ketchup] [--seeds 0] [--fps 6]
         [--resolution 640x480] [--captures 20] [--modes paper,kinematics,time,depth,refine,all]
-        [--reuse DIR] [--work DIR] [--json accuracy.json] [--plot accuracy.png]
-    .venv/bin/python benchmarks/accuracy.py --from-json accuracy.json --plot accuracy.png
+        [--reuse DIR] [--work DIR] [--json FILE] [--plot PNG]
+    .venv/bin/python studies/accuracy.py --from-json a.json b.json [--plot PNG]
 
 ``--reuse DIR`` takes one seed's captures, calibration and surveys from ``DIR`` (``captures/``,
 ``calibration.json``, ``surveys/<object>``, as a seed folder of this script is laid out) instead of making them;
@@ -92,7 +92,7 @@ def model_supported(help_text: str) -> bool:
 
 def calib_solve_help() -> str:
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    done = subprocess.run([sys.executable, "-c", "from darp.cli import main; main()", "calib", "solve", "--help"],
+    done = subprocess.run([sys.executable, "-m", "darp", "calib", "solve", "--help"],
                           env=env, capture_output=True, text=True, check=False)
     return done.stdout + done.stderr
 
@@ -327,6 +327,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig.suptitle("darp accuracy by correction mode, twin paper profile (green: issue 16 target; grey: no effect)",
                  fontsize=9)
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
 
 
@@ -341,8 +342,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reuse", type=Path, default=None,
                         help="take captures/, calibration.json and surveys/<object> of ONE seed from this folder")
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one, kept)")
-    parser.add_argument("--json", type=Path, default=Path("accuracy.json"))
-    parser.add_argument("--plot", type=Path, default=Path("accuracy.png"))
+    parser.add_argument("--json", type=Path, default=ROOT / ".bench" / "accuracy" / "accuracy.json")
+    parser.add_argument("--plot", type=Path, default=ROOT / ".bench" / "accuracy" / "accuracy.png")
     parser.add_argument("--from-json", type=Path, nargs="+", default=None,
                         help="no runs: table and plot of --json files")
     args = parser.parse_args(argv)
@@ -365,6 +366,7 @@ def main(argv: list[str] | None = None) -> None:
     for seed in seeds:
         rows += run_seed(seed, objects, modes, args, work, supported)
         mark_effects(rows)
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(rows, indent=1))
     print(f"\npaper profile, fps {args.fps}, resolution {args.resolution}, {args.captures} captures per arm, "
           f"objects {', '.join(objects)}")

@@ -16,7 +16,7 @@ updates, kinematics, joint log, pipes). On N free cores the RTF cannot exceed N 
 / CPU seconds: that is the "2 free cores" estimate. Memory: the resident-set high-water marks of a
 short and a long recording (flat means the recording streams to disk).
 
-    .venv/bin/python benchmarks/twin.py [--seconds 2] [--long 6] [--repeats 2] [--resolution 640x480]
+    .venv/bin/python studies/twin.py [--seconds 2] [--long 6] [--repeats 2] [--resolution 640x480]
 """
 
 from __future__ import annotations

@@ -1,10 +1,11 @@
-"""Calibration captures on the digital twin (the glue between darp.calibration and darp.twin).
+"""Calibration captures on the digital twin (darp.calibration's capture plan run on darp.twin's rig).
 
-Builds the twin with a ChArUco board lying face up on the table, plans the captures on the *nominal*
-rig, runs them on :class:`darp.twin.rig_backend.TwinRig` and writes the capture folder plus
-``truth/`` (the twin's true calibration, its settings and the board pose), which ``darp calib solve``
-uses to report errors against truth. ``mount_offsets`` moves camera mounts (in the flange frame) to
-simulate a knocked camera for ``darp calib check``.
+Used by ``darp calib capture --twin``, the benchmarks, the studies and the tests. Builds the twin with a
+ChArUco board lying face up on the table, plans the captures on the *nominal* rig, runs them on
+:class:`darp.twin.rig_backend.TwinRig` and writes the capture folder plus ``truth/`` (the twin's true
+calibration, its settings and the board pose), which ``darp calib solve`` uses to report errors against
+truth. ``mount_offsets`` moves camera mounts (in the flange frame) to simulate a knocked camera for
+``darp calib check``.
 """
 
 from __future__ import annotations

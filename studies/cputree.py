@@ -1,4 +1,4 @@
-"""CPU accounting of a process tree (benchmarks/batch.py): this process, Ray's processes, workers, forkservers.
+"""CPU accounting of a process tree (studies/batch.py): this process, Ray's processes, workers, forkservers.
 
 A process that exits is counted through its parent's children times once its parent reaps it (a
 forkserver reaps its survey processes, the raylet its workers), so a snapshot of the live tree holds the

@@ -26,14 +26,14 @@ scaling efficiency from 1 to 2 workers (``T1 / (2 * T2)``, target >= 90 %) next 
 and split into its factors (a survey's slowdown and CPU with two at once, the workers' balance, the
 share of the batch spent in surveys), and the **CPU accounting** of every run: CPU-seconds of every
 process of the tree by role (this driver, gcs_server, raylet, dashboard, monitors, agents, workers,
-forkservers, the survey processes; ``benchmarks/cputree.py``), and per survey, inside its process, the
+forkservers, the survey processes; ``studies/cputree.py``), and per survey, inside its process, the
 CPU of its main thread and of the other threads, and the CPU its process used before the call.
 
-    .venv/bin/python benchmarks/batch.py [--surveys 4] [--seed 0] [--resolution 424x240] [--fps 6] [--views 2]
+    .venv/bin/python studies/batch.py [--surveys 4] [--seed 0] [--resolution 424x240] [--fps 6] [--views 2]
         [--threads 1] [--work DIR] [--json results.json] [--no-compare] [--only-ray]
 
 The idle-machine reference run (docs/scaling.md) is
-``benchmarks/batch.py --resolution 640x480 --fps 15 --views 3 --work /tmp/darp-batch`` (a second run
+``studies/batch.py --resolution 640x480 --fps 15 --views 3 --work /tmp/darp-batch`` (a second run
 with the same ``--work`` skips making the surveys).
 """
 
@@ -78,8 +78,7 @@ from darp.batch.threads import limit_threads, thread_env  # noqa: E402  (imports
 os.environ.update(thread_env(THREADS))
 
 _t0 = time.perf_counter()
-from cputree import RAY_OWN, CpuTree, delta, timed_process_one  # noqa: E402  (benchmarks/cputree.py)
-
+from cputree import RAY_OWN, CpuTree, delta, timed_process_one  # noqa: E402  (studies/cputree.py)
 from darp.batch.executor import Executor, run_tasks  # noqa: E402
 from darp.batch.fresh import PRELOAD, idle  # noqa: E402
 from darp.batch.generate import plan_surveys, record_generated  # noqa: E402

@@ -5,7 +5,7 @@ Records a VGA D435-like .db3 (depth, colour, IR1, IR2; smooth depth with noise, 
 librealsense's recorder, PNG-compressed (its default) and uncompressed, then decodes every frame with
 both. Prints frames per second for darp and pyrealsense2, and their ratio.
 
-    .venv/bin/python benchmarks/bench_db3_reader.py [--frames 60]
+    .venv/bin/python benchmarks/db3_read.py [--frames 60]
 """
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # for the tests' helpers package
+
+from results import Row, row
 
 W, H = 640, 480
 
@@ -89,14 +91,14 @@ def time_pyrealsense(path: Path) -> tuple[int, float]:
     return sum(len(v) for v in played.frames.values()), time.perf_counter() - start
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=60)
-    args = parser.parse_args()
+def measure(frames: int) -> dict[str, tuple[float, float, float]]:
+    """Per file (PNG-compressed, uncompressed): darp's frames/s, pyrealsense2's, and pyrealsense2's without
+    its final end-of-file poll; each printed."""
+    out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for compress in (True, False):
             path = Path(tmp) / f"bench_{'png' if compress else 'raw'}.db3"
-            record(path, args.frames, compress)
+            record(path, frames, compress)
             n_darp, t_darp = time_darp(path)
             n_rs, t_rs = time_pyrealsense(path)
             # the peer's time includes its end-of-file wait (one 200 ms poll); report it both ways
@@ -105,6 +107,23 @@ def main() -> None:
             print(f"  darp        {darp_fps:8.1f} frames/s")
             print(f"  pyrealsense2 {rs_fps:7.1f} frames/s ({rs_fps_net:.1f} without its final 200 ms poll)")
             print(f"  ratio darp/pyrealsense2: {darp_fps / rs_fps:.2f} ({darp_fps / rs_fps_net:.2f})")
+            out["PNG-compressed" if compress else "uncompressed"] = (darp_fps, rs_fps, rs_fps_net)
+    return out
+
+
+def rows(frames: int = 60) -> list[Row]:
+    """The results table's rows: frames/s of each reader per file (no target stated; the peer's number is
+    without its final 200 ms end-of-file poll, the fairer of the two)."""
+    return [row("db3_read", f"{kind} .db3, VGA depth+colour+IR1+IR2, {frames} frame sets", "frames/s", darp,
+                rs_net, "pyrealsense2 playback")
+            for kind, (darp, _, rs_net) in measure(frames).items()]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=60)
+    args = parser.parse_args()
+    measure(args.frames)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ Peers, each printed as darp / peer / ratio: the paper's standoff per object agai
 paper's survey durations against ours, and the joint travel of the ordered views against the
 candidates' generation order.
 
-    .venv/bin/python benchmarks/acquisition.py [--placements 10] [--objects mug,cup] [--workers 2]
+    .venv/bin/python studies/acquisition.py [--placements 10] [--objects mug,cup] [--workers 2]
         [--fps 6] [--resolution 424x240] [--calibration truth|nominal] [--json results.json]
 """
 
@@ -77,7 +77,7 @@ def run_one(job: dict[str, Any]) -> dict[str, Any]:
         try:
             outcome = run_survey(twin, rig, out, name, calibration=cal, overwrite=True, object_name=obj.name)
             status, reason, message = outcome.status, outcome.reason, outcome.message
-        except Exception as err:  # an error is a result here, not the end of the benchmark
+        except Exception as err:  # an error is a result here, not the end of the study
             outcome, status, reason, message = None, "error", type(err).__name__, str(err)
         contacts = [(e.time_s, e.contact.arm_geom, e.contact.other_geom) for e in twin.contact_events]
         sim_s = twin.clock.now() - settings.timing.start_time_s

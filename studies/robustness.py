@@ -17,12 +17,12 @@ Per scale, printed as a table and written to ``--json``:
 - accuracy against truth: median distance of the fused cloud to the true mesh.
 
 A plot (``--plot``) shows the held-out median, % within 10 mm and truth accuracy against the error scale,
-with the paper's real-rig values as lines.
+with the paper's real-rig values as lines (default ``.bench/robustness/robustness.png``, ignored by git).
 
-    .venv/bin/python benchmarks/robustness.py [--scales 0.5,1,2,4] [--objects mug,ketchup,dumbbell,cup]
+    .venv/bin/python studies/robustness.py [--scales 0.5,1,2,4] [--objects mug,ketchup,dumbbell,cup]
         [--seeds 0] [--fps 6] [--resolution 640x480] [--captures 20] [--work DIR] [--keep]
-        [--json robustness.json] [--plot robustness.png]
-    .venv/bin/python benchmarks/robustness.py --from-json x1.json x4.json --plot robustness.png
+        [--json FILE] [--plot PNG]
+    .venv/bin/python studies/robustness.py --from-json x1.json x4.json [--plot PNG]
 
 The full sweep (4 scales x 4 objects x several seeds) takes hours on 2 cores; docs/twin.md reports
 ``--scales 4,1,2,0.5 --seeds 0 --resolution 424x240`` (6 fps), the reduced run made on a shared machine.
@@ -63,7 +63,7 @@ def darp(args: list[str], log: Path) -> int:
     with log.open("a") as handle:
         handle.write(f"\n$ darp {' '.join(args)}\n")
         handle.flush()
-        done = subprocess.run([sys.executable, "-c", "from darp.cli import main; main()", *args], env=env,
+        done = subprocess.run([sys.executable, "-m", "darp", *args], env=env,
                               stdout=handle, stderr=subprocess.STDOUT, check=False)
     return done.returncode
 
@@ -74,11 +74,11 @@ def last_error(log: Path) -> str:
 
 
 def placements(seed: int, count: int) -> list[tuple[float, float, float]]:
-    """The demo's seeded placements (darp.cli.demo._placements)."""
+    """The demo's seeded placements (:func:`darp.twin.placement.seeded_placements`)."""
     sys.path.insert(0, str(ROOT / "src"))
-    from darp.cli.demo import _placements
+    from darp.twin.placement import seeded_placements
 
-    return _placements(seed, count)
+    return seeded_placements(seed, count)
 
 
 def run_case(scale: float, seed: int, objects: list[str], args: argparse.Namespace, work: Path) -> dict[str, Any]:
@@ -262,6 +262,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
            for r in rows]
     fig.suptitle("darp robustness sweep (red: the paper's real-rig values)   " + "; ".join(acc), fontsize=8)
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
 
 
@@ -279,7 +280,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=None, help="work folder (default: a temporary one)")
     parser.add_argument("--keep", action="store_true", help="keep the work folder")
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument("--plot", type=Path, default=Path("robustness.png"))
+    parser.add_argument("--plot", type=Path, default=ROOT / ".bench" / "robustness" / "robustness.png")
     parser.add_argument("--from-json", type=Path, nargs="+", default=None,
                         help="no runs: print the table and plot of earlier --json files (e.g. scales run in parallel)")
     args = parser.parse_args()

@@ -1,4 +1,4 @@
-"""benchmarks/safety.py: its contact count is real (a deliberate collision is counted), its random valid
+"""studies/safety.py: its contact count is real (a deliberate collision is counted), its random valid
 placements pass the placement check, and each kind of invalid placement it draws is refused by ``darp
 collect`` with exit 2 before any joint command."""
 
@@ -11,7 +11,7 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from helpers.benchmark_modules import load_benchmark
+from helpers.script_modules import load_study
 
 pytest.importorskip("mujoco")
 
@@ -24,7 +24,7 @@ RIG = load_rig()
 
 @pytest.fixture(scope="module")
 def safety() -> ModuleType:
-    return load_benchmark("safety")
+    return load_study("safety")
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ Disparity errors become depth errors as in the twin (``z -> z / (1 + z e / (fx B
 is seeded per survey, arm, view and frame, so a run is reproducible. The baseline case (no error) reproduces
 the survey's own ``evaluation/heldout_distances.npz``.
 
-    .venv/bin/python benchmarks/heldout_sensitivity.py DEMO/processed/mug DEMO/processed/ketchup ... \\
+    .venv/bin/python studies/heldout_sensitivity.py DEMO/processed/mug DEMO/processed/ketchup ... \\
         --case pose=pose_mm:2,pose_deg:0.2 --case pixel=pixel_px:0.3 [--settings FILE] [--json OUT]
 
 Surveys are pooled per parent folder (one demo's ``processed/``), as ``darp demo`` pools its objects; each pool
@@ -176,7 +176,7 @@ def _job(processed: Path, settings: Any) -> Any:
 
 
 def paper() -> dict[str, float]:
-    """The paper's held-out figures this benchmark compares with (darp's own record of them)."""
+    """The paper's held-out figures this study compares with (darp's own record of them)."""
     from darp import paper
 
     return {key: float(paper.HELDOUT[key]) for key in FIGURES}

@@ -38,7 +38,7 @@ and ``TwinRig`` construction in the process is counted).
 
 Prints one line per survey and a summary; ``--json`` writes every row.
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/safety.py [--surveys 100] [--invalid 3] [--seed 0]
+    MUJOCO_GL=egl .venv/bin/python studies/safety.py [--surveys 100] [--invalid 3] [--seed 0]
         [--start 0] [--fps 6] [--resolution 424x240] [--profiles realistic,paper] [--solved-share 0.333]
         [--solved-pool 4] [--calib-captures 12] [--json safety.json] [--out DIR] [--self-check]
         [--dense-hz 1000] [--resume]
@@ -56,6 +56,7 @@ import json
 import math
 import os
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -210,9 +211,9 @@ def solved_calibration(out: Path, profile: str, twin_seed: int, *, captures: int
     (``calibration.json`` and ``solve.json``; the capture images are deleted once solved)."""
     from darp.calibration.captures import read_captures
     from darp.calibration.solve import SolveSettings, solve_captures
-    from darp.cli._calib_twin import capture_twin
     from darp.formats.atomic import write_json_atomic
     from darp.formats.calibration import read_calibration, write_calibration
+    from darp.twin.calib_capture import capture_twin
 
     folder = out / "calibrations" / f"{profile}_seed{twin_seed}"
     path, info_path = folder / "calibration.json", folder / "solve.json"
@@ -392,20 +393,21 @@ def counting_motion() -> Iterator[dict[str, int]]:
 
 
 def run_invalid(draw: dict[str, Any], meshes: dict[str, Path], out: Path) -> dict[str, Any]:
-    """``darp collect`` on the invalid placement, in this process: exit code, message, folders, joint commands."""
-    from darp.cli._app import run
-
+    """``darp collect`` on the invalid placement, as a child process (this script's ``--counted-darp``, which
+    counts every joint command and twin built in it): exit code, message, folders, joint commands."""
     obj = str(meshes[draw["object"]]) if draw["object"] in meshes else draw["object"]
     where = out / f"invalid_{draw['kind']}_{draw['index']}"
     where.mkdir(parents=True, exist_ok=True)
+    counts_file = out / f"invalid_{draw['kind']}_{draw['index']}.counts.json"  # beside the folder it checks
     argv = ["collect", "s", "--twin", "--object", obj, "--scale", str(draw["scale"]),
             f"--placement={draw['x_m']!r},{draw['y_m']!r},{draw['yaw_deg']!r}", "--out", str(where),
             "--fps", "6", "--resolution", "424x240", "--quiet"]
-    err = io.StringIO()
     t0 = time.perf_counter()
-    with counting_motion() as counts, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        code = run(argv)
-    message = err.getvalue().strip()
+    done = subprocess.run([sys.executable, __file__, "--counted-darp", str(counts_file), *argv],
+                          capture_output=True, text=True, check=False)
+    code, message = done.returncode, done.stderr.strip()
+    counts = json.loads(counts_file.read_text())
+    counts_file.unlink()
     folders = sorted(p.name for p in where.iterdir())
     shutil.rmtree(where, ignore_errors=True)
     refused = (code == 2 and message.startswith("darp: error:") and "\n" not in message and not folders
@@ -413,6 +415,23 @@ def run_invalid(draw: dict[str, Any], meshes: dict[str, Path], out: Path) -> dic
     return {**draw, "exit": code, "message": message, "folders": folders, "joint_commands": counts["move_to"],
             "twins_built": counts["twins"], "refused_before_motion": refused,
             "wall_s": round(time.perf_counter() - t0, 2)}
+
+
+def counted_darp(counts_file: Path, argv: list[str]) -> int:
+    """Child entry: the ``darp`` command on ``argv`` with every joint command and twin built counted into
+    ``counts_file`` (JSON), however the command ends."""
+    from darp.__main__ import main as darp_main
+
+    sys.argv = ["darp", *argv]
+    code: int | str | None = 0
+    with counting_motion() as counts:
+        try:
+            darp_main()
+        except SystemExit as end:
+            code = end.code
+        finally:
+            counts_file.write_text(json.dumps(counts))
+    return code if isinstance(code, int) else 1
 
 
 # -- the self-check -----------------------------------------------------------------------------------------
@@ -563,4 +582,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--counted-darp"]:
+        raise SystemExit(counted_darp(Path(sys.argv[2]), sys.argv[3:]))
     raise SystemExit(main())

@@ -15,7 +15,7 @@ Per keyframe it also prints, in the world the pipeline used, where the true tabl
 crop's floor (paper mode) or against the keyframe's fitted plane by distance from the envelope axis (with
 ``corrections.table``): a table that the fitted plane misses inside the envelope shows there.
 
-    .venv/bin/python benchmarks/heldout_tail.py SURVEY PROCESSED_SURVEY CALIBRATION [--corrections C]
+    .venv/bin/python studies/heldout_tail.py SURVEY PROCESSED_SURVEY CALIBRATION [--corrections C]
         [--truth-poses]
 
 ``PROCESSED_SURVEY`` is the survey's folder under ``darp process``'s output, processed with the same

@@ -1,4 +1,4 @@
-"""benchmarks/cputree.py: the CPU accounting of benchmarks/batch.py (roles, reaped children, exited processes)."""
+"""studies/cputree.py: the CPU accounting of studies/batch.py (roles, reaped children, exited processes)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ from types import ModuleType
 
 import pytest
 
-from helpers.benchmark_modules import load_benchmark
+from helpers.script_modules import load_study
 
 
 @pytest.fixture(scope="module")
 def cputree() -> ModuleType:
-    return load_benchmark("cputree")
+    return load_study("cputree")
 
 
 def test_roles_of_rays_processes(cputree: ModuleType) -> None:
@@ -64,10 +64,10 @@ def test_a_real_child_is_counted_alive_and_after_it_exits(cputree: ModuleType) -
 
 
 def test_process_io_hashes_outputs_without_their_timings(tmp_path: Path) -> None:
-    """benchmarks/process_io.py's byte-identity check: timings are ignored, anything else is not."""
+    """studies/process_io.py's byte-identity check: timings are ignored, anything else is not."""
     import json
 
-    process_io = load_benchmark("process_io")
+    process_io = load_study("process_io")
     runs = []
     for k, seconds in enumerate((1.5, 9.25)):
         folder = tmp_path / f"run{k}"

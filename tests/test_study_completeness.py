@@ -1,4 +1,4 @@
-"""benchmarks/completeness.py's seeds, rows and per-object summary, on processed results it finds (no darp
+"""studies/completeness.py's seeds, rows and per-object summary, on processed results it finds (no darp
 run: a survey whose results.json is already in --out is read, not redone)."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ from types import ModuleType
 import numpy as np
 import pytest
 
-from helpers.benchmark_modules import load_benchmark
+from helpers.script_modules import load_study
 
 
 @pytest.fixture(scope="module")
 def completeness() -> ModuleType:
-    return load_benchmark("completeness")
+    return load_study("completeness")
 
 
 def _results(out: Path, name: str, seeable: float, co: tuple[float, float], co_seeable: float) -> None:
@@ -95,5 +95,5 @@ def test_runs_side_by_side_merge_and_the_gallery_draws_each_objects_least_comple
 def test_from_json_names_a_file_that_is_not_a_campaign_run(completeness: ModuleType, tmp_path: Path) -> None:
     bad = tmp_path / "notes.json"
     bad.write_text('{"rows": []}')
-    with pytest.raises(SystemExit, match="notes.json: not a --json file of this benchmark"):
+    with pytest.raises(SystemExit, match="notes.json: not a --json file of this study"):
         completeness.main(["--from-json", str(bad)])

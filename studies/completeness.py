@@ -25,10 +25,10 @@ covers more than fusion's 1.5 mm voxel at the planner's standoffs, and surface s
 incidence (a picture frame's faces between the arms) loses fusion's support: 81.8 % of the seeable surface
 there against 99.8 % at 640x480 (docs/acquisition.md).
 
-    MUJOCO_GL=egl .venv/bin/python benchmarks/completeness.py [--objects mug,cup] [--placements 4]
+    MUJOCO_GL=egl .venv/bin/python studies/completeness.py [--objects mug,cup] [--placements 4]
         [--first-placement 0] [--seed 0] [--profile realistic] [--fps 6] [--resolution 640x480] [--corrections fusion]
         [--settings FILE] [--calibration FILE] [--viewpoints coverage] [--out DIR] [--json FILE] [--gallery PNG]
-    .venv/bin/python benchmarks/completeness.py --from-json a.json b.json [--gallery PNG]
+    .venv/bin/python studies/completeness.py --from-json a.json b.json [--gallery PNG]
 
 ``--from-json`` merges the rows of runs made side by side (a campaign split over workers) and prints their
 table and summary without running anything. ``--gallery`` draws, per object, the fused clouds of its least
@@ -136,7 +136,7 @@ def merged_rows(files: list[Path]) -> list[dict[str, Any]]:
                 r.setdefault("processed", str(out / "processed" / r["survey"]))
                 by_name[r["survey"]] = r
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise SystemExit(f"completeness: {f}: not a --json file of this benchmark ({exc})") from None
+            raise SystemExit(f"completeness: {f}: not a --json file of this study ({exc})") from None
     return sorted(by_name.values(), key=lambda r: int(r["seed"]))
 
 
@@ -251,7 +251,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--settings", type=Path, default=None, help="darp process --settings file")
     p.add_argument("--calibration", type=Path, default=None,
                    help="calibration for live decisions and processing (default: each survey's true one)")
-    p.add_argument("--out", type=Path, default=Path("completeness-run"))
+    p.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / ".bench" / "completeness-run",
+                   help="surveys and processed results (default: .bench/completeness-run, ignored by git)")
     p.add_argument("--keep-recordings", action="store_true",
                    help="keep each survey's bags and keyframes after processing (default: delete them, keep the "
                         "survey's records, clouds, mesh and results.json)")
