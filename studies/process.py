@@ -98,8 +98,9 @@ class MemorySampler:
 def child(survey: str, out: str) -> None:
     """Process one survey (run in a subprocess) and print a JSON line with the timings."""
     from darp.formats.survey import open_survey
-    from darp.processing.pipeline import SurveyJob, process_survey
-    from darp.processing.results import PROCESS_STAGES
+    from darp.processing.job import SurveyJob
+    from darp.processing.runner import process_survey
+    from darp.processing.stages import PROCESS_STAGES
     from darp.twin.truth import read_truth
 
     truth = read_truth(survey)

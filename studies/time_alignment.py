@@ -69,7 +69,7 @@ def main() -> None:
         return
     from darp.formats.calibration import read_calibration
     from darp.formats.survey import open_survey
-    from darp.processing.pipeline import SurveyJob
+    from darp.processing.job import SurveyJob
     from darp.processing.settings import CorrectionSettings, ProcessSettings
 
     survey = open_survey(args.survey)
