@@ -24,8 +24,10 @@ import numpy as np
 
 from darp.calibration.board import corners_board_m, cv_board
 from darp.calibration.captures import CaptureRecord, CaptureSet
-from darp.calibration.geometry import project, transform, undistort_pixels
+from darp.calibration.geometry import undistort_pixels
 from darp.formats.calibration import CharucoBoardSpec
+from darp.geometry.pinhole import project
+from darp.geometry.transforms import transform_points
 
 
 @dataclass(frozen=True)
@@ -159,7 +161,7 @@ def board_pose_pnp(object_points: np.ndarray, ideal_px: np.ndarray, K: np.ndarra
     T[:3, 3] = tvec.reshape(3)
     if T[2, 3] <= 0:
         return None, float("inf")
-    residual = project(transform(T, object_points), K) - ideal_px
+    residual = project(transform_points(T[None], object_points), K) - ideal_px  # batched form: einsum
     return T, float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
 
 
