@@ -109,6 +109,21 @@ def test_one_warning_per_file_names_it_and_the_largest_error() -> None:
 
 # -- what the readers accept, processing accepts -------------------------------------------------------------------
 
+def test_a_pose_file_import_reads_is_a_pose_processing_takes(tmp_path: Path) -> None:
+    from darp.formats.trajectories import read_pose_txt
+    from darp.reconstruction.backproject import check_pose
+
+    T = pose(np.array([0.3, -0.2, 1.0]), np.array([0.5, 0.1, 1.2]))
+    for k, error in enumerate((0.0, 1.4e-4)):
+        np.savetxt(tmp_path / f"frame-{k:06d}.pose.txt", off_orthonormal(T, error))
+    with pytest.warns(OrthonormalisedWarning, match="1 pose rotation"):
+        poses = read_pose_txt(tmp_path)
+    for key in ("0", "1"):
+        np.testing.assert_allclose(check_pose(poses[key]), T, atol=2e-4)
+    with pytest.raises(ReconstructionError, match="T_world_cam: not a rigid transform"):  # as given, refused
+        check_pose(off_orthonormal(T, 1.4e-4))
+
+
 def test_a_calibration_the_reader_accepts_gives_camera_poses(tmp_path: Path) -> None:
     """A rotation 4e-6 off (a few six-decimal roundings): the calibration reader accepted it (1e-5) and eq. 1 refused
     it (1e-6)."""

@@ -38,6 +38,7 @@ import numpy as np
 from darp.dataset import ProcessedSurvey
 from darp.export._io import OPENCV_TO_OPENGL, depth_png, fmt, frame_name, write_lines, write_png
 from darp.formats.atomic import write_json_atomic
+from darp.formats.intrinsics import open3d_intrinsic_json
 from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.keyframe_io import Keyframe, iter_keyframes
 
@@ -110,8 +111,7 @@ def export_colmap(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
 def open3d_intrinsic(kf: Keyframe) -> dict[str, Any]:
     """Open3D's ``camera_intrinsic.json`` (PinholeCameraIntrinsic: column-major 3x3)."""
     i = kf.intrinsics
-    return {"width": i.width, "height": i.height,
-            "intrinsic_matrix": [i.fx, 0.0, 0.0, 0.0, i.fy, 0.0, i.ppx, i.ppy, 1.0]}
+    return open3d_intrinsic_json(i.width, i.height, i.fx, i.fy, i.ppx, i.ppy)
 
 
 def export_open3d(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:

@@ -7,7 +7,9 @@
   x right, y up, z back; turned to OpenCV's x right, y down, z forward), keyed by ``file_path``.
 
 Every reader returns ``{key: T_world_cam}`` with the key a frame's number (the last number in its
-name or, for TUM, the line's timestamp as written) so that frames and poses can be matched.
+name or, for TUM, the line's timestamp as written) so that frames and poses can be matched. Every pose must be
+rigid by :mod:`darp.geometry.rigid`'s rule; rotations a little off orthonormal are replaced by the nearest
+rotation, with one warning per file.
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from darp.errors import FormatError
+from darp.formats.intrinsics import read_open3d_intrinsic
+from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 
 FORMATS = ("tum", "log", "pose-txt", "nerfstudio")
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -50,11 +54,20 @@ def _rows(path: Path) -> list[list[float]]:
     return out
 
 
-def _rigid(T: np.ndarray, path: Path, where: str) -> np.ndarray:
-    R = T[:3, :3]
-    if not (np.all(np.isfinite(T)) and np.allclose(R @ R.T, np.eye(3), atol=2e-3) and np.linalg.det(R) > 0):
-        raise FormatError(f"{where}: not a rigid transform (rotation not orthonormal)", path)
-    return T
+class _Rigid:
+    """One file's poses through :func:`darp.geometry.rigid.orthonormalised`, warned about once."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.errors: list[float] = []
+
+    def __call__(self, T: np.ndarray, where: str) -> np.ndarray:
+        out, err = orthonormalised(T, where, self.path, error=FormatError)
+        self.errors.append(err)
+        return out
+
+    def warn(self) -> None:
+        warn_orthonormalised(self.errors, self.path)
 
 
 def read_tum(path: str | Path) -> dict[str, np.ndarray]:
@@ -83,12 +96,14 @@ def read_log(path: str | Path) -> dict[str, np.ndarray]:
     if len(rows) % 5:
         raise FormatError(f"{len(rows)} lines is not a multiple of 5 (a header and 4 matrix rows per frame)", p)
     out = {}
+    rigid = _Rigid(p)
     for k in range(0, len(rows), 5):
         head = rows[k]
         key = str(int(head[0]))
         if key in out:
             raise FormatError(f"frame {key} appears twice (duplicated frame)", p)
-        out[key] = _rigid(np.array(rows[k + 1:k + 5]), p, f"frame {key}")
+        out[key] = rigid(np.array(rows[k + 1:k + 5]), f"frame {key}")
+    rigid.warn()
     return out
 
 
@@ -97,13 +112,16 @@ def read_pose_txt(folder: str | Path, pattern: str = "*.pose.txt") -> dict[str, 
     root = Path(folder)
     files = sorted(root.glob(pattern)) or sorted(root.glob("*.txt"))
     out = {}
+    errors = []
     for f in files:
         M = np.array(_rows(f))
         if M.shape != (4, 4):
             raise FormatError(f"expected a 4x4 matrix, got shape {M.shape}", f)
-        out[frame_key(f.name)] = _rigid(M, f, "pose")
+        out[frame_key(f.name)], err = orthonormalised(M, "pose", f, error=FormatError)
+        errors.append(err)
     if not out:
         raise FormatError(f"no pose files ({pattern})", root)
+    warn_orthonormalised(errors, root)
     return out
 
 
@@ -119,11 +137,13 @@ def read_nerfstudio(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, 
     if not isinstance(frames, list):
         raise FormatError("no 'frames' list", p)
     out: dict[str, np.ndarray] = {}
+    rigid = _Rigid(p)
     for fr in frames:
         M = np.asarray(fr.get("transform_matrix"), float)
         if M.shape != (4, 4):
             raise FormatError(f"frame {fr.get('file_path')}: transform_matrix is not 4x4", p)
-        out[frame_key(str(fr.get("file_path", len(out))))] = _rigid(M @ OPENGL_TO_OPENCV, p, str(fr.get("file_path")))
+        out[frame_key(str(fr.get("file_path", len(out))))] = rigid(M @ OPENGL_TO_OPENCV, str(fr.get("file_path")))
+    rigid.warn()
     intr = {k: float(data[k]) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h") if k in data}
     return out, intr
 
@@ -162,8 +182,6 @@ def write_log(path: str | Path, poses: dict[str, np.ndarray]) -> None:
         blocks.append(f"{k} {k} {n}")
         blocks += [" ".join(f"{v:.9f}" for v in row) for row in T]
     write_text_atomic(path, "\n".join(blocks) + "\n")
-
-
 
 
 # --- posed RGB-D folders: frames paired with their poses (and intrinsics) in each format's own way ---------------
@@ -296,13 +314,14 @@ def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
     if not isinstance(frames, list) or not frames:
         raise FormatError("no 'frames' list", p)
     root = p.parent
+    rigid = _Rigid(p)
     out = PosedFrames("nerfstudio", depth_scale_m=float(data.get("depth_unit_scale_factor", 1e-3)), source=str(p))
     for n, fr in enumerate(frames):
         key, where = str(n), f"frame {n} ({fr.get('file_path')})"
         M = np.asarray(fr.get("transform_matrix"), float)
         if M.shape != (4, 4):
             raise FormatError(f"{where}: transform_matrix is not 4x4", p)
-        out.poses[key] = _rigid(M @ OPENGL_TO_OPENCV, p, where)
+        out.poses[key] = rigid(M @ OPENGL_TO_OPENCV, where)
         if fr.get("file_path"):
             out.colour[key] = root / str(fr["file_path"])
         if not fr.get("depth_file_path"):
@@ -319,18 +338,8 @@ def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
     if out.intrinsics and len(out.intrinsics) != len(out.poses):
         raise FormatError(f"{len(out.poses) - len(out.intrinsics)} frame(s) have no fl_x/cx/cy (per frame or at the "
                           "top level)", p)
+    rigid.warn()
     return out
-
-
-def read_open3d_intrinsic(path: str | Path) -> tuple[np.ndarray, int, int]:
-    """Open3D's ``PinholeCameraIntrinsic`` JSON: (K, width, height); ``intrinsic_matrix`` is column-major."""
-    p = Path(path)
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-        K = np.asarray(d["intrinsic_matrix"], np.float64).reshape(3, 3).T
-        return K, int(d.get("width", 0)), int(d.get("height", 0))
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
-        raise FormatError(f"not an Open3D camera_intrinsic.json ({err})", p) from None
 
 
 def read_open3d_folder(folder: str | Path, log: str | Path | None = None) -> PosedFrames:
@@ -370,7 +379,7 @@ def detect_posed_folder(folder: str | Path) -> str | None:
     return None
 
 
-__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_MAX_DT_S", "PosedFrames",
-           "associate", "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
-           "read_open3d_folder", "read_open3d_intrinsic", "read_pose_txt", "read_tum_folder", "read_trajectory",
-           "read_tum", "write_log", "write_tum"]
+__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_MAX_DT_S", "PosedFrames", "associate",
+           "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
+           "read_open3d_folder", "read_pose_txt", "read_trajectory", "read_tum", "read_tum_folder", "write_log",
+           "write_tum"]
