@@ -9,13 +9,15 @@
 Every reader returns ``{key: T_world_cam}`` with the key a frame's number (the last number in its
 name or, for TUM, the line's timestamp as written) so that frames and poses can be matched. Every pose must be
 rigid by :mod:`darp.geometry.rigid`'s rule; rotations a little off orthonormal are replaced by the nearest
-rotation, with one warning per file.
+rotation, with one warning per file. TUM is read and written here for every darp writer
+(:func:`read_tum_trajectory`, :func:`write_tum`).
 """
 
 from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,6 +27,7 @@ from scipy.spatial.transform import Rotation
 from darp.errors import FormatError
 from darp.formats.intrinsics import read_open3d_intrinsic
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
+from darp.geometry.transforms import rotation_to_quaternion
 
 FORMATS = ("tum", "log", "pose-txt", "nerfstudio")
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -70,23 +73,78 @@ class _Rigid:
         warn_orthonormalised(self.errors, self.path)
 
 
+TUM_HEADER = "timestamp tx ty tz qx qy qz qw"
+
+
+def read_tum_trajectory(path: str | Path) -> tuple[list[str], np.ndarray]:
+    """A TUM trajectory ``timestamp tx ty tz qx qy qz qw`` per line (``#`` comments): the timestamps as written
+    and ``T (N, 4, 4)`` in file order (quaternions normalised)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise FormatError(f"cannot read ({err})", p) from None
+    stamps: list[str] = []
+    poses: list[np.ndarray] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        r = line.split()
+        if not r or r[0].startswith("#"):
+            continue
+        if len(r) != 8:
+            raise FormatError(f"line {number}: expected 8 values ({TUM_HEADER}), got {len(r)}", p)
+        try:
+            v = np.array([float(x) for x in r[1:]])
+            float(r[0])
+        except ValueError:
+            raise FormatError(f"line {number}: not numbers", p) from None
+        norm = np.linalg.norm(v[3:7])
+        if not (np.all(np.isfinite(v)) and norm > 0):
+            raise FormatError(f"line {number}: not a pose (non-finite values or a zero quaternion)", p)
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(v[3:7] / norm).as_matrix()  # x y z w
+        T[:3, 3] = v[:3]
+        stamps.append(r[0])
+        poses.append(T)
+    return stamps, np.array(poses).reshape(-1, 4, 4)
+
+
 def read_tum(path: str | Path) -> dict[str, np.ndarray]:
     """TUM ``timestamp tx ty tz qx qy qz qw``; key = the timestamp as written."""
-    p = Path(path)
+    stamps, T = read_tum_trajectory(path)
     out: dict[str, np.ndarray] = {}
-    raw = [line.split() for line in p.read_text(encoding="utf-8").splitlines()
-           if line.strip() and not line.lstrip().startswith("#")]
-    for n, r in enumerate(raw):
-        if len(r) != 8:
-            raise FormatError(f"line {n + 1} has {len(r)} values; TUM is timestamp tx ty tz qx qy qz qw", p)
-        v = np.array([float(x) for x in r[1:]])
-        if r[0] in out:
-            raise FormatError(f"timestamp {r[0]} appears twice (duplicated frame)", p)
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_quat(v[3:7] / np.linalg.norm(v[3:7])).as_matrix()  # x y z w
-        T[:3, 3] = v[:3]
-        out[r[0]] = T
+    for stamp, pose in zip(stamps, T, strict=True):
+        if stamp in out:
+            raise FormatError(f"timestamp {stamp} appears twice (duplicated frame)", path)
+        out[stamp] = pose
     return out
+
+
+def exact(value: float) -> str:
+    """A float with 17 significant digits (reads back exactly)."""
+    return repr(float(value))
+
+
+def tum_text(stamps: Sequence[str], T_world_cam: np.ndarray, comments: Sequence[str] = (),
+             number: Callable[[float], str] = exact) -> str:
+    """TUM text: the ``comments`` lines (``#`` included), then one ``timestamp tx ty tz qx qy qz qw`` line per
+    pose, the quaternion with ``w >= 0`` and each number written by ``number`` (default: exactly)."""
+    T = np.asarray(T_world_cam, np.float64).reshape(-1, 4, 4)
+    if len(stamps) != len(T):
+        raise FormatError(f"{len(stamps)} timestamps for {len(T)} poses")
+    lines = list(comments)
+    if len(T):
+        quats = rotation_to_quaternion(T[:, :3, :3])
+        for stamp, pose, q in zip(stamps, T, quats, strict=True):
+            lines.append(" ".join([stamp, *(number(v) for v in (*pose[:3, 3], *q))]))
+    return "\n".join(lines) + "\n"
+
+
+def write_tum(path: str | Path, stamps: Sequence[str], T_world_cam: np.ndarray, comments: Sequence[str] = (),
+              number: Callable[[float], str] = exact) -> None:
+    """Write :func:`tum_text` atomically."""
+    from darp.formats.atomic import write_text_atomic
+
+    write_text_atomic(path, tum_text(stamps, T_world_cam, comments, number))
 
 
 def read_log(path: str | Path) -> dict[str, np.ndarray]:
@@ -159,17 +217,6 @@ def read_trajectory(path: str | Path, kind: str) -> dict[str, np.ndarray]:
     if kind == "nerfstudio":
         return read_nerfstudio(path)[0]
     raise FormatError(f"unknown trajectory format {kind!r} (known: {', '.join(FORMATS)})", path)
-
-
-def write_tum(path: str | Path, poses: dict[str, np.ndarray]) -> None:
-    """Write poses as TUM lines (key as the timestamp); for round trips and exports."""
-    from darp.formats.atomic import write_text_atomic
-
-    lines = []
-    for k, T in poses.items():
-        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
-        lines.append(" ".join([k, *(f"{v:.9f}" for v in (*T[:3, 3], *q))]))
-    write_text_atomic(path, "\n".join(lines) + "\n")
 
 
 def write_log(path: str | Path, poses: dict[str, np.ndarray]) -> None:
@@ -379,7 +426,7 @@ def detect_posed_folder(folder: str | Path) -> str | None:
     return None
 
 
-__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_MAX_DT_S", "PosedFrames", "associate",
-           "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
-           "read_open3d_folder", "read_pose_txt", "read_trajectory", "read_tum", "read_tum_folder", "write_log",
-           "write_tum"]
+__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_HEADER", "TUM_MAX_DT_S", "PosedFrames",
+           "associate", "detect_posed_folder", "exact", "frame_key", "read_log", "read_nerfstudio",
+           "read_nerfstudio_folder", "read_open3d_folder", "read_pose_txt", "read_trajectory", "read_tum",
+           "read_tum_folder", "read_tum_trajectory", "tum_text", "write_log", "write_tum"]
