@@ -45,7 +45,7 @@ def test_the_checker_finds_a_copy(tmp_path: Path) -> None:
 HOMES: dict[str, str | None] = {
     **dict.fromkeys(("transform_points", "transform_columns", "skew", "rotvec_to_rotation", "quaternion_to_rotation",
                      "rotation_to_quaternion", "orthonormalize"), "geometry/transforms.py"),
-    **dict.fromkeys(("check_rigid", "is_rigid", "orthonormalised", "rotation_error"), "geometry/rigid.py"),
+    **dict.fromkeys(("check_rigid", "orthonormalised", "rotation_error"), "geometry/rigid.py"),
     **dict.fromkeys(("normalised_pixels", "backproject_rays", "distort_normalised", "undistort_normalised"),
                     "geometry/pinhole.py"),
     "min_enclosing_circle": "geometry/circle.py",

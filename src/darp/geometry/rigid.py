@@ -79,15 +79,6 @@ def check_rigid(T: ArrayLike, what: str, path: str | Path | None = None, *,
     return M
 
 
-def is_rigid(T: ArrayLike) -> bool:
-    """Whether :func:`check_rigid` accepts ``T``."""
-    try:
-        check_rigid(T, "T")
-    except DarpError:
-        return False
-    return True
-
-
 def orthonormalised(T: ArrayLike, what: str, path: str | Path | None = None, *,
                     error: type[DarpError] = DarpError) -> tuple[Array, float]:
     """``(T', error)``: ``T`` checked by :func:`check_rigid`, except that a rotation off orthonormal by more
@@ -115,5 +106,5 @@ def warn_orthonormalised(errors: list[float], path: str | Path | None, what: str
             f"{RIGID_TOLERANCE:g}) were replaced by the nearest rotation", path), stacklevel=3)
 
 
-__all__ = ["NEAR_RIGID_LIMIT", "RIGID_TOLERANCE", "OrthonormalisedWarning", "check_rigid", "is_rigid",
+__all__ = ["NEAR_RIGID_LIMIT", "RIGID_TOLERANCE", "OrthonormalisedWarning", "check_rigid",
            "orthonormalised", "rotation_error", "warn_orthonormalised"]
