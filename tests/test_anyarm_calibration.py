@@ -1,4 +1,5 @@
-"""Any-arm hand-eye calibration (darp.calibration.anyarm): real Doosan data, formats, mistakes, eye-to-hand, twin path.
+"""Any-arm hand-eye calibration (darp.calibration.anyarm, its folder read by darp.formats.captures/poses/intrinsics):
+real Doosan data, formats, mistakes, eye-to-hand, twin path.
 
 The real set (shared/realdata/doosan-a0509-d435-charuco) is a Doosan A0509 with a wrist RealSense:
 31 base-from-flange poses (4x4, mm) with the board's pose in the camera, and 28 ChArUco photographs.
@@ -14,23 +15,17 @@ import cv2
 import numpy as np
 import pytest
 
-from darp.calibration.anyarm import (
-    Board,
-    detect_corners,
-    load_capture_folder,
-    load_intrinsics,
-    opencv_solver,
-    read_pose_csv,
-    solve_folder,
-    solve_intrinsics,
-)
+from darp.calibration.anyarm import load_capture_folder, opencv_solver, solve_folder, solve_intrinsics
 from darp.calibration.anyarm_export import export_captures
+from darp.calibration.board import Board
 from darp.calibration.captures import read_captures
-from darp.calibration.detect import detect_captures
+from darp.calibration.detect import detect_captures, detect_corners, ideal_pixels
 from darp.calibration.model import build_observations
 from darp.calibration.refine import RefineSettings
 from darp.calibration.solve import calibrate_observations
 from darp.errors import CalibrationError, FormatError
+from darp.formats.intrinsics import load_intrinsics
+from darp.formats.poses import PoseConventions, read_pose_csv
 from darp.kinematics.transforms import (
     axis_angle_to_rotation,
     invert_transform,
@@ -169,15 +164,13 @@ def test_intrinsics_forms_round_trip(tmp_path: Path) -> None:
         intr = rec.stream("color").intrinsics
     assert np.allclose(cam.K, intr.K) and cam.model == intr.model
     uv = np.array([[5.0, 7.0], [60.0, 40.0]])
-    assert np.allclose(cam.undistort(uv), undistort_pixels(uv, intr))
+    assert np.allclose(ideal_pixels(cam, uv), undistort_pixels(uv, intr))
     np.savetxt(tmp_path / "bad.txt", K.T)
     with pytest.raises(FormatError, match="bad.txt.*3x3 camera matrix"):
         load_intrinsics(tmp_path / "bad.txt")
 
 
 def test_csv_duplicate_row_and_bad_quaternion_are_named(tmp_path: Path) -> None:
-    from darp.calibration.anyarm import PoseConventions
-
     p = tmp_path / "poses.csv"
     p.write_text("id,x,y,z,qx,qy,qz,qw\n1,0,0,0,0,0,0,1\n1,0,0,0,0,0,0,1\n")
     with pytest.raises(FormatError, match="poses.csv.*'1' appears twice"):

@@ -17,9 +17,7 @@ from darp.formats.trajectories import (
     read_log,
     read_nerfstudio,
     read_pose_txt,
-    read_tum,
     write_log,
-    write_tum,
 )
 from darp.kinematics.transforms import axis_angle_to_rotation, invert_transform, make_transform, rotation_to_quaternion
 from darp.processing.imported import ImportSpec, ImportWarning, import_sequence
@@ -50,19 +48,14 @@ def copy_seq(dst: Path, drop_pose: str | None = None) -> Path:
 def test_trajectory_formats_round_trip(tmp_path: Path) -> None:
     P = poses()
     assert sorted(P, key=int) == ["0", "1", "2", "116", "422"]
-    write_tum(tmp_path / "t.txt", P)
     write_log(tmp_path / "trajectory.log", P)
     frames = [{"file_path": f"images/frame_{int(k):05d}.png", "transform_matrix": (T @ OPENGL_TO_OPENCV).tolist()}
               for k, T in P.items()]
     (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 570.3, "cx": 320, "cy": 240, "frames": frames}))
-    for got in (read_tum(tmp_path / "t.txt"), read_log(tmp_path / "trajectory.log"),
-                read_nerfstudio(tmp_path / "transforms.json")[0]):
+    for got in (read_log(tmp_path / "trajectory.log"), read_nerfstudio(tmp_path / "transforms.json")[0]):
         assert got.keys() == P.keys()
         for k in P:
-            assert np.allclose(got[k], P[k], atol=1e-6)
-    (tmp_path / "dup.txt").write_text("1.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 0 1\n")
-    with pytest.raises(FormatError, match="dup.txt: timestamp 1.0 appears twice"):
-        read_tum(tmp_path / "dup.txt")
+            assert np.allclose(got[k], P[k], atol=1e-6)  # TUM: tests/test_formats_tum.py (against evo)
 
 
 @needs_real

@@ -16,11 +16,11 @@ BASE = {"errors", "paper"}
 ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "paper": set(),
-    "geometry": BASE,
-    "formats.realsense": BASE | {"formats"},  # formats here: atomic writes and text reading only
-    "formats": BASE | {"formats.realsense"},
-    "kinematics": BASE | {"formats", "formats.realsense"},
-    "backend": BASE | {"formats", "formats.realsense", "kinematics"},
+    "geometry": BASE,  # the bottom: numpy, scipy and darp.errors
+    "formats.realsense": BASE | {"geometry", "formats"},  # formats here: atomic writes and text reading only
+    "formats": BASE | {"geometry", "formats.realsense"},
+    "kinematics": BASE | {"geometry", "formats", "formats.realsense"},
+    "backend": BASE | {"geometry", "formats", "formats.realsense", "kinematics"},
     "calibration": BASE | {"formats", "formats.realsense", "kinematics", "backend", "geometry"},
     "acquisition": BASE | {"formats", "formats.realsense", "kinematics", "backend", "geometry", "calibration"},
     "twin": BASE | {"formats", "formats.realsense", "kinematics", "backend", "geometry", "calibration"},

@@ -72,7 +72,7 @@ def _edit(path: Path, fn) -> None:
     ("arm110_000.json", lambda d: d.update(stream="depth"), "stream: must be one of color, ir1"),
     ("arm110_000.json", lambda d: d["intrinsics"].pop("fx"), "intrinsics: missing fx"),
     ("arm110_000.json", lambda d: d.update(image_size=[320, 240]), "differs from the intrinsics"),
-    ("arm110_000.json", lambda d: d["T_depth_stream"][0].__setitem__(0, 2.0), "T_depth_stream: rotation is not"),
+    ("arm110_000.json", lambda d: d["T_depth_stream"][0].__setitem__(0, 2.0), "T_depth_stream: not a rigid transform"),
     ("arm110_000.json", lambda d: d.pop("time_s"), "missing time_s"),
 ])
 def test_bad_files_give_one_line_errors_naming_the_file(tmp_path: Path, target: str, edit, message: str) -> None:

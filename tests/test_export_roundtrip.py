@@ -12,7 +12,8 @@ import pytest
 
 from darp.cli._app import run
 from darp.errors import FormatError
-from darp.formats.trajectories import read_nerfstudio_folder, read_open3d_intrinsic, read_tum_folder
+from darp.formats.intrinsics import load_intrinsics, read_open3d_intrinsic
+from darp.formats.trajectories import read_nerfstudio_folder, read_tum_folder
 from darp.reconstruction.keyframe_io import Keyframe, load_keyframes
 
 UNITS_PER_M = {"nerfstudio": 1000.0, "tum": 5000.0, "open3d": 1000.0}
@@ -145,8 +146,6 @@ def test_nerfstudio_and_open3d_intrinsics_conventions(tmp_path: Path) -> None:
         {"width": 640, "height": 480, "intrinsic_matrix": [600.0, 0, 0, 0, 601.0, 0, 319.2, 241.7, 1]}))
     K, w, h = read_open3d_intrinsic(tmp_path / "camera_intrinsic.json")
     np.testing.assert_allclose(K, [[600, 0, 319.2], [0, 601, 241.7], [0, 0, 1]])
-    from darp.calibration.anyarm import load_intrinsics
-
     np.testing.assert_allclose(load_intrinsics(tmp_path / "camera_intrinsic.json").K, K)
     o3d = pytest.importorskip("open3d")
     oracle = o3d.io.read_pinhole_camera_intrinsic(str(tmp_path / "camera_intrinsic.json"))

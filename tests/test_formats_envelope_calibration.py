@@ -231,9 +231,12 @@ BAD_LAST_ROW = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0.1, 1]]
         (_set(("date",), "yesterday"), "date: not an ISO 8601 date: 'yesterday'"),
         (_set(("arms",), {}), "arms: no arm calibrated"),
         (_set(("arms", "arm110", "serial"), 348522076490), "arms.arm110.serial: expected a string, got a number"),
-        (_set(("arms", "arm111", "T_world_base"), SCALED), "arms.arm111.T_world_base: rotation is not orthonormal"),
-        (_set(("arms", "arm111", "T_wrist_cam"), REFLECTED), "arms.arm111.T_wrist_cam: rotation is a reflection"),
-        (_set(("arms", "arm110", "T_wrist_cam"), BAD_LAST_ROW), "T_wrist_cam: last row must be [0, 0, 0, 1]"),
+        (_set(("arms", "arm111", "T_world_base"), SCALED),
+         "arms.arm111.T_world_base: not a rigid transform: rotation is not orthonormal"),
+        (_set(("arms", "arm111", "T_wrist_cam"), REFLECTED),
+         "arms.arm111.T_wrist_cam: not a rigid transform: rotation is a reflection"),
+        (_set(("arms", "arm110", "T_wrist_cam"), BAD_LAST_ROW),
+         "T_wrist_cam: not a rigid transform: last row must be [0, 0, 0, 1]"),
         (_set(("arms", "arm110", "T_wrist_cam"), [[1, 0, 0], [0, 1, 0], [0, 0, 1]]),
          "expected shape (4, 4), got (3, 3)"),
         (_set(("arms", "arm110", "joint_offsets_rad"), [0.0] * 5), "joint_offsets_rad: expected shape (6,), got (5,)"),
@@ -258,6 +261,7 @@ def test_calibration_nan_and_non_rigid_refused(tmp_path: Path) -> None:
     assert "arms.arm110.joint_offsets_rad: all values must be finite" in _error(read_calibration, path)
     cal = _calibration()
     cal.arms["arm111"].T_wrist_cam = cal.arms["arm111"].T_wrist_cam @ np.diag([1.0, 1.0, 1.001, 1.0])
-    with pytest.raises(FormatError, match="arms.arm111.T_wrist_cam: rotation is not orthonormal"):
+    with pytest.raises(FormatError,
+                       match="arms.arm111.T_wrist_cam: not a rigid transform: rotation is not orthonormal"):
         write_calibration(tmp_path / "out.json", cal)
     assert not (tmp_path / "out.json").exists()

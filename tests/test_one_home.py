@@ -38,3 +38,83 @@ def test_the_checker_finds_a_copy(tmp_path: Path) -> None:
     copy = tmp_path / "copy.py"
     copy.write_text('"""quotes 3.58 in prose"""\nPAPER = {"median_mm": 2.13}\n')
     assert numeric_constants(copy) == [(2, 2.13)]
+
+
+# -- shared geometry and file formats: one definition each --------------------------------------------------------
+# name -> the one module (under src/darp) that may define it; None: no module may (an old private copy's name).
+HOMES: dict[str, str | None] = {
+    **dict.fromkeys(("transform_points", "transform_columns", "skew", "rotvec_to_rotation", "quaternion_to_rotation",
+                     "rotation_to_quaternion", "orthonormalize"), "geometry/transforms.py"),
+    **dict.fromkeys(("check_rigid", "orthonormalised", "rotation_error"), "geometry/rigid.py"),
+    **dict.fromkeys(("normalised_pixels", "backproject_rays", "distort_normalised", "undistort_normalised"),
+                    "geometry/pinhole.py"),
+    "min_enclosing_circle": "geometry/circle.py",
+    **dict.fromkeys(("read_tum", "read_tum_trajectory", "write_tum", "tum_text"), "formats/trajectories.py"),
+    **dict.fromkeys(("load_intrinsics", "read_open3d_intrinsic", "open3d_intrinsic_json"), "formats/intrinsics.py"),
+    **dict.fromkeys(("transform", "_transform_points", "_to_world", "_skew", "hat", "_rigid", "_as_rigid", "rodrigues",
+                     "_distort", "_brown", "format_tum"), None),
+}
+# Kept on purpose: the twin's camera extrinsics come from this unit-axis Rodrigues; geometry's rotvec_to_rotation
+# differs from it in the last bit for most rotations, which would change every twin recording's bytes.
+ALLOWED_COPIES = {("twin/camera/spec.py", "_rotvec_to_matrix")}
+TOLERANCE_WORDS = ("RIGID", "ORTHONORMAL")  # a module-level constant with these in its name is a rigidity tolerance
+
+
+def own_definitions(path: Path) -> list[tuple[int, str]]:
+    """Functions (not methods) defined anywhere in a module, and module-level rigidity tolerance constants."""
+    found: list[tuple[int, str]] = []
+
+    def visit(node: ast.AST) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef):
+                found.append((child.lineno, child.name))
+                visit(child)
+            elif not isinstance(child, ast.ClassDef):
+                visit(child)
+
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    visit(tree)
+    for node in tree.body:
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(
+            node, ast.AnnAssign) else []
+        found += [(node.lineno, t.id) for t in targets
+                  if isinstance(t, ast.Name) and any(w in t.id for w in TOLERANCE_WORDS)]
+    return found
+
+
+def copies_outside_home(path: Path, where: str) -> list[str]:
+    out = []
+    for line, name in own_definitions(path):
+        if (where, name) in ALLOWED_COPIES:
+            continue
+        if any(w in name for w in TOLERANCE_WORDS) and name.isupper():
+            if where != "geometry/rigid.py":
+                out.append(f"line {line}: {name} (the rigidity rule is darp.geometry.rigid's)")
+        elif name in HOMES and HOMES[name] != where:
+            out.append(f"line {line}: {name} (its home: {HOMES[name] or 'none, a removed copy'})")
+    return out
+
+
+@pytest.mark.parametrize("path", sorted(SRC.rglob("*.py")), ids=lambda p: str(p.relative_to(SRC)))
+def test_shared_geometry_and_formats_are_defined_once(path: Path) -> None:
+    where = path.relative_to(SRC).as_posix()
+    copies = copies_outside_home(path, where)
+    assert not copies, f"{where} defines its own copy of a shared concept (import it from its home): {copies}"
+
+
+def test_every_home_exists() -> None:
+    for name, home in HOMES.items():
+        if home is not None:
+            assert name in {n for _, n in own_definitions(SRC / home)}, f"{name} is not in {home}"
+
+
+def test_the_checker_finds_a_geometry_copy(tmp_path: Path) -> None:
+    copy = tmp_path / "copy.py"
+    copy.write_text("import numpy as np\nRIGID_TOLERANCE = 1e-6\n\n\ndef _skew(v):\n    return v\n\n\n"
+                    "class Reader:\n    def transform(self, key):\n        return key\n\n\n"
+                    "def outer():\n    def transform_points(T, p):\n        return p\n    return transform_points\n")
+    assert copies_outside_home(copy, "reconstruction/copy.py") == [
+        "line 5: _skew (its home: none, a removed copy)",
+        "line 15: transform_points (its home: geometry/transforms.py)",
+        "line 2: RIGID_TOLERANCE (the rigidity rule is darp.geometry.rigid's)"]
+    assert copies_outside_home(SRC / "geometry" / "transforms.py", "geometry/transforms.py") == []

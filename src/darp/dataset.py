@@ -30,6 +30,7 @@ import numpy as np
 from darp.errors import DarpError, DarpWarning, FormatError
 from darp.formats.atomic import UNFINISHED_FILE
 from darp.formats.truth import OBJECT_JSON_FILE, OBJECT_MESH_FILE, TRUTH_DIR
+from darp.geometry.transforms import transform_points
 from darp.reconstruction.backproject import backproject
 from darp.reconstruction.cloud_io import read_ply
 from darp.reconstruction.keyframe_io import INDEX_FILE, Keyframe, KeyframeInfo, read_keyframe, read_keyframe_index
@@ -153,13 +154,7 @@ def read_object_truth(truth_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
         raise FormatError(f"cannot read the object mesh: {err}", mesh_path) from err
     if not len(triangles):
         raise FormatError("the object mesh has no faces", mesh_path)
-    return transform(np.linalg.inv(T_world_object), points), triangles, T_world_object, meta
-
-
-def transform(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Points (N, 3) from frame b to frame a."""
-    p = np.asarray(points_b, np.float64).reshape(-1, 3)
-    return np.asarray(p @ T_a_b[:3, :3].T + T_a_b[:3, 3], np.float64)
+    return transform_points(np.linalg.inv(T_world_object), points), triangles, T_world_object, meta
 
 
 # -- keyframes ------------------------------------------------------------------------------------------
@@ -255,12 +250,12 @@ def completion_pairs(path: str | Path, complete_points: int = COMPLETE_POINTS, s
             index = read_keyframe_index(survey.keyframes_dir)
             for info in index.keyframes:
                 kf = read_keyframe(index.folder / info.file)
-                partial = transform(T_ow, keyframe_object_points(kf)).astype(np.float32)
+                partial = transform_points(T_ow, keyframe_object_points(kf)).astype(np.float32)
                 yield CompletionPair(f"{survey.name}/{kf.arm}_{kf.frame_number:06d}", "keyframe", partial,
                                      complete, T_wo)
         for name in CLOUD_FILES:
             if (survey.folder / CLOUD_FILES[name]).is_file():
-                partial = transform(T_ow, survey.cloud(name)).astype(np.float32)
+                partial = transform_points(T_ow, survey.cloud(name)).astype(np.float32)
                 yield CompletionPair(f"{survey.name}/{name}", "fused" if name == "fused" else "arm", partial,
                                      complete, T_wo)
 

@@ -44,7 +44,8 @@ from scipy import ndimage
 
 from darp.errors import AcquisitionError
 from darp.formats.realsense.types import Intrinsics
-from darp.geometry import min_enclosing_circle
+from darp.geometry.circle import min_enclosing_circle
+from darp.geometry.pinhole import backproject_rays, normalised_pixels
 from darp.kinematics.rig import Rig, Workspace
 
 Array = NDArray[np.float64]
@@ -145,9 +146,8 @@ def backproject(depth_m: Array, intrinsics: Intrinsics, stride: int = 1) -> tupl
     v, u = np.nonzero(d > 0)
     z = d[v, u]
     u, v = u * stride, v * stride
-    x = (u - intrinsics.ppx) / intrinsics.fx * z
-    y = (v - intrinsics.ppy) / intrinsics.fy * z
-    return np.column_stack([x, y, z]), u, v
+    x, y = normalised_pixels(u, v, intrinsics.fx, intrinsics.fy, intrinsics.ppx, intrinsics.ppy)
+    return np.asarray(backproject_rays(x, y, z), np.float64), u, v
 
 
 def fit_table_plane(points: Array, table_z: float, band_m: float) -> tuple[Array, int] | None:

@@ -1,10 +1,14 @@
-"""The ChArUco calibration board: its spec, the OpenCV board object, corner coordinates, a printable PDF.
+"""The calibration board: its spec, the OpenCV board object, corner coordinates, a printable PDF.
 
-The spec is :class:`darp.formats.calibration.CharucoBoardSpec` (squares, square and marker length,
-ArUco dictionary), the same record the calibration file stores, so that a calibration names the board
-it came from. The board frame is OpenCV's ChArUco object frame: origin at the outer corner of the first
-chessboard square (top-left of the printed image), x along the columns, y along the rows (down on the
-print), z into the board; the printed face looks along -z. Corners are indexed by their ChArUco id.
+darp's own board is a ChArUco board whose spec is :class:`darp.formats.calibration.CharucoBoardSpec`
+(squares, square and marker length, ArUco dictionary), the same record the calibration file stores, so
+that a calibration names the board it came from. :class:`Board` is the general target: that spec, or
+another arm's ChArUco (OpenCV's legacy layout too) or chessboard as an any-arm captures folder declares it
+(:func:`parse_board`); the OpenCV board and the corner coordinates of both come from it.
+
+The board frame is OpenCV's ChArUco object frame: origin at the outer corner of the first chessboard square
+(top-left of the printed image), x along the columns, y along the rows (down on the print), z into the board;
+the printed face looks along -z. Corners are indexed by their ChArUco id.
 
 ``write_board_pdf`` prints the board at true physical size: the image is embedded unresampled (each
 square an exact number of image pixels) in an axes whose extent on the page is the board's size in
@@ -15,13 +19,14 @@ beside it, so that a print at the wrong scale is caught with a ruler before it i
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from darp.errors import CalibrationError
+from darp.errors import CalibrationError, FormatError
 from darp.formats.atomic import atomic_path
 from darp.formats.calibration import CharucoBoardSpec
 
@@ -46,6 +51,86 @@ PAPER_SIZES_MM: dict[str, tuple[float, float]] = {  # portrait width, height
     "A0": (841.0, 1189.0), "letter": (215.9, 279.4), "tabloid": (279.4, 431.8),
 }
 _MM_PER_INCH = 25.4
+
+
+@dataclass(frozen=True)
+class Board:
+    """A calibration target: ChArUco (any size and dictionary, OpenCV's legacy layout too) or chessboard.
+
+    ``squares_x`` x ``squares_y`` squares of ``square_m``; the inner corners are the targets, numbered
+    row by row (ChArUco: its corner ids). Board frame: OpenCV's, origin at the first inner corner's
+    square's outer corner (ChArUco) or at the first inner corner (chessboard), z into the board.
+    """
+
+    kind: str  # "charuco" | "chessboard"
+    squares_x: int
+    squares_y: int
+    square_m: float
+    marker_m: float = 0.0
+    dictionary: str = "DICT_5X5_100"
+    legacy: bool = False
+
+    @classmethod
+    def from_spec(cls, spec: CharucoBoardSpec) -> Board:
+        """darp's ChArUco board of a calibration or capture file's spec."""
+        return cls("charuco", spec.squares_x, spec.squares_y, spec.square_length_m, spec.marker_length_m,
+                   spec.dictionary)
+
+    def cv_charuco(self) -> cv2.aruco.CharucoBoard:
+        """The OpenCV ``CharucoBoard`` (ChArUco boards only)."""
+        d = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[self.dictionary][0])
+        b = cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_m, self.marker_m, d)
+        b.setLegacyPattern(self.legacy)
+        return b
+
+    def corners_m(self) -> np.ndarray:
+        """(N, 3) inner corners in the board frame, row k = corner id k."""
+        if self.kind == "charuco":
+            return np.asarray(self.cv_charuco().getChessboardCorners(), np.float64).reshape(-1, 3)
+        nx, ny = self.squares_x - 1, self.squares_y - 1
+        g = np.stack(np.meshgrid(np.arange(nx), np.arange(ny)), axis=-1).reshape(-1, 2) * self.square_m
+        return np.concatenate([g, np.zeros((len(g), 1))], axis=1)
+
+    def spec(self) -> CharucoBoardSpec | None:
+        """The calibration file's board record (ChArUco only)."""
+        if self.kind != "charuco":
+            return None
+        return CharucoBoardSpec(self.squares_x, self.squares_y, self.square_m, self.marker_m, self.dictionary)
+
+    def describe(self) -> dict[str, Any]:
+        return {"type": self.kind, "squares_x": self.squares_x, "squares_y": self.squares_y,
+                "square_mm": self.square_m * 1e3, "marker_mm": self.marker_m * 1e3,
+                "dictionary": self.dictionary, "legacy": self.legacy}
+
+
+def parse_board(data: dict[str, Any], path: Path) -> Board:
+    """A :class:`Board` from an any-arm sidecar's ``board`` mapping (lengths in mm, as printed); a FormatError
+    naming the sidecar when it is not a board OpenCV can make."""
+    kind = str(data.get("type", "charuco")).lower()
+    try:
+        sx, sy = int(data["squares_x"]), int(data["squares_y"])
+        square = float(data["square_mm"]) / 1e3
+    except (KeyError, TypeError, ValueError) as err:
+        raise FormatError(f"board needs squares_x, squares_y and square_mm ({err})", path) from None
+    if kind == "chessboard":
+        if sx < 3 or sy < 3:
+            raise FormatError(f"a chessboard needs at least 3 x 3 squares, got {sx} x {sy}", path)
+        return Board("chessboard", sx, sy, square)
+    if kind != "charuco":
+        raise FormatError(f"board type {kind!r} is not charuco or chessboard", path)
+    dictionary = str(data.get("dictionary", "DICT_5X5_100")).upper()
+    if dictionary not in ARUCO_DICTIONARIES:
+        raise FormatError(f"unknown ArUco dictionary {dictionary!r} (known: {', '.join(ARUCO_DICTIONARIES)})", path)
+    try:
+        marker = float(data["marker_mm"]) / 1e3
+    except (KeyError, TypeError, ValueError):
+        raise FormatError("a ChArUco board needs marker_mm", path) from None
+    if not 0 < marker < square:
+        raise FormatError(f"marker_mm {marker * 1e3:g} must be in (0, square_mm {square * 1e3:g})", path)
+    if (sx * sy) // 2 > ARUCO_DICTIONARIES[dictionary][1]:
+        raise FormatError(f"a {sx} x {sy} board needs {(sx * sy) // 2} markers but {dictionary} has "
+                          f"{ARUCO_DICTIONARIES[dictionary][1]}", path)
+    return Board("charuco", sx, sy, square, marker, dictionary, bool(data.get("legacy", False)))
 
 
 def make_board_spec(squares_x: int, squares_y: int, square_length_m: float, marker_length_m: float,
@@ -95,14 +180,13 @@ def board_size_m(spec: CharucoBoardSpec) -> tuple[float, float]:
 def cv_board(spec: CharucoBoardSpec) -> cv2.aruco.CharucoBoard:
     """The OpenCV ``CharucoBoard`` for detection and object points."""
     validate_board(spec)
-    dictionary = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[spec.dictionary][0])
-    return cv2.aruco.CharucoBoard((spec.squares_x, spec.squares_y), spec.square_length_m,
-                                  spec.marker_length_m, dictionary)
+    return Board.from_spec(spec).cv_charuco()
 
 
 def corners_board_m(spec: CharucoBoardSpec) -> np.ndarray:
     """(N, 3) inner corners in the board frame (z = 0), row k = ChArUco corner id k."""
-    return np.asarray(cv_board(spec).getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+    validate_board(spec)
+    return Board.from_spec(spec).corners_m()
 
 
 def board_image(spec: CharucoBoardSpec, px_per_square: int = 200, margin_px: int = 0) -> np.ndarray:
@@ -203,7 +287,7 @@ def write_board_pdf(spec: CharucoBoardSpec, path: str | Path, *, paper: str = "a
 
 
 __all__ = [
-    "ARUCO_DICTIONARIES", "DEFAULT_BOARD", "PAPER_SIZES_MM", "board_image", "board_size_m", "choose_paper",
-    "corners_board_m", "cv_board", "make_board_spec", "n_corners", "n_markers", "spec_text",
-    "validate_board", "write_board_pdf",
+    "ARUCO_DICTIONARIES", "DEFAULT_BOARD", "PAPER_SIZES_MM", "Board", "board_image", "board_size_m",
+    "choose_paper", "corners_board_m", "cv_board", "make_board_spec", "n_corners", "n_markers", "parse_board",
+    "spec_text", "validate_board", "write_board_pdf",
 ]

@@ -11,6 +11,9 @@ planar targets, then Levenberg-Marquardt) on the ideal pinhole image.
 A detection is rejected, with a reason, when it has too few corners, when its corners are degenerate
 (all on one board row or column, or covering too little of the image), or when the PnP reprojection
 error is too high (a wrong corner id or a blurred image).
+
+Any-arm captures (:mod:`darp.calibration.anyarm`) use :func:`detect_corners` on any :class:`Board`
+(ChArUco or chessboard) and :func:`ideal_pixels` with the intrinsics file's camera model.
 """
 
 from __future__ import annotations
@@ -22,10 +25,14 @@ from typing import cast
 import cv2
 import numpy as np
 
-from darp.calibration.board import corners_board_m, cv_board
+from darp.calibration.board import Board, corners_board_m, cv_board
 from darp.calibration.captures import CaptureRecord, CaptureSet
-from darp.calibration.geometry import project, transform, undistort_pixels
+from darp.calibration.geometry import undistort_pixels
 from darp.formats.calibration import CharucoBoardSpec
+from darp.formats.intrinsics import CameraModel
+from darp.formats.realsense.types import Intrinsics
+from darp.geometry.pinhole import project
+from darp.geometry.transforms import transform_points
 
 
 @dataclass(frozen=True)
@@ -159,8 +166,47 @@ def board_pose_pnp(object_points: np.ndarray, ideal_px: np.ndarray, K: np.ndarra
     T[:3, 3] = tvec.reshape(3)
     if T[2, 3] <= 0:
         return None, float("inf")
-    residual = project(transform(T, object_points), K) - ideal_px
+    residual = project(transform_points(T[None], object_points), K) - ideal_px  # batched form: einsum
     return T, float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
+
+
+def detect_corners(board: Board, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (N,), distorted pixels (N, 2)) of any board's inner corners in an 8-bit grey image."""
+    if board.kind == "charuco":
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        charuco = cv2.aruco.CharucoParameters()
+        charuco.tryRefineMarkers = True
+        corners, ids, _, _ = cv2.aruco.CharucoDetector(board.cv_charuco(), charuco, params).detectBoard(grey)
+        if ids is None or len(ids) == 0:
+            return np.zeros(0, int), np.zeros((0, 2))
+        ids = ids.reshape(-1).astype(int)
+        order = np.argsort(ids, kind="stable")
+        return ids[order], corners.reshape(-1, 2).astype(np.float64)[order]
+    size = (board.squares_x - 1, board.squares_y - 1)
+    found, pts = cv2.findChessboardCornersSB(grey, size, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    if not found:
+        found, pts = cv2.findChessboardCorners(grey, size)
+        if not found:
+            return np.zeros(0, int), np.zeros((0, 2))
+        pts = cv2.cornerSubPix(grey, pts, (5, 5), (-1, -1),
+                               (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3))
+    return np.arange(size[0] * size[1]), pts.reshape(-1, 2).astype(np.float64)
+
+
+def ideal_pixels(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
+    """Distorted pixels (N, 2) -> ideal pinhole pixels of the same K: OpenCV's ``undistortPoints`` for its own
+    model, librealsense's equations (:func:`darp.calibration.geometry.undistort_pixels`) for a recording's."""
+    if not np.any(camera.dist) or len(uv) == 0:
+        return np.asarray(uv, np.float64)
+    if camera.model != "Brown Conrady":  # a RealSense model: librealsense's own equations
+        K = camera.K
+        c = tuple(float(v) for v in (list(camera.dist) + [0.0] * 5)[:5])
+        intr = Intrinsics(int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1)), float(K[0, 0]),
+                          float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), camera.model, c)  # type: ignore[arg-type]
+        return np.asarray(undistort_pixels(np.asarray(uv, np.float64), intr))
+    out = cv2.undistortPoints(np.asarray(uv, np.float64).reshape(-1, 1, 2), camera.K, camera.dist, P=camera.K)
+    return cast(np.ndarray, out.reshape(-1, 2))
 
 
 def detect_captures(captures: CaptureSet, settings: DetectionSettings | None = None,
@@ -175,4 +221,5 @@ def detect_captures(captures: CaptureSet, settings: DetectionSettings | None = N
     return out
 
 
-__all__ = ["CharucoCornerDetector", "Detection", "DetectionSettings", "board_pose_pnp", "detect_captures"]
+__all__ = ["CharucoCornerDetector", "Detection", "DetectionSettings", "board_pose_pnp", "detect_captures",
+           "detect_corners", "ideal_pixels"]

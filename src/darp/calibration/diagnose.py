@@ -26,8 +26,9 @@ from darp.kinematics.transforms import (
 )
 
 if TYPE_CHECKING:
-    from darp.calibration.anyarm import CaptureFolder
+    from darp.calibration.board import Board
     from darp.calibration.model import Observations
+    from darp.formats.captures import CaptureFolder
 
 MAX_REACH_M = 5.0  # flange positions beyond this from the base: not metres
 MIN_SPREAD_M = 0.005  # all flange positions within 5 mm of each other when read as mm: not millimetres
@@ -71,7 +72,7 @@ def consistency_mm(F: np.ndarray, B: np.ndarray) -> float:
     return float(1e3 * np.median(np.linalg.norm(p - np.median(p, axis=0), axis=1)))
 
 
-def check_pose_conventions(folder: CaptureFolder, obs: Observations, arm: str, ratio: float = 0.5,
+def check_pose_conventions(folder: CaptureFolder[Board], obs: Observations, arm: str, ratio: float = 0.5,
                            min_mm: float = 3.0) -> dict[str, float]:
     """Raise a one-line :class:`CalibrationError` when a misreading of the poses places the boards much closer.
 

@@ -27,23 +27,16 @@ from typing import cast
 import numpy as np
 
 from darp.calibration.model import ChainParams, Observations
+from darp.geometry.transforms import skew
 from darp.kinematics import z1
 from darp.kinematics.kinematic_model import SAG_JOINTS, backlash_angles, gravity_torques, links_params
 from darp.kinematics.transforms import invert_transform, rotvec_to_rotation
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    K = np.zeros(v.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -v[..., 2], v[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = v[..., 2], -v[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -v[..., 1], v[..., 0]
-    return K
-
-
 def right_jacobian(w: np.ndarray) -> np.ndarray:
     """Right Jacobian of SO(3) at rotation vector ``w`` (3,): R(w + dw) = R(w) Exp(Jr dw)."""
     theta = float(np.linalg.norm(w))
-    K = _skew(np.asarray(w, float))
+    K = skew(np.asarray(w, float))
     if theta < 1e-6:
         return cast(np.ndarray, np.eye(3) - 0.5 * K + K @ K / 6.0)
     return cast(np.ndarray,
@@ -115,7 +108,7 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
     w = x[sl["board"]][:3]
     Rw = rotvec_to_rotation(w)
     Pw = obs.P_board
-    dW_w = -(R_A[ci] @ (p0.T_ref_board[:3, :3] @ Rw)) @ _skew(Pw) @ right_jacobian(w)
+    dW_w = -(R_A[ci] @ (p0.T_ref_board[:3, :3] @ Rw)) @ skew(Pw) @ right_jacobian(w)
     put("board", np.concatenate([dW_w, np.broadcast_to((R_A @ p0.T_ref_board[:3, :3])[ci], (C, 3, 3))], axis=2))
     for a, arm in enumerate(obs.arms):
         mine = obs.arm_index[ci] == a
@@ -127,13 +120,13 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
             Rt = rotvec_to_rotation(w).T
             N = R_SXF[c]
             blk = np.zeros((C, 3, 6))
-            blk[mine, :, :3] = N @ _skew(V_base[mine]) @ right_jacobian(w)
+            blk[mine, :, :3] = N @ skew(V_base[mine]) @ right_jacobian(w)
             blk[mine, :, 3:] = -N @ Rt
             put(f"base:{arm}", blk)
         w = x[sl[f"handeye:{arm}"]][:3]
         Rt = rotvec_to_rotation(w).T
         blk = np.zeros((C, 3, 6))
-        blk[mine, :, :3] = R_S[c] @ _skew(V_cam[mine]) @ right_jacobian(w)
+        blk[mine, :, :3] = R_S[c] @ skew(V_cam[mine]) @ right_jacobian(w)
         blk[mine, :, 3:] = -R_S[c] @ Rt
         put(f"handeye:{arm}", blk)
         free = np.flatnonzero(layout.free_joints[arm])  # type: ignore[attr-defined]

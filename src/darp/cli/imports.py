@@ -84,8 +84,9 @@ def import_command(
                                                          "image's and its pose's.")] = TUM_MAX_DT_S,
 ) -> None:
     """Import an RGB-D sequence with poses as a survey that darp process fuses, meshes and evaluates."""
-    from darp.calibration.anyarm import PoseConventions, load_intrinsics
     from darp.formats.calibration import read_calibration
+    from darp.formats.intrinsics import load_intrinsics
+    from darp.formats.poses import PoseConventions, read_pose_csv, read_pose_folder
     from darp.formats.trajectories import (
         detect_posed_folder,
         read_nerfstudio_folder,
@@ -140,18 +141,10 @@ def import_command(
                                      param_hint="'--arm'")
         conv = PoseConventions(unit.value, quaternion.value)
         if flange_poses.is_dir():
-            from darp.calibration.anyarm import check_rigid, read_matrix_file
             from darp.formats.trajectories import frame_key
 
-            raw = {}
-            for f in sorted(flange_poses.iterdir()):
-                if f.suffix in (".txt", ".npy"):
-                    T = read_matrix_file(f)
-                    T[:3, 3] *= conv.scale
-                    raw[frame_key(f.name)] = check_rigid(T, f)
+            raw = read_pose_folder(flange_poses, conv, key=lambda f: frame_key(f.name))
         else:
-            from darp.calibration.anyarm import read_pose_csv
-
             raw = read_pose_csv(flange_poses, conv)
         from darp.calibration.diagnose import check_translation_unit
 

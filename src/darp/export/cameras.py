@@ -38,6 +38,8 @@ import numpy as np
 from darp.dataset import ProcessedSurvey
 from darp.export._io import OPENCV_TO_OPENGL, depth_png, fmt, frame_name, write_lines, write_png
 from darp.formats.atomic import write_json_atomic
+from darp.formats.intrinsics import open3d_intrinsic_json
+from darp.formats.trajectories import TUM_HEADER, write_tum
 from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.keyframe_io import Keyframe, iter_keyframes
 
@@ -110,8 +112,7 @@ def export_colmap(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
 def open3d_intrinsic(kf: Keyframe) -> dict[str, Any]:
     """Open3D's ``camera_intrinsic.json`` (PinholeCameraIntrinsic: column-major 3x3)."""
     i = kf.intrinsics
-    return {"width": i.width, "height": i.height,
-            "intrinsic_matrix": [i.fx, 0.0, 0.0, 0.0, i.fy, 0.0, i.ppx, i.ppy, 1.0]}
+    return open3d_intrinsic_json(i.width, i.height, i.fx, i.fy, i.ppx, i.ppy)
 
 
 def export_open3d(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
@@ -139,19 +140,20 @@ def export_tum(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
     counts = {}
     for arm, keyframes in _by_arm(_keyframes(survey)).items():
         folder = out / arm
-        rgb, depth, gt = ["# color images", "# timestamp filename"], ["# depth maps", "# timestamp filename"], [
-            "# ground truth trajectory (T_world_cam, OpenCV optical frame)", "# timestamp tx ty tz qx qy qz qw"]
-        for kf in sorted(keyframes, key=lambda k: k.t_s):
+        rgb, depth, stamps = ["# color images", "# timestamp filename"], ["# depth maps", "# timestamp filename"], []
+        ordered = sorted(keyframes, key=lambda k: k.t_s)
+        for kf in ordered:
             stamp = f"{kf.t_s:.6f}"
             write_png(folder / "rgb" / f"{stamp}.png", kf.rgb)
             write_png(folder / "depth" / f"{stamp}.png", depth_png(kf, TUM_DEPTH_UNITS_PER_M))
             rgb.append(f"{stamp} rgb/{stamp}.png")
             depth.append(f"{stamp} depth/{stamp}.png")
-            T = np.asarray(kf.T_world_cam, np.float64)
-            gt.append(f"{stamp} " + " ".join(fmt(v) for v in (*T[:3, 3], *rotation_to_quaternion(T[:3, :3]))))
+            stamps.append(stamp)
         write_lines(folder / "rgb.txt", rgb)
         write_lines(folder / "depth.txt", depth)
-        write_lines(folder / "groundtruth.txt", gt)
+        poses = np.array([np.asarray(kf.T_world_cam, np.float64) for kf in ordered])
+        write_tum(folder / "groundtruth.txt", stamps, poses,
+                  ("# ground truth trajectory (T_world_cam, OpenCV optical frame)", f"# {TUM_HEADER}"), fmt)
         i = keyframes[0].intrinsics
         write_lines(folder / "calibration.txt", [
             "# fx fy cx cy k1 k2 p1 p2 k3 (pixel centres at integers; depth PNG: 5000 per metre)",

@@ -2,7 +2,8 @@
 
 Each helper checks one value and raises :class:`darp.errors.FormatError` (or the subclass given) with
 the file path and the dotted name of the field, so that a bad file is reported in one line:
-``calibration.json: arms.arm110.T_world_base: rotation is not orthonormal (error 3.2e-02)``.
+``calibration.json: arms.arm110.T_world_base: not a rigid transform: rotation is not orthonormal (error 3.2e-02,
+...)``.
 """
 
 from __future__ import annotations
@@ -20,8 +21,7 @@ from darp.errors import FormatError
 from darp.formats.atomic import write_text_atomic
 from darp.formats.limits import MAX_JSON_BYTES
 from darp.formats.text import read_utf8_text
-
-RIGID_TOLERANCE = 1e-5  # max |R^T R - I| entry and |det R - 1| accepted for a stored rotation
+from darp.geometry.rigid import check_rigid
 
 
 def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -> dict[str, Any]:
@@ -178,18 +178,8 @@ def as_rigid_transform(
     field: str,
     path: str | Path | None,
     *,
-    tolerance: float = RIGID_TOLERANCE,
     error: type[FormatError] = FormatError,
 ) -> np.ndarray:
-    """A 4x4 rigid transform: orthonormal right-handed rotation, bottom row exactly ``0 0 0 1``."""
-    T = as_array(value, field, path, (4, 4), error)
-    if not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise error(f"{field}: last row must be [0, 0, 0, 1], got {T[3].tolist()}", path)
-    R = T[:3, :3]
-    ortho_error = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    if ortho_error > tolerance:
-        raise error(f"{field}: rotation is not orthonormal (error {ortho_error:.1e})", path)
-    det = float(np.linalg.det(R))
-    if abs(det - 1.0) > tolerance:
-        raise error(f"{field}: rotation is a reflection (det {det:+.3f})", path)
-    return T
+    """A 4x4 rigid transform by :func:`darp.geometry.rigid.check_rigid`'s rule: finite, orthonormal right-handed
+    rotation, last row ``0 0 0 1``."""
+    return check_rigid(as_array(value, field, path, (4, 4), error), field, path, error=error)

@@ -7,13 +7,17 @@
   x right, y up, z back; turned to OpenCV's x right, y down, z forward), keyed by ``file_path``.
 
 Every reader returns ``{key: T_world_cam}`` with the key a frame's number (the last number in its
-name or, for TUM, the line's timestamp as written) so that frames and poses can be matched.
+name or, for TUM, the line's timestamp as written) so that frames and poses can be matched. Every pose must be
+rigid by :mod:`darp.geometry.rigid`'s rule; rotations a little off orthonormal are replaced by the nearest
+rotation, with one warning per file. TUM is read and written here for every darp writer
+(:func:`read_tum_trajectory`, :func:`write_tum`).
 """
 
 from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -21,6 +25,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from darp.errors import FormatError
+from darp.formats.intrinsics import read_open3d_intrinsic
+from darp.geometry.rigid import orthonormalised, warn_orthonormalised
+from darp.geometry.transforms import rotation_to_quaternion
 
 FORMATS = ("tum", "log", "pose-txt", "nerfstudio")
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -50,30 +57,94 @@ def _rows(path: Path) -> list[list[float]]:
     return out
 
 
-def _rigid(T: np.ndarray, path: Path, where: str) -> np.ndarray:
-    R = T[:3, :3]
-    if not (np.all(np.isfinite(T)) and np.allclose(R @ R.T, np.eye(3), atol=2e-3) and np.linalg.det(R) > 0):
-        raise FormatError(f"{where}: not a rigid transform (rotation not orthonormal)", path)
-    return T
+class _Rigid:
+    """One file's poses through :func:`darp.geometry.rigid.orthonormalised`, warned about once."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.errors: list[float] = []
+
+    def __call__(self, T: np.ndarray, where: str) -> np.ndarray:
+        out, err = orthonormalised(T, where, self.path, error=FormatError)
+        self.errors.append(err)
+        return out
+
+    def warn(self) -> None:
+        warn_orthonormalised(self.errors, self.path)
+
+
+TUM_HEADER = "timestamp tx ty tz qx qy qz qw"
+
+
+def read_tum_trajectory(path: str | Path) -> tuple[list[str], np.ndarray]:
+    """A TUM trajectory ``timestamp tx ty tz qx qy qz qw`` per line (``#`` comments): the timestamps as written
+    and ``T (N, 4, 4)`` in file order (quaternions normalised)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise FormatError(f"cannot read ({err})", p) from None
+    stamps: list[str] = []
+    poses: list[np.ndarray] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        r = line.split()
+        if not r or r[0].startswith("#"):
+            continue
+        if len(r) != 8:
+            raise FormatError(f"line {number}: expected 8 values ({TUM_HEADER}), got {len(r)}", p)
+        try:
+            v = np.array([float(x) for x in r[1:]])
+            float(r[0])
+        except ValueError:
+            raise FormatError(f"line {number}: not numbers", p) from None
+        norm = np.linalg.norm(v[3:7])
+        if not (np.all(np.isfinite(v)) and norm > 0):
+            raise FormatError(f"line {number}: not a pose (non-finite values or a zero quaternion)", p)
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_quat(v[3:7] / norm).as_matrix()  # x y z w
+        T[:3, 3] = v[:3]
+        stamps.append(r[0])
+        poses.append(T)
+    return stamps, np.array(poses).reshape(-1, 4, 4)
 
 
 def read_tum(path: str | Path) -> dict[str, np.ndarray]:
     """TUM ``timestamp tx ty tz qx qy qz qw``; key = the timestamp as written."""
-    p = Path(path)
+    stamps, T = read_tum_trajectory(path)
     out: dict[str, np.ndarray] = {}
-    raw = [line.split() for line in p.read_text(encoding="utf-8").splitlines()
-           if line.strip() and not line.lstrip().startswith("#")]
-    for n, r in enumerate(raw):
-        if len(r) != 8:
-            raise FormatError(f"line {n + 1} has {len(r)} values; TUM is timestamp tx ty tz qx qy qz qw", p)
-        v = np.array([float(x) for x in r[1:]])
-        if r[0] in out:
-            raise FormatError(f"timestamp {r[0]} appears twice (duplicated frame)", p)
-        T = np.eye(4)
-        T[:3, :3] = Rotation.from_quat(v[3:7] / np.linalg.norm(v[3:7])).as_matrix()  # x y z w
-        T[:3, 3] = v[:3]
-        out[r[0]] = T
+    for stamp, pose in zip(stamps, T, strict=True):
+        if stamp in out:
+            raise FormatError(f"timestamp {stamp} appears twice (duplicated frame)", path)
+        out[stamp] = pose
     return out
+
+
+def exact(value: float) -> str:
+    """A float with 17 significant digits (reads back exactly)."""
+    return repr(float(value))
+
+
+def tum_text(stamps: Sequence[str], T_world_cam: np.ndarray, comments: Sequence[str] = (),
+             number: Callable[[float], str] = exact) -> str:
+    """TUM text: the ``comments`` lines (``#`` included), then one ``timestamp tx ty tz qx qy qz qw`` line per
+    pose, the quaternion with ``w >= 0`` and each number written by ``number`` (default: exactly)."""
+    T = np.asarray(T_world_cam, np.float64).reshape(-1, 4, 4)
+    if len(stamps) != len(T):
+        raise FormatError(f"{len(stamps)} timestamps for {len(T)} poses")
+    lines = list(comments)
+    if len(T):
+        quats = rotation_to_quaternion(T[:, :3, :3])
+        for stamp, pose, q in zip(stamps, T, quats, strict=True):
+            lines.append(" ".join([stamp, *(number(v) for v in (*pose[:3, 3], *q))]))
+    return "\n".join(lines) + "\n"
+
+
+def write_tum(path: str | Path, stamps: Sequence[str], T_world_cam: np.ndarray, comments: Sequence[str] = (),
+              number: Callable[[float], str] = exact) -> None:
+    """Write :func:`tum_text` atomically."""
+    from darp.formats.atomic import write_text_atomic
+
+    write_text_atomic(path, tum_text(stamps, T_world_cam, comments, number))
 
 
 def read_log(path: str | Path) -> dict[str, np.ndarray]:
@@ -83,12 +154,14 @@ def read_log(path: str | Path) -> dict[str, np.ndarray]:
     if len(rows) % 5:
         raise FormatError(f"{len(rows)} lines is not a multiple of 5 (a header and 4 matrix rows per frame)", p)
     out = {}
+    rigid = _Rigid(p)
     for k in range(0, len(rows), 5):
         head = rows[k]
         key = str(int(head[0]))
         if key in out:
             raise FormatError(f"frame {key} appears twice (duplicated frame)", p)
-        out[key] = _rigid(np.array(rows[k + 1:k + 5]), p, f"frame {key}")
+        out[key] = rigid(np.array(rows[k + 1:k + 5]), f"frame {key}")
+    rigid.warn()
     return out
 
 
@@ -97,13 +170,16 @@ def read_pose_txt(folder: str | Path, pattern: str = "*.pose.txt") -> dict[str, 
     root = Path(folder)
     files = sorted(root.glob(pattern)) or sorted(root.glob("*.txt"))
     out = {}
+    errors = []
     for f in files:
         M = np.array(_rows(f))
         if M.shape != (4, 4):
             raise FormatError(f"expected a 4x4 matrix, got shape {M.shape}", f)
-        out[frame_key(f.name)] = _rigid(M, f, "pose")
+        out[frame_key(f.name)], err = orthonormalised(M, "pose", f, error=FormatError)
+        errors.append(err)
     if not out:
         raise FormatError(f"no pose files ({pattern})", root)
+    warn_orthonormalised(errors, root)
     return out
 
 
@@ -119,11 +195,13 @@ def read_nerfstudio(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, 
     if not isinstance(frames, list):
         raise FormatError("no 'frames' list", p)
     out: dict[str, np.ndarray] = {}
+    rigid = _Rigid(p)
     for fr in frames:
         M = np.asarray(fr.get("transform_matrix"), float)
         if M.shape != (4, 4):
             raise FormatError(f"frame {fr.get('file_path')}: transform_matrix is not 4x4", p)
-        out[frame_key(str(fr.get("file_path", len(out))))] = _rigid(M @ OPENGL_TO_OPENCV, p, str(fr.get("file_path")))
+        out[frame_key(str(fr.get("file_path", len(out))))] = rigid(M @ OPENGL_TO_OPENCV, str(fr.get("file_path")))
+    rigid.warn()
     intr = {k: float(data[k]) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h") if k in data}
     return out, intr
 
@@ -141,17 +219,6 @@ def read_trajectory(path: str | Path, kind: str) -> dict[str, np.ndarray]:
     raise FormatError(f"unknown trajectory format {kind!r} (known: {', '.join(FORMATS)})", path)
 
 
-def write_tum(path: str | Path, poses: dict[str, np.ndarray]) -> None:
-    """Write poses as TUM lines (key as the timestamp); for round trips and exports."""
-    from darp.formats.atomic import write_text_atomic
-
-    lines = []
-    for k, T in poses.items():
-        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # x y z w
-        lines.append(" ".join([k, *(f"{v:.9f}" for v in (*T[:3, 3], *q))]))
-    write_text_atomic(path, "\n".join(lines) + "\n")
-
-
 def write_log(path: str | Path, poses: dict[str, np.ndarray]) -> None:
     """Write poses as an Open3D ``trajectory.log``."""
     from darp.formats.atomic import write_text_atomic
@@ -162,8 +229,6 @@ def write_log(path: str | Path, poses: dict[str, np.ndarray]) -> None:
         blocks.append(f"{k} {k} {n}")
         blocks += [" ".join(f"{v:.9f}" for v in row) for row in T]
     write_text_atomic(path, "\n".join(blocks) + "\n")
-
-
 
 
 # --- posed RGB-D folders: frames paired with their poses (and intrinsics) in each format's own way ---------------
@@ -296,13 +361,14 @@ def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
     if not isinstance(frames, list) or not frames:
         raise FormatError("no 'frames' list", p)
     root = p.parent
+    rigid = _Rigid(p)
     out = PosedFrames("nerfstudio", depth_scale_m=float(data.get("depth_unit_scale_factor", 1e-3)), source=str(p))
     for n, fr in enumerate(frames):
         key, where = str(n), f"frame {n} ({fr.get('file_path')})"
         M = np.asarray(fr.get("transform_matrix"), float)
         if M.shape != (4, 4):
             raise FormatError(f"{where}: transform_matrix is not 4x4", p)
-        out.poses[key] = _rigid(M @ OPENGL_TO_OPENCV, p, where)
+        out.poses[key] = rigid(M @ OPENGL_TO_OPENCV, where)
         if fr.get("file_path"):
             out.colour[key] = root / str(fr["file_path"])
         if not fr.get("depth_file_path"):
@@ -319,18 +385,8 @@ def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
     if out.intrinsics and len(out.intrinsics) != len(out.poses):
         raise FormatError(f"{len(out.poses) - len(out.intrinsics)} frame(s) have no fl_x/cx/cy (per frame or at the "
                           "top level)", p)
+    rigid.warn()
     return out
-
-
-def read_open3d_intrinsic(path: str | Path) -> tuple[np.ndarray, int, int]:
-    """Open3D's ``PinholeCameraIntrinsic`` JSON: (K, width, height); ``intrinsic_matrix`` is column-major."""
-    p = Path(path)
-    try:
-        d = json.loads(p.read_text(encoding="utf-8"))
-        K = np.asarray(d["intrinsic_matrix"], np.float64).reshape(3, 3).T
-        return K, int(d.get("width", 0)), int(d.get("height", 0))
-    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
-        raise FormatError(f"not an Open3D camera_intrinsic.json ({err})", p) from None
 
 
 def read_open3d_folder(folder: str | Path, log: str | Path | None = None) -> PosedFrames:
@@ -370,7 +426,7 @@ def detect_posed_folder(folder: str | Path) -> str | None:
     return None
 
 
-__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_MAX_DT_S", "PosedFrames",
-           "associate", "detect_posed_folder", "frame_key", "read_log", "read_nerfstudio", "read_nerfstudio_folder",
-           "read_open3d_folder", "read_open3d_intrinsic", "read_pose_txt", "read_tum_folder", "read_trajectory",
-           "read_tum", "write_log", "write_tum"]
+__all__ = ["FORMATS", "NERFSTUDIO_PIXEL_CENTRE", "TUM_DEPTH_SCALE_M", "TUM_HEADER", "TUM_MAX_DT_S", "PosedFrames",
+           "associate", "detect_posed_folder", "exact", "frame_key", "read_log", "read_nerfstudio",
+           "read_nerfstudio_folder", "read_open3d_folder", "read_pose_txt", "read_trajectory", "read_tum",
+           "read_tum_folder", "read_tum_trajectory", "tum_text", "write_log", "write_tum"]

@@ -19,6 +19,7 @@ from typing import cast
 import numpy as np
 
 from darp.errors import KinematicsError
+from darp.geometry.rigid import check_rigid
 from darp.kinematics import z1
 
 DEFAULT_MAX_GAP_S = 0.2
@@ -158,18 +159,6 @@ def interpolate_joints(
     return JointInterpolation(t, q, qd, status)
 
 
-def _as_rigid(name: str, T: np.ndarray) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise KinematicsError(f"{name} must be a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if not (np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.isclose(np.linalg.det(R), 1.0, atol=1e-6)):
-        raise KinematicsError(f"{name} is not a rigid transform (rotation part is not orthonormal)")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise KinematicsError(f"{name} has a bottom row other than [0 0 0 1]")
-    return T
-
-
 def compose_world_cam(T_world_base: np.ndarray, T_base_wrist: np.ndarray, T_wrist_cam: np.ndarray) -> np.ndarray:
     """Eq. 1's product ``T_world_base @ T_base_wrist @ T_wrist_cam`` for one or many wrist poses."""
     return cast(np.ndarray, np.matmul(np.matmul(T_world_base, T_base_wrist), T_wrist_cam))
@@ -200,8 +189,8 @@ def camera_poses(
     forward kinematics. ``fk_batch`` maps (N, 6) joints to (N, 4, 4) ``T_base_wrist``; by default the
     Z1 model's ``fk_batch`` for ``wrist_frame``.
     """
-    T_wb = _as_rigid("T_world_base", T_world_base)
-    T_wc = _as_rigid("T_wrist_cam", T_wrist_cam)
+    T_wb = check_rigid(T_world_base, "T_world_base", error=KinematicsError)
+    T_wc = check_rigid(T_wrist_cam, "T_wrist_cam", error=KinematicsError)
     if not np.isfinite(clock_offset_s):
         raise KinematicsError(f"clock offset must be finite, got {clock_offset_s}")
     host_t = np.asarray(frame_t_s, dtype=np.float64).reshape(-1) - float(clock_offset_s)

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from darp.errors import KinematicsError
+from darp.geometry.rigid import check_rigid
 from darp.kinematics import z1
 from darp.kinematics.transforms import rotation_to_rotvec
 
@@ -61,9 +62,8 @@ def check_targets(T: ArrayLike, batched: bool) -> Array:
                               f"got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise KinematicsError("IK target contains NaN or infinite values")
-    R = arr[..., :3, :3]
-    if np.max(np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)), initial=0.0) > 1e-6:
-        raise KinematicsError("IK target rotation is not orthonormal")
+    if arr.size:
+        check_rigid(arr, "IK target", error=KinematicsError)
     return arr if batched else arr[None]
 
 

@@ -19,6 +19,7 @@ import numpy as np
 from darp.errors import ConfigError, KinematicsError
 from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.text import read_yaml_mapping
+from darp.geometry.rigid import check_rigid
 from darp.kinematics import collision, rig_yaml, z1
 from darp.kinematics.camera_poses import compose_world_cam
 
@@ -68,7 +69,7 @@ class ArmConfig:
             raise ConfigError(f"arms.{self.arm_id}.camera_serial: must be a string of digits, "
                               f"got {self.camera_serial!r}")
         for name in ("T_world_base", "T_flange_cam"):
-            matrix = rig_yaml.check_rigid(getattr(self, name), f"arms.{self.arm_id}.{name}")
+            matrix = check_rigid(getattr(self, name), f"arms.{self.arm_id}.{name}", error=ConfigError)
             object.__setattr__(self, name, _frozen_array(matrix, (4, 4), f"arms.{self.arm_id}.{name}"))
         park = _frozen_array(self.park_q_rad, (6,), f"arms.{self.arm_id}.park_q_rad")
         _check_within_limits(park, f"arms.{self.arm_id}.park_q_rad")

@@ -16,12 +16,11 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.limits import ANGLE_ABS_MAX_DEG, JOINT_ABS_MAX_RAD, POSITION_ABS_MAX_M
+from darp.geometry.rigid import check_rigid
 from darp.kinematics.transforms import make_transform, rotation_to_rpy, rpy_to_rotation
 
 if TYPE_CHECKING:
     from darp.kinematics.rig import Rig
-
-RIGID_TOLERANCE = 1e-6  # accepted |R^T R - I| and |det R - 1| for a matrix given in a rig file
 
 
 class FieldReader:
@@ -96,7 +95,7 @@ class FieldReader:
             if len(rows) != 4:
                 raise ConfigError(f"{name}.matrix: expected 4 rows, got {len(rows)}")
             matrix = np.stack([_numbers(row, 4, f"{name}.matrix[{i}]") for i, row in enumerate(rows)])
-            return check_rigid(matrix, name)
+            return check_rigid(matrix, name, error=ConfigError)
         unknown = set(node.data) - {"xyz_m", "rpy_deg"}
         if unknown:
             raise ConfigError(f"{name}: unknown field(s) {', '.join(sorted(unknown))} "
@@ -135,24 +134,6 @@ def check_joints(values: np.ndarray, name: str) -> np.ndarray:
     if np.any(np.abs(values) > JOINT_ABS_MAX_RAD):
         raise ConfigError(f"{name}: {float(values[np.argmax(np.abs(values))])!r} rad is not a joint angle")
     return values
-
-
-def check_rigid(matrix: Any, name: str) -> np.ndarray:
-    """``matrix`` as a float 4x4 array if it is a rigid transform, else a ConfigError naming ``name``."""
-    T = np.array(matrix, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ConfigError(f"{name}: expected a 4x4 matrix, got shape {T.shape}")
-    if not np.all(np.isfinite(T)):
-        raise ConfigError(f"{name}: values must be finite")
-    R = T[:3, :3]
-    ortho = float(np.max(np.abs(R.T @ R - np.eye(3))))
-    det = float(np.linalg.det(R))
-    if ortho > RIGID_TOLERANCE or abs(det - 1.0) > RIGID_TOLERANCE:
-        raise ConfigError(f"{name}: not a rigid transform (rotation error {ortho:.1e}, det {det:.6f})")
-    if np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) > RIGID_TOLERANCE:
-        raise ConfigError(f"{name}: bottom row must be [0, 0, 0, 1]")
-    T[3] = [0.0, 0.0, 0.0, 1.0]
-    return T
 
 
 def pose_from_xyz_rpy(xyz_m: np.ndarray, rpy_rad: np.ndarray) -> np.ndarray:

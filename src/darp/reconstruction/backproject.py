@@ -34,6 +34,9 @@ import numpy as np
 
 from darp.errors import ReconstructionError
 from darp.formats.realsense.types import Intrinsics
+from darp.geometry.pinhole import backproject_rays, distort_normalised, normalised_pixels, undistort_normalised
+from darp.geometry.rigid import check_rigid
+from darp.geometry.transforms import transform_columns
 from darp.reconstruction.depth_edges import HOLE_SEARCH_PX, depth_normals, edge_free_mask, normals_at
 
 _UNDISTORT_ITERATIONS = 30
@@ -142,30 +145,15 @@ def _has_distortion(intrinsics: Intrinsics) -> bool:
     return intrinsics.model.lower() != "none" and any(abs(c) > 0.0 for c in intrinsics.coeffs)
 
 
-def _distort(x: np.ndarray, y: np.ndarray, model: str, k: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """librealsense's forward distortion of normalised coordinates for the two supported models."""
-    r2 = x * x + y * y
-    f = 1.0 + k[0] * r2 + k[1] * r2 * r2 + k[4] * r2 * r2 * r2
-    if model == "brown conrady":  # tangential terms on the undistorted coordinates (OpenCV's model)
-        return (x * f + 2 * k[2] * x * y + k[3] * (r2 + 2 * x * x),
-                y * f + 2 * k[3] * x * y + k[2] * (r2 + 2 * y * y))
-    xf, yf = x * f, y * f  # inverse Brown-Conrady: tangential terms on the radially scaled coordinates
-    return xf + 2 * k[2] * xf * yf + k[3] * (r2 + 2 * xf * xf), yf + 2 * k[3] * xf * yf + k[2] * (r2 + 2 * yf * yf)
-
-
 def _undistort(xd: np.ndarray, yd: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
     model = intrinsics.model.lower()
     if model not in ("brown conrady", "inverse brown conrady"):
         raise ReconstructionError(
             f"cannot back-project through {intrinsics.model!r} distortion with non-zero coefficients "
             f"{intrinsics.coeffs} (supported: Brown Conrady, Inverse Brown Conrady)")
-    k = tuple(float(c) for c in intrinsics.coeffs)
-    x, y = xd.copy(), yd.copy()
-    for _ in range(_UNDISTORT_ITERATIONS):  # fixed point: x <- x + (target - distort(x))
-        dx, dy = _distort(x, y, model, k)
-        x += xd - dx
-        y += yd - dy
-    dx, dy = _distort(x, y, model, k)
+    inverse = model == "inverse brown conrady"  # tangential terms on the radially scaled coordinates
+    x, y = undistort_normalised(xd, yd, intrinsics.coeffs, inverse, _UNDISTORT_ITERATIONS)
+    dx, dy = distort_normalised(x, y, intrinsics.coeffs, inverse)
     residual = float(np.max(np.hypot(dx - xd, dy - yd)))
     if not residual < _UNDISTORT_TOLERANCE:
         raise ReconstructionError(
@@ -180,8 +168,8 @@ def pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
     w, h = int(intrinsics.width), int(intrinsics.height)
     if w <= 0 or h <= 0 or not (intrinsics.fx > 0 and intrinsics.fy > 0):
         raise ReconstructionError(f"invalid intrinsics {intrinsics}")
-    u = (np.arange(w, dtype=np.float64) - intrinsics.ppx) / intrinsics.fx
-    v = (np.arange(h, dtype=np.float64) - intrinsics.ppy) / intrinsics.fy
+    u, v = normalised_pixels(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64), intrinsics.fx,
+                             intrinsics.fy, intrinsics.ppx, intrinsics.ppy)
     x, y = np.meshgrid(u, v)
     if _has_distortion(intrinsics):
         x, y = _undistort(x, y, intrinsics)
@@ -194,7 +182,7 @@ def camera_points(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
     """(H, W, 3) float32 camera-frame points of a metric depth image (z = 0 where there is no depth)."""
     rays = depth_pixel_rays(depth_m, intrinsics)
     z = depth_m.astype(np.float32, copy=False)
-    return np.stack([rays[..., 0] * z, rays[..., 1] * z, z], axis=-1)
+    return backproject_rays(rays[..., 0], rays[..., 1], z)
 
 
 def depth_pixel_rays(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
@@ -208,30 +196,12 @@ def depth_pixel_rays(depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
 
 
 def check_pose(T: np.ndarray, what: str = "T_world_cam") -> np.ndarray:
-    """``T`` as a float64 4x4 rigid transform, or a ReconstructionError saying why not."""
+    """``T`` as a float64 4x4 rigid transform (:func:`darp.geometry.rigid.check_rigid`), or a ReconstructionError
+    saying why not."""
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise ReconstructionError(f"{what} must be a finite 4x4 matrix (an unposed frame has NaN)")
-    R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-5 or abs(np.linalg.det(R) - 1.0) > 1e-5:
-        raise ReconstructionError(f"{what} is not a rigid transform")
-    return T
-
-
-def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
-    """Points (N, 3) from frame b to frame a, float32 out."""
-    p = np.asarray(points_b, dtype=np.float32)
-    return _to_world(T_a_b, p[:, 0], p[:, 1], p[:, 2])
-
-
-def _to_world(T: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """``T @ (x, y, z, 1)`` by columns, float32: much faster than numpy's matmul for (N, 3) x (3, 3)."""
-    R = T[:3, :3].astype(np.float32)
-    t = T[:3, 3].astype(np.float32)
-    out = np.empty((z.size, 3), np.float32)
-    for i in range(3):
-        out[:, i] = x * R[i, 0] + y * R[i, 1] + z * R[i, 2] + t[i]
-    return out
+    return check_rigid(T, what, error=ReconstructionError)
 
 
 def world_points(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray,
@@ -239,7 +209,7 @@ def world_points(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.nd
     """World points (N, 3) float32 of the given flat pixel indices of a metric depth image."""
     rays = depth_pixel_rays(depth_m, intrinsics).reshape(-1, 2)
     z = depth_m.reshape(-1)[pixel_index]
-    return _to_world(T_world_cam, rays[pixel_index, 0] * z, rays[pixel_index, 1] * z, z)
+    return transform_columns(T_world_cam, rays[pixel_index, 0] * z, rays[pixel_index, 1] * z, z)
 
 
 # -- filters --------------------------------------------------------------------------------------
@@ -273,7 +243,7 @@ def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
     if region is not None and rows.size:
         z = depth_w[rows, cols]
         ray = rays[rows + r0, cols + c0]
-        inside = region.contains(_to_world(T, ray[:, 0] * z, ray[:, 1] * z, z))
+        inside = region.contains(transform_columns(T, ray[:, 0] * z, ray[:, 1] * z, z))
         rows, cols = rows[inside], cols[inside]
     if rows.size == 0:
         return _empty_cloud(T, frame.colour is not None)
@@ -296,7 +266,7 @@ def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
     rows, cols = rows[keep], cols[keep]
 
     rays_w = rays[r0:r1, c0:c1]
-    pts_w = np.stack([rays_w[..., 0] * depth_w, rays_w[..., 1] * depth_w, depth_w], axis=-1)
+    pts_w = backproject_rays(rays_w[..., 0], rays_w[..., 1], depth_w)
     normals_cam, ok = normals_at(pts_w, rows, cols, settings.normal_step_px,
                                  settings.discontinuity_abs_m, settings.discontinuity_rel)
     pts_cam = pts_w[rows, cols]
@@ -307,8 +277,8 @@ def backproject(frame: PosedDepth, settings: DepthFilterSettings | None = None,
 
     colours = None if colour is None else colour.reshape(h * w, -1)[candidates, :3].astype(np.uint8)
     return FrameCloud(
-        points=transform_points(T, pts_cam),
-        normals=transform_points(_rotation_only(T), normals_cam),
+        points=transform_columns(T, *np.asarray(pts_cam, np.float32).T),
+        normals=transform_columns(_rotation_only(T), *np.asarray(normals_cam, np.float32).T),
         colours=colours,
         pixels=candidates.astype(np.int64),
         camera_centre=T[:3, 3].copy(),
@@ -366,7 +336,6 @@ __all__ = [
     "edge_free_mask",
     "pixel_rays",
     "region_window",
-    "transform_points",
     "valid_depth_mask",
     "world_points",
 ]

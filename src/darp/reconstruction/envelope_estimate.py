@@ -64,7 +64,7 @@ from darp.errors import ReconstructionError
 from darp.formats.envelope import Envelope
 from darp.formats.realsense.recording import Recording
 from darp.formats.realsense.types import Intrinsics
-from darp.geometry import min_enclosing_circle
+from darp.geometry.circle import min_enclosing_circle
 from darp.reconstruction.backproject import DepthFilterSettings, PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop
 from darp.reconstruction.keyframes import (

@@ -19,21 +19,22 @@ from typing import Any
 import numpy as np
 
 from darp.errors import FormatError, SurveyError
-from darp.formats.atomic import atomic_open, write_text_atomic
+from darp.formats.atomic import atomic_open
 from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.envelope import Envelope
 from darp.formats.realsense.recording import Recording
 from darp.formats.schema import write_json_checked
 from darp.formats.survey import Survey
+from darp.formats.trajectories import TUM_HEADER, write_tum
 from darp.kinematics.camera_poses import DEFAULT_MAX_GAP_S, STATUS_NAMES, CameraPoses, camera_poses
 from darp.kinematics.kinematic_model import KinematicParams, fk_batch_params
-from darp.kinematics.transforms import quaternion_to_rotation, rotation_to_quaternion
 from darp.reconstruction.keyframes import joint_speed_noise
 
 _log = logging.getLogger(__name__)
 
 HOST_TIME_DOMAINS = ("Global Time", "System Time")
 SUMMARY_FILE = "summary.json"
+TUM_COMMENTS = (f"# {TUM_HEADER}  (T_world_cam; seconds, metres)",)
 FIGURE_FILE = "trajectories.png"
 
 
@@ -307,41 +308,6 @@ def motion_directions(log_q: np.ndarray, min_rows: int = 3, k_sigma: float = 4.0
     return out
 
 
-# -- TUM trajectories ----------------------------------------------------------------------------
-def format_tum(timestamps_s: np.ndarray, T_world_cam: np.ndarray) -> str:
-    """TUM text: one ``timestamp tx ty tz qx qy qz qw`` line per pose (quaternion w >= 0)."""
-    lines = ["# timestamp tx ty tz qx qy qz qw  (T_world_cam; seconds, metres)"]
-    if len(timestamps_s):
-        quats = rotation_to_quaternion(T_world_cam[:, :3, :3])
-        for t, T, q in zip(timestamps_s, T_world_cam, quats, strict=True):
-            x, y, z = T[:3, 3]
-            lines.append(f"{t:.6f} {x:.9f} {y:.9f} {z:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
-    return "\n".join(lines) + "\n"
-
-
-def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory: ``(timestamps_s (N,), T (N, 4, 4))``; ``#`` lines are comments."""
-    path = Path(path)
-    rows = []
-    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            values = [float(v) for v in line.split()]
-        except ValueError:
-            raise FormatError(f"line {number}: not numbers", path) from None
-        if len(values) != 8:
-            raise FormatError(f"line {number}: expected 8 values, got {len(values)}", path)
-        rows.append(values)
-    data = np.array(rows, dtype=np.float64).reshape(-1, 8)
-    T = np.tile(np.eye(4), (data.shape[0], 1, 1))
-    if data.shape[0]:
-        T[:, :3, :3] = quaternion_to_rotation(data[:, 4:8])
-        T[:, :3, 3] = data[:, 1:4]
-    return data[:, 0], T
-
-
 # -- writing ---------------------------------------------------------------------------------------
 def write_survey_poses(result: SurveyPoses, out_dir: str | Path) -> dict[str, Path]:
     """Write TUM + npz per camera and ``summary.json`` into ``out_dir``; returns the paths by name."""
@@ -354,7 +320,8 @@ def write_survey_poses(result: SurveyPoses, out_dir: str | Path) -> dict[str, Pa
     for arm, traj in result.trajectories.items():
         posed = traj.poses.posed
         tum = out / f"{traj.file_stem}.tum"
-        write_text_atomic(tum, format_tum(traj.timestamps_ms[posed] / 1000.0, traj.poses.T_world_cam[posed]))
+        write_tum(tum, [f"{t:.6f}" for t in traj.timestamps_ms[posed] / 1000.0], traj.poses.T_world_cam[posed],
+                  TUM_COMMENTS, "{:.9f}".format)
         npz = out / f"{traj.file_stem}.npz"
         with atomic_open(npz, "wb") as handle:
             np.savez(
@@ -380,10 +347,8 @@ __all__ = [
     "SUMMARY_FILE",
     "CameraTrajectory",
     "SurveyPoses",
-    "format_tum",
     "motion_directions",
     "with_backlash",
-    "read_tum",
     "recover_survey_poses",
     "write_survey_poses",
 ]

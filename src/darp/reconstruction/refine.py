@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from darp.errors import ReconstructionError
+from darp.geometry.transforms import skew
 from darp.reconstruction.backproject import DepthFilterSettings, PosedDepth, backproject
 from darp.reconstruction.crop import EnvelopeCrop
 
@@ -157,7 +158,7 @@ def rigid_power(T: np.ndarray, s: float) -> np.ndarray:
         out[:3, 3] = s * T[:3, 3]
         return out
     k = rotvec / theta
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    K = skew(k)
 
     def V(a: float) -> np.ndarray:  # SE(3) exponential: maps the twist's translation part u to t = V u
         out: np.ndarray = np.eye(3) + (1 - math.cos(a)) / a * K + (a - math.sin(a)) / a * (K @ K)

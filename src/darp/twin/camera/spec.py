@@ -26,6 +26,7 @@ import numpy as np
 
 from darp.errors import ConfigError
 from darp.formats.realsense.types import Intrinsics, MotionIntrinsics, StreamProfile
+from darp.geometry.transforms import skew
 from darp.kinematics.transforms import compose, invert_transform
 
 DEPTH_FULL_SENSOR = (1280, 800)
@@ -117,7 +118,7 @@ def _rotvec_to_matrix(rotvec: tuple[float, float, float]) -> np.ndarray:
     if theta < 1e-15:
         return np.eye(3)
     k = np.asarray(rotvec, dtype=float) / theta
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    kx = skew(k)
     R: np.ndarray = np.eye(3) + np.sin(theta) * kx + (1.0 - np.cos(theta)) * compose(kx, kx)
     return R
 

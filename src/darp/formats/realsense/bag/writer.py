@@ -37,6 +37,7 @@ from darp.formats.realsense.types import (
     MotionIntrinsics,
     StreamProfile,
 )
+from darp.geometry.rigid import check_rigid
 
 FILE_VERSION = 4
 STATIC_TIME_NS = 1  # librealsense drops static messages at 0 ns and ignores them at any other time
@@ -118,11 +119,7 @@ class BagWriter:
         for key, T in extrinsics.items():
             if key not in keys:
                 raise bad(f"extrinsics given for {key!r}, which is not a recorded stream ({', '.join(keys)})")
-            T = np.asarray(T, dtype=np.float64)
-            R = T[:3, :3] if T.shape == (4, 4) else None
-            if R is None or not np.isfinite(T).all() or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) \
-                    or np.linalg.det(R) < 0:
-                raise bad(f"extrinsics of {key!r} must be a finite 4x4 rigid transform")
+            check_rigid(T, f"extrinsics of {key!r}", self.path, error=RecordingError)
         if extrinsics and "depth" not in keys:
             raise bad("extrinsics are relative to the depth stream, which is not recorded")
         if compression not in ("lz4", "none"):

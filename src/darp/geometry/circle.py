@@ -1,5 +1,4 @@
-"""Plain geometry shared by acquisition (localisation) and reconstruction (envelope estimates), below
-both: numpy and scipy only, no files, no robots."""
+"""The smallest circle enclosing 2-D points (acquisition's localisation, reconstruction's envelope estimates)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,134 @@
+"""Camera intrinsics files: a 3x3 camera matrix and distortion coefficients, in the forms people have them.
+
+:func:`load_intrinsics` reads a 3x3 text/.npy, an .npz (``cameraMatrix``/``K``, ``distCoeffs``/``dist``), JSON
+(``{"K": 3x3}``, Open3D's ``camera_intrinsic.json``, ``{"fx", "fy", "cx"|"ppx", "cy"|"ppy"}``), or a RealSense
+recording's colour stream. Open3D's ``PinholeCameraIntrinsic`` JSON is read and written here
+(:func:`read_open3d_intrinsic`, :func:`open3d_intrinsic_json`): ``intrinsic_matrix`` is the 3x3 column-major,
+pixel centres at integer coordinates like OpenCV's.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from darp.errors import FormatError
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """OpenCV pinhole + distortion (k1, k2, p1, p2[, k3 ...]) as read from a file."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    source: str = ""
+    model: str = "Brown Conrady"  # librealsense's name; "Brown Conrady" is OpenCV's model
+
+
+def check_camera_matrix(K: np.ndarray, path: Path) -> np.ndarray:
+    """``K`` as a float 3x3 ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, else a FormatError naming ``path``."""
+    K = np.asarray(K, np.float64).reshape(3, 3)
+    if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and abs(K[2, 2] - 1) < 1e-9
+            and K[2, 0] == 0 and K[2, 1] == 0):
+        raise FormatError("not a 3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] (check row/column order)", path)
+    return K
+
+
+def open3d_matrix(values: Any) -> np.ndarray:
+    """The 3x3 of Open3D's ``intrinsic_matrix`` (9 values, column-major)."""
+    return np.asarray(values, np.float64).reshape(3, 3).T
+
+
+def read_open3d_intrinsic(path: str | Path) -> tuple[np.ndarray, int, int]:
+    """Open3D's ``PinholeCameraIntrinsic`` JSON: (K, width, height); ``intrinsic_matrix`` is column-major."""
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text(encoding="utf-8"))
+        K = open3d_matrix(d["intrinsic_matrix"])
+        return K, int(d.get("width", 0)), int(d.get("height", 0))
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
+        raise FormatError(f"not an Open3D camera_intrinsic.json ({err})", p) from None
+
+
+def open3d_intrinsic_json(width: int, height: int, fx: float, fy: float, ppx: float, ppy: float) -> dict[str, Any]:
+    """Open3D's ``camera_intrinsic.json`` (PinholeCameraIntrinsic: the 3x3 column-major)."""
+    return {"width": width, "height": height, "intrinsic_matrix": [fx, 0.0, 0.0, 0.0, fy, 0.0, ppx, ppy, 1.0]}
+
+
+def load_intrinsics(path: str | Path) -> CameraModel:
+    """Intrinsics from a 3x3 text/.npy, an .npz (``cameraMatrix``/``K``, ``distCoeffs``/``dist``), JSON, or a
+    RealSense recording (``.bag``/``.db3``: its colour stream, to which aligned depth is registered).
+
+    JSON: ``{"K": 3x3}``, Open3D's ``camera_intrinsic.json`` (``intrinsic_matrix``, column-major) or
+    ``{"fx", "fy", "cx"|"ppx", "cy"|"ppy"}``, optional ``"dist"``/``"coeffs"``; a nerfstudio-style
+    ``fl_x``/``fl_y`` works too (its cx/cy taken as given: see ``darp import`` for nerfstudio's +0.5).
+    A text file may hold the 3x3 then one distortion line.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise FormatError("intrinsics file not found", p)
+    if p.suffix in (".bag", ".db3"):
+        return _recording_intrinsics(p)
+    dist = np.zeros(5)
+    try:
+        if p.suffix == ".npz":
+            with np.load(p) as z:
+                key = next((k for k in ("cameraMatrix", "camera_matrix", "K", "mtx") if k in z), None)
+                if key is None:
+                    raise FormatError(f"no cameraMatrix/K array (has {', '.join(z.files)})", p)
+                K = z[key]
+                dk = next((k for k in ("distCoeffs", "dist_coeffs", "dist", "D") if k in z), None)
+                if dk is not None:
+                    dist = np.asarray(z[dk], np.float64).reshape(-1)
+        elif p.suffix == ".npy":
+            K = np.load(p)
+        elif p.suffix == ".json":
+            d = json.loads(p.read_text(encoding="utf-8"))
+            if "K" in d or "camera_matrix" in d:
+                K = np.asarray(d.get("K", d.get("camera_matrix")), np.float64)
+            elif "intrinsic_matrix" in d:  # Open3D's PinholeCameraIntrinsic: 9 values, column-major
+                K = open3d_matrix(d["intrinsic_matrix"])
+            else:
+                fx = d.get("fx", d.get("fl_x"))
+                fy = d.get("fy", d.get("fl_y", fx))
+                cx = d.get("cx", d.get("ppx"))
+                cy = d.get("cy", d.get("ppy"))
+                if None in (fx, cx, cy):
+                    raise FormatError("JSON intrinsics need K, or fx, fy, cx, cy", p)
+                K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]], np.float64)
+            for k in ("dist", "coeffs", "distortion", "dist_coeffs"):
+                if k in d:
+                    dist = np.asarray(d[k], np.float64).reshape(-1)
+                    break
+            else:
+                dist = np.array([d.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")], np.float64)
+        else:
+            rows = [r for r in (line.replace(",", " ").split() for line in p.read_text(encoding="utf-8")
+                                .splitlines() if line.strip() and not line.lstrip().startswith("#")) if r]
+            vals = [[float(v) for v in r] for r in rows]
+            K = np.array(vals[:3], np.float64)
+            if len(vals) > 3:
+                dist = np.array(vals[3], np.float64)
+    except (ValueError, OSError, KeyError, json.JSONDecodeError) as err:
+        raise FormatError(f"cannot read intrinsics ({err})", p) from None
+    return CameraModel(check_camera_matrix(K, p), np.asarray(dist, np.float64), str(p))
+
+
+def _recording_intrinsics(p: Path) -> CameraModel:
+    from darp.formats.realsense import open_recording
+
+    with open_recording(p) as rec:
+        key = "color" if "color" in rec.streams else "depth"
+        i = rec.stream(key).intrinsics
+    if i is None:
+        raise FormatError(f"the recording's {key} stream has no intrinsics", p)
+    return CameraModel(i.K, np.asarray(i.coeffs, np.float64), f"{p} ({key} stream)",
+                       "Brown Conrady" if i.model == "None" else i.model)
+
+
+__all__ = ["CameraModel", "check_camera_matrix", "load_intrinsics", "open3d_intrinsic_json", "open3d_matrix",
+           "read_open3d_intrinsic"]
