@@ -254,23 +254,31 @@ def _envelope(processed: ProcessedSurvey | None, survey_path: Path | None) -> tu
 
 
 def default_blueprint(centre: np.ndarray, radius_m: float, height_m: float, arms: list[str]) -> Any:
-    """The recording's default layout: an object-centred 3-D view (eye 0.45 m out, 0.3 m up, on the side
-    the cameras look from) without the back-projected depth and IR of the room, and the images per arm."""
+    """The recording's default layout: an object-centred 3-D view (eye 0.8 m from the envelope's centre on
+    -y, 30 degrees up: the object in the middle, the arms in the frame while they survey it) with the arms,
+    frustums, clouds and mesh but without the back-projected depth and IR of the room (table, walls) or the
+    held-out error points (their own tab), and the images per arm beside it; the timeline paused at its start."""
     import rerun.blueprint as rrb
 
     c = np.asarray(centre, np.float64)
-    reach = max(0.35, 6.0 * max(radius_m, height_m))
-    eye = c + reach * np.array([0.0, -0.8, 0.6])
-    hidden = [f"- /world/{arm}/camera/{image}" for arm in arms for image in ("depth", "ir")]
-    view3d = rrb.Spatial3DView(
-        name="object", origin="/world", contents=["+ /world/**", *hidden],
-        eye_controls=rrb.EyeControls3D(position=eye.tolist(), look_target=c.tolist(), eye_up=[0.0, 0.0, 1.0]),
-        line_grid=rrb.LineGrid3D(visible=False))
+    reach = max(0.8, 10.0 * max(radius_m, height_m))
+    eye = c + reach * np.array([0.0, -np.cos(np.radians(30.0)), np.sin(np.radians(30.0))])
+    room = [f"- /world/{arm}/camera/{image}" for arm in arms for image in ("depth", "ir")]
+
+    def view3d(name: str, hidden: list[str]) -> Any:
+        return rrb.Spatial3DView(
+            name=name, origin="/world", contents=["+ /world/**", *room, *hidden],
+            eye_controls=rrb.EyeControls3D(position=eye.tolist(), look_target=c.tolist(), eye_up=[0.0, 0.0, 1.0]),
+            line_grid=rrb.LineGrid3D(visible=False))
+
+    main = rrb.Tabs(view3d("object", ["- /world/heldout"]),
+                    view3d("held-out error", ["- /world/clouds/**"]), active_tab=0)
     images = [rrb.Tabs(*(rrb.Spatial2DView(name=f"{arm} {image}", origin=f"/world/{arm}/camera",
                                            contents=[f"$origin/{image}"]) for image in ("rgb", "depth", "ir")))
               for arm in arms]
-    return rrb.Blueprint(rrb.Horizontal(view3d, rrb.Vertical(*images), column_shares=[3, 1]),
-                         rrb.SelectionPanel(state="collapsed"), rrb.BlueprintPanel(state="collapsed"))
+    return rrb.Blueprint(rrb.Horizontal(main, rrb.Vertical(*images), column_shares=[3, 1]),
+                         rrb.SelectionPanel(state="collapsed"), rrb.BlueprintPanel(state="collapsed"),
+                         rrb.TimePanel(timeline="time", play_state="paused"))
 
 
 def _processed_or_none(path: Path) -> ProcessedSurvey | None:
