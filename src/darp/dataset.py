@@ -284,7 +284,7 @@ def torch_dataset(items: KeyframeDataset | Sequence[Any]) -> Any:
         return {k: torch.from_numpy(np.ascontiguousarray(v)) if isinstance(v, np.ndarray) else v
                 for k, v in item.items()}
 
-    class _Wrapped(Dataset):  # type: ignore[misc]
+    class _Wrapped(Dataset[Any]):  # type: ignore[misc, unused-ignore]  # Any where torch is not installed
         def __len__(self) -> int:
             return len(items)
 
