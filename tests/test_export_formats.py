@@ -188,17 +188,38 @@ def test_open3d_voxel_block_grid_rebuilds_darps_mesh_from_the_export(exported: P
     assert np.median(gap) < 0.002, np.median(gap)  # TSDF at 3 mm voxels vs darp's ball-pivoting mesh
 
 
-def test_tum_groundtruth_is_the_camera_to_world_pose(exported: Path, keyframes: dict[str, Keyframe]) -> None:
+def test_tum_trajectories_at_every_frame_read_by_evo(exported: Path, keyframes: dict[str, Keyframe],
+                                                     survey_path: Path) -> None:
+    """groundtruth.txt is the twin's true pose of every frame, darp_poses.txt darp's; evo reads both, associates
+    them by time and computes the APE; the keyframes' images sit at poses of the trajectory."""
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    from darp.formats.truth import read_camera_poses
+
     for arm in ("arm110", "arm111"):
         folder = exported / "tum" / arm
-        gt = [line.split() for line in (folder / "groundtruth.txt").read_text().splitlines() if line[0] != "#"]
-        depth_list = [line.split() for line in (folder / "depth.txt").read_text().splitlines() if line[0] != "#"]
+        truth = read_camera_poses(survey_path / "truth" / f"camera_poses_{arm}.npz")
+        gt = file_interface.read_tum_trajectory_file(str(folder / "groundtruth.txt"))
+        est = file_interface.read_tum_trajectory_file(str(folder / "darp_poses.txt"))
         mine = sorted((kf for kf in keyframes.values() if kf.arm == arm), key=lambda k: k.t_s)
-        assert len(gt) == len(depth_list) == len(mine)
+        assert gt.num_poses == len(truth["t_host_s"]) == est.num_poses > 5 * len(mine)  # every frame, not keyframes
+        np.testing.assert_allclose(gt.timestamps, truth["t_host_s"], atol=1e-6)
+        np.testing.assert_allclose(np.array(gt.poses_se3), truth["T_world_cam"], atol=1e-9)
+        ape = metrics.APE(metrics.PoseRelation.translation_part)
+        ape.process_data(sync.associate_trajectories(gt, est, max_diff=1e-4))
+        # processed with --truth-poses: darp's poses are the truth (with a calibration: eq. 1's error)
+        assert ape.get_statistic(metrics.StatisticsType.rmse) < 1e-6
+        depth_list = [line.split() for line in (folder / "depth.txt").read_text().splitlines() if line[0] != "#"]
+        assert len(depth_list) == len(mine)
         fx, fy, cx, cy = (float(v) for v in (folder / "calibration.txt").read_text().splitlines()[1].split()[:4])
-        for row, (stamp, name), kf in zip(gt, depth_list, mine, strict=True):
-            assert row[0] == stamp and abs(float(stamp) - kf.t_s) < 1e-6
+        stamps = np.array(gt.timestamps)
+        for (stamp, name), kf in zip(depth_list, mine, strict=True):
+            assert abs(float(stamp) - kf.t_s) < 1e-6
+            T = np.array(gt.poses_se3)[np.argmin(np.abs(stamps - float(stamp)))]
+            np.testing.assert_allclose(T, kf.T_world_cam, atol=1e-9)
             T = np.eye(4)
+            row = next(r.split() for r in (folder / "darp_poses.txt").read_text().splitlines() if r.startswith(stamp))
             T[:3, 3] = [float(v) for v in row[1:4]]
             T[:3, :3] = Rotation.from_quat([float(v) for v in row[4:8]]).as_matrix()  # qx qy qz qw
             np.testing.assert_allclose(T, kf.T_world_cam, atol=1e-9)

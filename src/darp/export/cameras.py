@@ -22,10 +22,12 @@ open3d      the survey's own ``fused.ply``, ``arm110.ply``, ``arm111.ply`` and `
             like OpenCV) and a Redwood ``trajectory.log`` whose matrices are ``T_world_cam``
             (camera-to-world; Open3D's reader inverts them into extrinsics); ``frames.json``: per index the
             frame number, split and times.
-tum         per arm: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``:
-            camera-to-world ``T_world_cam``, OpenCV optical axes, metres, seconds on the host clock),
-            ``rgb/`` and ``depth/`` PNG (uint16, 5000 per metre, TUM's factor) and ``calibration.txt``
-            (``fx fy cx cy`` with TUM's/OpenCV's integer pixel centres, and distortion).
+tum         per arm: ``rgb.txt``, ``depth.txt`` (the keyframes), ``darp_poses.txt`` (darp's pose of every frame
+            that has one: what processing used) and, for a twin survey only, ``groundtruth.txt`` (the true
+            pose of every frame); both ``timestamp tx ty tz qx qy qz qw``: camera-to-world ``T_world_cam``,
+            OpenCV optical axes, metres, seconds on the host clock; ``rgb/`` and ``depth/`` PNG (uint16, 5000
+            per metre, TUM's factor) and ``calibration.txt`` (``fx fy cx cy`` with TUM's/OpenCV's integer
+            pixel centres, and distortion).
 =========== ====================================================================================================
 
 Poses are written with 17 significant digits, so reading them back reproduces ``T_world_cam`` to
@@ -51,6 +53,7 @@ from darp.export._io import (
     write_lines,
     write_png,
 )
+from darp.export.poses import estimated_poses, true_poses
 from darp.formats.atomic import atomic_path, write_json_atomic
 from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.cloud_io import read_ply, write_cloud_ply
@@ -60,6 +63,8 @@ from darp.reconstruction.keyframes import FUSE, HELDOUT
 NERFSTUDIO_DEPTH_UNITS_PER_M = 1000.0
 OPEN3D_DEPTH_UNITS_PER_M = 1000.0
 TUM_DEPTH_UNITS_PER_M = 5000.0
+TUM_GROUNDTRUTH = "groundtruth.txt"  # TUM's name: true poses only (a twin survey's truth)
+TUM_ESTIMATE = "darp_poses.txt"  # darp's own trajectory, e.g. evo_ape tum groundtruth.txt darp_poses.txt
 
 
 def _keyframes(survey: ProcessedSurvey) -> list[Keyframe]:
@@ -147,23 +152,33 @@ def export_open3d(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
 
 
 def export_tum(survey: ProcessedSurvey, out: Path) -> dict[str, Any]:
-    """Per arm: a TUM RGB-D sequence folder with its ground truth and calibration."""
+    """Per arm: a TUM RGB-D sequence folder (keyframe images), darp's trajectory at every frame and, for a
+    twin survey, the true one as ``groundtruth.txt``, and the calibration."""
     counts = {}
     for arm, keyframes in _by_arm(_keyframes(survey)).items():
         folder = out / arm
-        rgb, depth, gt = ["# color images", "# timestamp filename"], ["# depth maps", "# timestamp filename"], [
-            "# ground truth trajectory (T_world_cam, OpenCV optical frame)", "# timestamp tx ty tz qx qy qz qw"]
+        rgb, depth = ["# color images", "# timestamp filename"], ["# depth maps", "# timestamp filename"]
         for kf in sorted(keyframes, key=lambda k: k.t_s):
             stamp = f"{kf.t_s:.6f}"
             write_png(folder / "rgb" / f"{stamp}.png", kf.rgb)
             write_png(folder / "depth" / f"{stamp}.png", depth_png(kf, TUM_DEPTH_UNITS_PER_M))
             rgb.append(f"{stamp} rgb/{stamp}.png")
             depth.append(f"{stamp} depth/{stamp}.png")
-            T = np.asarray(kf.T_world_cam, np.float64)
-            gt.append(f"{stamp} " + " ".join(fmt(v) for v in (*T[:3, 3], *rotation_to_quaternion(T[:3, :3]))))
         write_lines(folder / "rgb.txt", rgb)
         write_lines(folder / "depth.txt", depth)
-        write_lines(folder / "groundtruth.txt", gt)
+        trajectories = {TUM_GROUNDTRUTH: (true_poses(survey, arm), "the twin's true camera poses"),
+                        TUM_ESTIMATE: (estimated_poses(survey, arm), "darp's camera poses (what processing used)")}
+        if trajectories[TUM_ESTIMATE][0] is None:  # a processed folder without poses/: the keyframes' poses
+            trajectories[TUM_ESTIMATE] = ((np.array([k.t_s for k in keyframes]),
+                                           np.array([k.T_world_cam for k in keyframes])), "darp's keyframe poses")
+        for name, (poses, what) in trajectories.items():
+            if poses is None:
+                continue
+            lines = [f"# {what}: T_world_cam (camera-to-world, OpenCV optical frame), host seconds",
+                     "# timestamp tx ty tz qx qy qz qw"]
+            for t_s, T in sorted(zip(*poses, strict=True), key=lambda p: float(p[0])):
+                lines.append(f"{t_s:.6f} " + " ".join(fmt(v) for v in (*T[:3, 3], *rotation_to_quaternion(T[:3, :3]))))
+            write_lines(folder / name, lines)
         i = keyframes[0].intrinsics
         write_lines(folder / "calibration.txt", [
             "# fx fy cx cy k1 k2 p1 p2 k3 (pixel centres at integers; depth PNG: 5000 per metre)",
