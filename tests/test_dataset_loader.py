@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -64,10 +65,33 @@ def test_a_folder_without_keyframes_is_a_format_error(tmp_path: Path) -> None:
         KeyframeDataset(tmp_path)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("torch") is not None, reason="torch is installed here")
-def test_the_torch_wrapper_says_torch_is_missing() -> None:
+def test_the_torch_wrapper_says_torch_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "torch", None)  # what an environment without torch sees: ImportError
     with pytest.raises(DarpError, match="needs torch"):
         torch_dataset([])
+
+
+@pytest.mark.skipif(importlib.util.find_spec("torch") is None, reason="torch is not installed (the test extra has it)")
+def test_torch_dataloader_batches_keyframes_and_completion_pairs(processed_path: Path) -> None:
+    """torch's own DataLoader and default collate over the wrapper: batched tensors equal to the numpy items."""
+    import torch
+    from torch.utils.data import DataLoader
+
+    ds = KeyframeDataset(processed_path, split="fuse")
+    batch = next(iter(DataLoader(torch_dataset(ds), batch_size=3, shuffle=False)))
+    h, w = ds[0]["depth_m"].shape
+    assert batch["rgb"].shape == (3, h, w, 3) and batch["rgb"].dtype == torch.uint8
+    assert batch["colour_valid"].dtype == torch.bool and batch["depth_valid"].shape == (3, h, w)
+    for k in range(3):
+        item = ds[k]
+        np.testing.assert_array_equal(batch["T_world_cam"][k].numpy(), item["T_world_cam"])
+        np.testing.assert_array_equal(batch["depth_m"][k].numpy(), item["depth_m"])
+        np.testing.assert_array_equal(batch["mask"][k].numpy(), item["mask"])
+        assert batch["arm"][k] == item["arm"] and float(batch["t_s"][k]) == item["t_s"]
+        assert not (item["colour_valid"] & ~item["depth_valid"]).any()  # colour only where depth was aligned
+    pairs = [p for p in completion_pairs(processed_path, complete_points=512) if p.kind != "keyframe"]
+    loaded = list(DataLoader(torch_dataset(pairs), batch_size=1))
+    assert len(loaded) == len(pairs) == 3 and loaded[0]["complete"].shape == (1, 512, 3)
 
 
 def test_unfinished_processed_folders_are_refused_or_skipped(tmp_path: Path) -> None:

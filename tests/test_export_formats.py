@@ -1,5 +1,6 @@
 """darp export: every format opened by its consumer's library where it installs (pycolmap, Open3D), else
-checked by reprojection against darp's own back-projection, on a processed twin survey."""
+checked by its documented file conventions and by reprojection against darp's own back-projection, on a
+processed twin survey (the BOP toolkit, nerfstudio and PoinTr: tests/test_export_layouts.py)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,6 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from darp.cli._app import run
-from darp.dataset import read_object_truth
 from darp.reconstruction.backproject import world_points
 from darp.reconstruction.keyframe_io import Keyframe, load_keyframes
 
@@ -29,7 +29,7 @@ def keyframes(processed_path: Path) -> dict[str, Keyframe]:
 @pytest.fixture(scope="module")
 def exported(processed_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("exports")
-    for fmt in ("nerfstudio", "colmap", "open3d", "tum", "bop", "completion"):
+    for fmt in ("nerfstudio", "colmap", "open3d", "tum"):
         assert run(["export", fmt, str(processed_path), "--out", str(out / fmt)]) == 0, fmt
     return out
 
@@ -60,6 +60,41 @@ def test_colmap_model_opens_in_pycolmap_and_reprojects(exported: Path, keyframes
         np.testing.assert_allclose(cam_from_world.matrix(), np.linalg.inv(kf.T_world_cam)[:3], atol=1e-9)
 
 
+def test_colmap_feature_extraction_runs_on_the_exported_database_as_is(exported: Path, tmp_path: Path,
+                                                                        keyframes: dict[str, Keyframe]) -> None:
+    """No camera-model option: pycolmap's default extraction keeps the database's OPENCV cameras, so the
+    known-pose triangulation that follows accepts the model (a fresh database would get SIMPLE_RADIAL)."""
+    import shutil
+
+    pycolmap = pytest.importorskip("pycolmap")
+    root = tmp_path / "colmap"
+    shutil.copytree(exported / "colmap", root)
+    database = str(root / "database.db")
+    pycolmap.extract_features(database, str(root / "images"))
+    pycolmap.match_exhaustive(database)
+    rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    db = pycolmap.Database.open(database)
+    try:
+        assert {c.camera_id: c.model.name for c in db.read_all_cameras()} == {1: "OPENCV", 2: "OPENCV"}
+        images = {im.image_id: im for im in db.read_all_images()}
+        assert {i: (im.name, im.camera_id) for i, im in images.items()} == {
+            i: (im.name, im.camera_id) for i, im in rec.images.items()}
+        assert sum(db.num_keypoints_for_image(i) for i in images) > 0
+    finally:
+        db.close()
+    (root / "triangulated").mkdir()
+    pycolmap.triangulate_points(rec, database, str(root / "images"), str(root / "triangulated"))
+    # COLMAP's own reader of its dense depth maps: darp's metric depth, exactly
+    for name in ("arm110_000033.png", "arm111_000163.png"):
+        depth = pycolmap.DepthMap()
+        depth.read(str(exported / "colmap" / "stereo" / "depth_maps" / f"{name}.geometric.bin"))
+        np.testing.assert_array_equal(depth.to_array(), keyframes[Path(name).stem].depth_m)
+        mask = cv2.imread(str(exported / "colmap" / "masks" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(mask > 0, keyframes[Path(name).stem].rgb.any(axis=2))
+    frames = json.loads((exported / "colmap" / "frames.json").read_text())["frames"]
+    assert all(abs(f["t_s"] - keyframes[Path(f["name"]).stem].t_s) < 1e-9 for f in frames)
+
+
 def test_nerfstudio_rays_hit_darps_points(exported: Path, keyframes: dict[str, Keyframe]) -> None:
     meta = json.loads((exported / "nerfstudio" / "transforms.json").read_text())
     assert meta["camera_model"] == "OPENCV" and len(meta["frames"]) == len(keyframes)
@@ -77,6 +112,31 @@ def test_nerfstudio_rays_hit_darps_points(exported: Path, keyframes: dict[str, K
         np.testing.assert_allclose(hits, pts, atol=1e-5)  # depth in mm: the raw Z16 values, exact
         rgb = cv2.imread(str(exported / "nerfstudio" / frame["file_path"]))[:, :, ::-1]
         np.testing.assert_array_equal(rgb, kf.rgb)
+
+
+def test_nerfstudio_dataparser_fields_split_masks_and_seed_cloud(exported: Path,
+                                                                 keyframes: dict[str, Keyframe]) -> None:
+    """What nerfstudio's own dataparser (nerfstudio_dataparser.py, 1.1.5) reads: ``{split}_filenames`` must
+    name frames' ``file_path`` for train, val and test alike once one is given; ``mask_path`` is one channel,
+    nonzero = sample; ``ply_file_path`` a cloud Open3D reads with colours."""
+    root = exported / "nerfstudio"
+    meta = json.loads((root / "transforms.json").read_text())
+    files = {f["file_path"]: f for f in meta["frames"]}
+    for split, darp_split in (("train", "fuse"), ("val", "heldout"), ("test", "heldout")):
+        names = meta[f"{split}_filenames"]
+        assert names and set(names) <= set(files)
+        assert {n for n, f in files.items() if f["darp_split"] == darp_split} == set(names), split
+    for frame in meta["frames"]:
+        kf = keyframes[Path(frame["file_path"]).stem]
+        mask = cv2.imread(str(root / frame["mask_path"]), cv2.IMREAD_UNCHANGED)
+        assert mask.ndim == 2 and mask.dtype == np.uint8
+        np.testing.assert_array_equal(mask > 0, kf.rgb.any(axis=2))  # black (unseen) colour is never sampled
+        obj = cv2.imread(str(root / frame["darp_object_mask_path"]), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(obj > 0, kf.support_mask)
+        np.testing.assert_array_equal(cv2.imread(str(root / frame["darp_ir_path"]), cv2.IMREAD_UNCHANGED), kf.ir_left)
+        assert frame["darp_t_s"] == kf.t_s
+    seed = o3d.io.read_point_cloud(str(root / meta["ply_file_path"]))
+    assert len(seed.points) > 100 and seed.has_colors()
 
 
 def test_open3d_reads_intrinsics_trajectory_and_rebuilds_the_points(exported: Path,
@@ -101,17 +161,65 @@ def test_open3d_reads_intrinsics_trajectory_and_rebuilds_the_points(exported: Pa
             assert gap.max() < 1e-5
 
 
-def test_tum_groundtruth_is_the_camera_to_world_pose(exported: Path, keyframes: dict[str, Keyframe]) -> None:
+def test_open3d_voxel_block_grid_rebuilds_darps_mesh_from_the_export(exported: Path) -> None:
+    """Open3D's tensor TSDF (VoxelBlockGrid; the legacy ScalableTSDFVolume of Open3D 0.20 returns an empty
+    mesh) on the exported RGB-D and trajectory lands on darp's own mesh, which the export carries as PLY."""
+    import open3d.core as o3c
+
+    root = exported / "open3d"
+    mesh = o3d.io.read_triangle_mesh(str(root / "mesh.ply"))
+    fused = o3d.io.read_point_cloud(str(root / "fused.ply"))
+    assert len(mesh.triangles) > 0 and len(fused.points) > 0 and fused.has_colors()
+    grid = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
+                                         attr_channels=((1), (1)), voxel_size=0.003, block_resolution=8,
+                                         block_count=20000)
+    for arm in ("arm110", "arm111"):
+        K = o3c.Tensor(o3d.io.read_pinhole_camera_intrinsic(str(root / arm / "camera_intrinsic.json"))
+                       .intrinsic_matrix, o3c.float64)
+        trajectory = o3d.io.read_pinhole_camera_trajectory(str(root / arm / "trajectory.log"))
+        for n, camera in enumerate(trajectory.parameters):
+            depth = o3d.t.io.read_image(str(root / arm / "depth" / f"{n:06d}.png"))
+            extrinsic = o3c.Tensor(camera.extrinsic, o3c.float64)
+            blocks = grid.compute_unique_block_coordinates(depth, K, extrinsic, 1000.0, 0.45)
+            grid.integrate(blocks, depth, K, extrinsic, 1000.0, 0.45)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(grid.extract_triangle_mesh().to_legacy()))
+    gap = scene.compute_distance(o3c.Tensor(np.asarray(mesh.vertices, np.float32))).numpy()
+    assert np.median(gap) < 0.002, np.median(gap)  # TSDF at 3 mm voxels vs darp's ball-pivoting mesh
+
+
+def test_tum_trajectories_at_every_frame_read_by_evo(exported: Path, keyframes: dict[str, Keyframe],
+                                                     survey_path: Path) -> None:
+    """groundtruth.txt is the twin's true pose of every frame, darp_poses.txt darp's; evo reads both, associates
+    them by time and computes the APE; the keyframes' images sit at poses of the trajectory."""
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    from darp.formats.truth import read_camera_poses
+
     for arm in ("arm110", "arm111"):
         folder = exported / "tum" / arm
-        gt = [line.split() for line in (folder / "groundtruth.txt").read_text().splitlines() if line[0] != "#"]
-        depth_list = [line.split() for line in (folder / "depth.txt").read_text().splitlines() if line[0] != "#"]
+        truth = read_camera_poses(survey_path / "truth" / f"camera_poses_{arm}.npz")
+        gt = file_interface.read_tum_trajectory_file(str(folder / "groundtruth.txt"))
+        est = file_interface.read_tum_trajectory_file(str(folder / "darp_poses.txt"))
         mine = sorted((kf for kf in keyframes.values() if kf.arm == arm), key=lambda k: k.t_s)
-        assert len(gt) == len(depth_list) == len(mine)
+        assert gt.num_poses == len(truth["t_host_s"]) == est.num_poses > 5 * len(mine)  # every frame, not keyframes
+        np.testing.assert_allclose(gt.timestamps, truth["t_host_s"], atol=1e-6)
+        np.testing.assert_allclose(np.array(gt.poses_se3), truth["T_world_cam"], atol=1e-9)
+        ape = metrics.APE(metrics.PoseRelation.translation_part)
+        ape.process_data(sync.associate_trajectories(gt, est, max_diff=1e-4))
+        # processed with --truth-poses: darp's poses are the truth (with a calibration: eq. 1's error)
+        assert ape.get_statistic(metrics.StatisticsType.rmse) < 1e-6
+        depth_list = [line.split() for line in (folder / "depth.txt").read_text().splitlines() if line[0] != "#"]
+        assert len(depth_list) == len(mine)
         fx, fy, cx, cy = (float(v) for v in (folder / "calibration.txt").read_text().splitlines()[1].split()[:4])
-        for row, (stamp, name), kf in zip(gt, depth_list, mine, strict=True):
-            assert row[0] == stamp and abs(float(stamp) - kf.t_s) < 1e-6
+        stamps = np.array(gt.timestamps)
+        for (stamp, name), kf in zip(depth_list, mine, strict=True):
+            assert abs(float(stamp) - kf.t_s) < 1e-6
+            T = np.array(gt.poses_se3)[np.argmin(np.abs(stamps - float(stamp)))]
+            np.testing.assert_allclose(T, kf.T_world_cam, atol=1e-9)
             T = np.eye(4)
+            row = next(r.split() for r in (folder / "darp_poses.txt").read_text().splitlines() if r.startswith(stamp))
             T[:3, 3] = [float(v) for v in row[1:4]]
             T[:3, :3] = Rotation.from_quat([float(v) for v in row[4:8]]).as_matrix()  # qx qy qz qw
             np.testing.assert_allclose(T, kf.T_world_cam, atol=1e-9)
@@ -120,59 +228,6 @@ def test_tum_groundtruth_is_the_camera_to_world_pose(exported: Path, keyframes: 
             z = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
             cam = np.stack([(uv[:, 0] - cx) / fx * z, (uv[:, 1] - cy) / fy * z, z], axis=1)
             np.testing.assert_allclose(cam @ T[:3, :3].T + T[:3, 3], pts, atol=1e-5)
-
-
-def test_bop_pose_projects_the_model_onto_the_object(exported: Path, keyframes: dict[str, Keyframe],
-                                                     survey_path: Path) -> None:
-    import trimesh
-
-    root = exported / "bop"
-    scenes = json.loads((root / "scenes.json").read_text())
-    model = trimesh.load(root / "models" / "obj_000001.ply", process=False)
-    vertices_obj, _, T_world_object, _ = read_object_truth(survey_path / "truth")
-    np.testing.assert_allclose(np.asarray(model.vertices), 1000.0 * vertices_obj, atol=1e-2)  # millimetres
-    info = json.loads((root / "models" / "models_info.json").read_text())["1"]
-    assert info["diameter"] > info["size_x"] > 0
-    scene = root / "test" / "000001"
-    cameras = json.loads((scene / "scene_camera.json").read_text())
-    gts = json.loads((scene / "scene_gt.json").read_text())
-    images = scenes["scenes"]["000001"]["images"]
-    assert len(images) == len(cameras) == len(gts) == len(keyframes)
-    for entry in images:
-        kf = keyframes[f"{entry['arm']}_{entry['frame_number']:06d}"]
-        cam, gt = cameras[str(entry["im_id"])], gts[str(entry["im_id"])][0]
-        K, R, t = (np.array(cam["cam_K"]).reshape(3, 3), np.array(gt["cam_R_m2c"]).reshape(3, 3),
-                   np.array(gt["cam_t_m2c"]))
-        # BOP: x_cam_mm = R x_model_mm + t; darp: the same point through T_world_object and T_world_cam
-        p_cam = np.asarray(model.vertices) @ R.T + t
-        ref = (np.linalg.inv(kf.T_world_cam) @ T_world_object)
-        p_ref = 1000.0 * (vertices_obj @ ref[:3, :3].T + ref[:3, 3])
-        np.testing.assert_allclose(p_cam, p_ref, atol=1e-2)
-        # the measured depth agrees with the posed model where the model's surface is seen (twin noise: mm)
-        uv, pts = object_pixels(kf, 100)
-        depth = cv2.imread(str(scene / "depth" / f"{entry['im_id']:06d}.png"), cv2.IMREAD_UNCHANGED)
-        z_mm = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)] * cam["depth_scale"]
-        R_w2c, t_w2c = np.array(cam["cam_R_w2c"]).reshape(3, 3), np.array(cam["cam_t_w2c"])
-        np.testing.assert_allclose(z_mm, (1000.0 * pts @ R_w2c.T + t_w2c)[:, 2], atol=0.05)
-        assert gt["obj_id"] == 1 and K[0, 2] == kf.intrinsics.ppx
-
-
-def test_completion_pairs_lie_on_the_true_surface(exported: Path) -> None:
-    root = exported / "completion"
-    pairs = json.loads((root / "pairs.json").read_text())["pairs"]
-    kinds = {p["kind"] for p in pairs}
-    assert kinds == {"keyframe", "arm", "fused"}
-    complete = np.asarray(o3d.io.read_point_cloud(str(root / pairs[0]["complete"])).points)
-    assert complete.shape == (16384, 3)
-    tree = cKDTree(complete)
-    for pair in pairs:
-        if pair["kind"] == "keyframe" and pair["points"] < 50:
-            continue
-        partial = np.asarray(o3d.io.read_point_cloud(str(root / pair["partial"])).points)
-        assert len(partial) == pair["points"]
-        gap, _ = tree.query(partial)
-        # object frame: the partial sits on the complete surface (twin depth noise, sampling spacing ~1 mm)
-        assert np.median(gap) < 0.004, (pair["partial"], np.median(gap))
 
 
 def test_export_of_a_non_processed_folder_is_one_error_line(tmp_path: Path,

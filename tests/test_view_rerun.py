@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from darp.cli._app import run
@@ -37,6 +38,46 @@ def test_view_of_a_processed_survey_holds_every_entity(processed_path: Path, tmp
     for entity in ("clouds/arm110", "clouds/arm111", "clouds/fused", "heldout"):
         assert "Points3D" in entities[f"/world/{entity}"], entity
     assert "Mesh3D" in entities["/world/mesh"]
+
+
+def _rows(rrd: Path, entity: str, components: list[str]) -> dict[int, list[object]]:
+    """Time (ns) -> the components' values of one entity's temporal rows, read with rerun's own reader."""
+    from rerun.chunk import RrdReader
+
+    rows: dict[int, list[object]] = {}
+    for chunk in RrdReader(str(rrd)).store().stream():
+        if str(chunk.entity_path) != entity or chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        times = batch.column("time").cast("int64").to_numpy()
+        for i, t in enumerate(times):
+            values = [batch.column(c)[i].as_py() if c in batch.schema.names else None for c in components]
+            if all(v is not None for v in values):
+                rows[int(t)] = values
+    return rows
+
+
+def test_view_frustums_sit_on_the_wrist_at_every_logged_frame(processed_path: Path, tmp_path: Path) -> None:
+    """The camera's transform is logged with every arm state (and the arm at every image's time): its
+    origin lies in the wrist camera's collision box at each of them, read back from the .rrd; the
+    recording carries its default (object-centred) layout."""
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader
+    from scipy.spatial.transform import Rotation
+
+    rrd = tmp_path / "cube.rrd"
+    assert run(["view", str(processed_path), "--save", str(rrd)]) == 0
+    for arm in ("arm110", "arm111"):
+        camera = _rows(rrd, f"/world/{arm}/camera", ["Transform3D:translation"])
+        boxes = _rows(rrd, f"/world/{arm}/links/boxes",
+                      ["Boxes3D:centers", "Boxes3D:half_sizes", "Boxes3D:quaternions"])
+        images = _rows(rrd, f"/world/{arm}/camera/rgb", ["Image:buffer"])
+        assert len(boxes) > 100 and set(camera) == set(boxes) and images and set(images) <= set(camera)
+        for t, ((origin,), (centres, halves, quats)) in ((t, (camera[t], boxes[t])) for t in boxes):
+            local = np.einsum("nji,nj->ni", Rotation.from_quat(quats).as_matrix(), np.subtract(origin, centres))
+            gap = np.linalg.norm(np.maximum(np.abs(local) - np.asarray(halves), 0.0), axis=1).min()
+            assert gap < 1e-6, (arm, t, gap)  # float32 in the recording
+    assert [b.kind for b in RrdReader(str(rrd)).blueprints()] == ["blueprint"]
 
 
 def test_view_of_a_raw_survey_moves_the_arms_and_shows_the_streams(survey_path: Path, tmp_path: Path) -> None:

@@ -165,11 +165,14 @@ def keyframe_sample(kf: Keyframe, survey: str = "") -> dict[str, Any]:
         "depth_m": kf.depth_m,  # (H, W) float32 metres, 0 = no depth
         "ir_left": kf.ir_left, "ir_right": kf.ir_right,  # (H, W) uint8
         "mask": kf.support_mask,  # (H, W) bool: object support
+        "colour_valid": np.asarray(kf.rgb).any(axis=2),  # (H, W) bool: the colour camera saw the pixel
+        "depth_valid": kf.depth > 0,  # (H, W) bool: a depth measurement
         "K": kf.intrinsics.K,  # (3, 3) float64
         "distortion_coeffs": np.array(kf.intrinsics.coeffs, np.float64),
         "T_world_cam": np.asarray(kf.T_world_cam, np.float64),  # (4, 4) world-from-camera (OpenCV axes)
         "arm": kf.arm, "split": kf.split, "frame_number": kf.frame_number, "survey": survey,
-        "timestamp_ms": kf.timestamp_ms,
+        "timestamp_ms": kf.timestamp_ms,  # camera clock
+        "t_s": kf.t_s,  # host clock: the time of the pose
     }
 
 
@@ -177,8 +180,9 @@ class KeyframeDataset:
     """Keyframes of one or more processed surveys, read lazily one ``.npz`` at a time.
 
     ``split`` (``fuse`` or ``heldout``) and ``arm`` filter; items are dicts (:func:`keyframe_sample`):
-    ``rgb``, ``depth_m``, ``ir_left``, ``ir_right``, ``mask``, ``K``, ``T_world_cam``, ``arm``,
-    ``split``, ``frame_number``, ``survey``.
+    ``rgb``, ``depth_m``, ``ir_left``, ``ir_right``, ``mask`` (object support), ``colour_valid``,
+    ``depth_valid``, ``K``, ``T_world_cam``, ``arm``, ``split``, ``frame_number``, ``survey``,
+    ``timestamp_ms`` (camera clock), ``t_s`` (host clock).
     """
 
     def __init__(self, path: str | Path, split: str | None = None, arm: str | None = None) -> None:
@@ -275,7 +279,7 @@ def torch_dataset(items: KeyframeDataset | Sequence[Any]) -> Any:
         return {k: torch.from_numpy(np.ascontiguousarray(v)) if isinstance(v, np.ndarray) else v
                 for k, v in item.items()}
 
-    class _Wrapped(Dataset):  # type: ignore[misc]
+    class _Wrapped(Dataset[Any]):  # type: ignore[misc, unused-ignore]  # Any where torch is not installed
         def __len__(self) -> int:
             return len(items)
 

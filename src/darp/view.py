@@ -6,7 +6,8 @@ Entities (world frame, metres, z up; one timeline ``time``, the host clock):
 ``world/<arm>/links``           the arm's collision geometry (darp.kinematics: link cylinders, camera body and
                                 bracket) at each logged joint state, with the calibration's base pose and joint
                                 zeros; ``world/<arm>/skeleton`` the chain of link origins
-``world/<arm>/camera``          the camera pose (``T_world_cam``) as a transform and a pinhole (its frustum)
+``world/<arm>/camera``          the wrist camera's pose (eq. 1, ``T_world_cam``) at every logged arm state and
+                                at every image's time, and its pinhole (the frustum): it never leaves the wrist
 ``world/<arm>/camera/rgb``      colour aligned to depth; ``.../depth`` metric depth; ``.../ir`` left infrared
 ``world/clouds/<name>``         per-arm and fused clouds (``arm110``, ``arm111``, ``fused``), processed only
 ``world/mesh``                  the ball-pivoting mesh, processed only
@@ -16,6 +17,11 @@ Entities (world frame, metres, z up; one timeline ``time``, the host clock):
 
 A processed survey's images are its keyframes; a raw survey's are frame sets a ``every_s`` apart,
 with eq. 1 poses (the calibration given, the twin's true one, or the rig's nominal one).
+
+The recording carries a default layout (:func:`default_blueprint`): a 3-D view centred on the object's
+envelope, looking at it from the cameras' side, with the arms, frustums, clouds, mesh and held-out errors
+but without the back-projected depth and IR (the room: table, walls), and per arm the colour, depth and
+IR images beside it.
 """
 
 from __future__ import annotations
@@ -33,14 +39,15 @@ from darp.errors import ConfigError, DarpError, FormatError
 from darp.formats.calibration import Calibration, read_calibration
 from darp.formats.survey import Survey, open_survey
 from darp.kinematics import z1
+from darp.kinematics.camera_poses import interpolate_joints
 from darp.kinematics.collision import arm_primitives
 from darp.kinematics.collision_shapes import KINDS
-from darp.kinematics.rig import load_rig
+from darp.kinematics.rig import Rig, load_rig
 from darp.kinematics.transforms import rotation_to_quaternion
 from darp.reconstruction.cloud_io import read_ply
 from darp.reconstruction.keyframe_io import read_keyframe, read_keyframe_index
 
-ARM_RATE_HZ = 10.0  # joint states logged per second of the timeline
+ARM_RATE_HZ = 10.0  # joint states logged per second of the timeline (plus one at every image's time)
 HELDOUT_RANGE_M = 0.010  # the colour map's top (10 mm: the paper's coarser threshold)
 ENTITY = {"cylinder": "cylinders", "capsule": "capsules", "box": "boxes"}
 ARM_COLOURS = {"arm110": (230, 120, 40), "arm111": (40, 140, 230)}
@@ -68,13 +75,19 @@ def _rerun() -> Any:
 
 
 
-def arm_columns(arm: str, q_states: np.ndarray, calibration: Calibration) -> dict[str, Any]:
+def arm_columns(arm: str, q_states: np.ndarray, calibration: Calibration, rig: Rig | None = None) -> dict[str, Any]:
     """Collision primitives and link origins of ``arm`` at every joint state (N, 6), as flat arrays:
-    per kind its rows' ``R``, ``centre``, ``half`` (N * k) and ``k``; ``origins`` (N, 7, 3)."""
+    per kind its rows' ``R``, ``centre``, ``half`` (N * k) and ``k``; ``origins`` (N, 7, 3); and the wrist
+    camera's ``T_world_cam`` (N, 4, 4) by eq. 1 with the calibration (the camera body box sits on it)."""
+    rig = rig or load_rig()
     cal = calibration.arms[arm]
     q_true = np.asarray(q_states, np.float64) + cal.joint_offsets_rad
-    sets = [arm_primitives(q, cal.T_world_base) for q in q_true]
+    mount = rig.camera_mount(arm, calibration) if arm in rig.arms else None
+    sets = [arm_primitives(q, cal.T_world_base, mount) if mount else arm_primitives(q, cal.T_world_base)
+            for q in q_true]
     out: dict[str, Any] = {"origins": (cal.T_world_base @ z1.link_transforms_batch(q_true))[:, :, :3, 3]}
+    wrist = rig.wrist_frame if arm in rig.arms else "flange"
+    out["T_world_cam"] = cal.T_world_base @ z1.fk_batch(q_true, frame=wrist) @ cal.T_wrist_cam
     for kind in KINDS:
         sel = sets[0].kinds == KINDS.index(kind)
         out[kind] = {"k": int(sel.sum()), "R": np.concatenate([p.R[sel] for p in sets]),
@@ -84,10 +97,10 @@ def arm_columns(arm: str, q_states: np.ndarray, calibration: Calibration) -> dic
 
 
 def log_arm_states(rec: Any, rr: Any, arm: str, times_s: np.ndarray, q_states: np.ndarray,
-                   calibration: Calibration) -> None:
+                   calibration: Calibration, rig: Rig | None = None) -> None:
     """Every joint state of one arm in one call per entity (rerun's columnar API): its collision
-    primitives and the chain of link origins on the ``time`` timeline."""
-    cols = arm_columns(arm, q_states, calibration)
+    primitives, the chain of link origins and the wrist camera's pose (the frustum) on the ``time`` timeline."""
+    cols = arm_columns(arm, q_states, calibration, rig)
     n = len(times_s)
     index = [rr.TimeColumn("time", timestamp=np.asarray(times_s, np.float64))]
     colour = np.array(ARM_COLOURS.get(arm, (200, 200, 200)), np.uint8)
@@ -109,17 +122,22 @@ def log_arm_states(rec: Any, rr: Any, arm: str, times_s: np.ndarray, q_states: n
         rec.send_columns(f"world/{arm}/links/{ENTITY[kind]}", indexes=index, columns=data.partition([c["k"]] * n))
     rec.send_columns(f"world/{arm}/skeleton", indexes=index,
                      columns=rr.LineStrips3D.columns(strips=list(cols["origins"]), colors=np.tile(colour, (n, 1))))
+    T = cols["T_world_cam"]
+    rec.send_columns(f"world/{arm}/camera", indexes=index,
+                     columns=rr.Transform3D.columns(translation=T[:, :3, 3], mat3x3=T[:, :3, :3]))
 
 
-def log_camera(rec: Any, rr: Any, arm: str, T_world_cam: np.ndarray, K: np.ndarray, size: tuple[int, int],
+def log_camera(rec: Any, rr: Any, arm: str, T_world_cam: np.ndarray | None, K: np.ndarray, size: tuple[int, int],
                rgb: np.ndarray | None, depth: np.ndarray | None, depth_units_per_m: float,
                ir: np.ndarray | None) -> None:
-    """One posed camera frame: transform, pinhole (frustum) and its images."""
-    T = np.asarray(T_world_cam, np.float64)
+    """One camera frame: its pinhole (frustum) and images, and its transform unless ``T_world_cam`` is None
+    (the arm states carry the camera's pose, :func:`log_arm_states`)."""
     path = f"world/{arm}/camera"
-    rec.log(path, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+    if T_world_cam is not None:
+        T = np.asarray(T_world_cam, np.float64)
+        rec.log(path, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
     rec.log(path, rr.Pinhole(image_from_camera=K, resolution=list(size), camera_xyz=rr.ViewCoordinates.RDF,
-                             image_plane_distance=0.05))
+                             image_plane_distance=0.05), static=True)  # one camera per arm: a frustum at all times
     if rgb is not None:
         rec.log(f"{path}/rgb", rr.Image(rgb))
     if depth is not None:
@@ -183,13 +201,15 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
         survey_path = None
     calibration = _calibration(survey_path, calibration_path or (processed.calibration_path if processed else None))
     rec = rr.RecordingStream("darp", recording_id=f"darp-{path.resolve().name}")
+    arms = sorted(calibration.arms)
+    blueprint = default_blueprint(*_envelope(processed, survey_path), arms=arms)
     if save is not None:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
-        rec.save(str(save))
+        rec.save(str(save), default_blueprint=blueprint)
     elif url is not None or not spawn:
-        rec.connect_grpc(url)
+        rec.connect_grpc(url, default_blueprint=blueprint)
     else:
-        rec.spawn()
+        rec.spawn(default_blueprint=blueprint)
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     if url is not None:  # fail in seconds, before decoding anything, when no viewer listens there
         try:
@@ -202,15 +222,63 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
     survey = None
     if survey_path is not None:
         survey = open_survey(survey_path, serial_to_arm={a.serial: n for n, a in calibration.arms.items()})
-        stats.arm_states = _log_arms(rec, rr, survey, calibration)
+    image_times: dict[str, list[float]] = {}
     if processed is not None:
-        _log_processed(rec, rr, processed, stats)
+        image_times = _log_processed(rec, rr, processed, stats, pose=survey is None)
     elif survey is not None:
-        stats.images = _log_raw_frames(rec, rr, survey, calibration, every_s)
+        image_times = _log_raw_frames(rec, rr, survey, calibration, every_s, stats)
+    if survey is not None:
+        stats.arm_states = _log_arms(rec, rr, survey, calibration, image_times)
     rec.flush()
     if save is not None or url is not None:
         rec.disconnect()  # everything sent (or written) before darp exits
     return stats
+
+
+def _envelope(processed: ProcessedSurvey | None, survey_path: Path | None) -> tuple[np.ndarray, float, float]:
+    """The object's envelope cylinder (centre, radius, height; metres): processing's, else the survey's
+    ``manip_envelope.json``, else a 5 cm one at the world origin."""
+    sources: list[tuple[Path, str | None]] = [] if processed is None else [(processed.folder / "results.json",
+                                                                           "envelope")]
+    if survey_path is not None:
+        sources.append((survey_path / "manip_envelope.json", None))
+    for file, key in sources:
+        try:
+            record = json.loads(file.read_text(encoding="utf-8"))
+            record = record[key] if key else record
+            return (np.asarray(record["center_m"], np.float64).reshape(3), float(record["radius_m"]),
+                    float(record["height_m"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    return np.zeros(3), 0.05, 0.05
+
+
+def default_blueprint(centre: np.ndarray, radius_m: float, height_m: float, arms: list[str]) -> Any:
+    """The recording's default layout: an object-centred 3-D view (eye 0.8 m from the envelope's centre on
+    -y, 30 degrees up: the object in the middle, the arms in the frame while they survey it) with the arms,
+    frustums, clouds and mesh but without the back-projected depth and IR of the room (table, walls) or the
+    held-out error points (their own tab), and the images per arm beside it; the timeline paused at its start."""
+    import rerun.blueprint as rrb
+
+    c = np.asarray(centre, np.float64)
+    reach = max(0.8, 10.0 * max(radius_m, height_m))
+    eye = c + reach * np.array([0.0, -np.cos(np.radians(30.0)), np.sin(np.radians(30.0))])
+    room = [f"- /world/{arm}/camera/{image}" for arm in arms for image in ("depth", "ir")]
+
+    def view3d(name: str, hidden: list[str]) -> Any:
+        return rrb.Spatial3DView(
+            name=name, origin="/world", contents=["+ /world/**", *room, *hidden],
+            eye_controls=rrb.EyeControls3D(position=eye.tolist(), look_target=c.tolist(), eye_up=[0.0, 0.0, 1.0]),
+            line_grid=rrb.LineGrid3D(visible=False))
+
+    main = rrb.Tabs(view3d("object", ["- /world/heldout"]),
+                    view3d("held-out error", ["- /world/clouds/**"]), active_tab=0)
+    images = [rrb.Tabs(*(rrb.Spatial2DView(name=f"{arm} {image}", origin=f"/world/{arm}/camera",
+                                           contents=[f"$origin/{image}"]) for image in ("rgb", "depth", "ir")))
+              for arm in arms]
+    return rrb.Blueprint(rrb.Horizontal(main, rrb.Vertical(*images), column_shares=[3, 1]),
+                         rrb.SelectionPanel(state="collapsed"), rrb.BlueprintPanel(state="collapsed"),
+                         rrb.TimePanel(timeline="time", play_state="paused"))
 
 
 def _processed_or_none(path: Path) -> ProcessedSurvey | None:
@@ -224,19 +292,31 @@ def _processed_or_none(path: Path) -> ProcessedSurvey | None:
     return found[0]
 
 
-def _log_arms(rec: Any, rr: Any, survey: Survey, calibration: Calibration) -> int:
+def _log_arms(rec: Any, rr: Any, survey: Survey, calibration: Calibration,
+              image_times: dict[str, list[float]]) -> int:
+    """Each arm at about ``ARM_RATE_HZ`` of its joint log and at every image's time (the joints interpolated
+    there), so the frustum is on the wrist whenever an image is shown."""
     log = survey.arm_poses()
+    rig = load_rig()
     n = 0
     for arm in log.arms:
         if arm not in calibration.arms:
             continue
-        rows = _arm_rows(log.times(arm), ARM_RATE_HZ)
-        log_arm_states(rec, rr, arm, log.times(arm)[rows], log.joints(arm)[rows], calibration)
-        n += len(rows)
+        log_t, log_q = log.times(arm), log.joints(arm)
+        rows = _arm_rows(log_t, ARM_RATE_HZ)
+        times = np.union1d(log_t[rows], np.asarray(image_times.get(arm, []), np.float64))
+        interp = interpolate_joints(log_t, log_q, times)
+        times, q = times[interp.posed], interp.q_rad[interp.posed]
+        log_arm_states(rec, rr, arm, times, q, calibration, rig)
+        n += len(times)
     return n
 
 
-def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewStats) -> None:
+def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewStats,
+                   pose: bool) -> dict[str, list[float]]:
+    """Keyframes (their images; their poses too when ``pose``: no raw survey to move the arms), clouds, mesh,
+    held-out errors and the summary. Returns each arm's image times."""
+    times: dict[str, list[float]] = {}
     index = read_keyframe_index(processed.keyframes_dir)
     heldout = {info.file for info in index.select("heldout", None)}
     parts = []  # held-out keyframes' object points, from the one read of each keyframe
@@ -244,8 +324,9 @@ def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewSta
         kf = read_keyframe(index.folder / info.file)
         rec.set_time("time", timestamp=kf.t_s)
         i = kf.intrinsics
-        log_camera(rec, rr, kf.arm, kf.T_world_cam, i.K, (i.width, i.height), kf.rgb, kf.depth,
+        log_camera(rec, rr, kf.arm, kf.T_world_cam if pose else None, i.K, (i.width, i.height), kf.rgb, kf.depth,
                    1.0 / kf.depth_scale, kf.ir_left)
+        times.setdefault(kf.arm, []).append(kf.t_s)
         stats.images += 1
         if info.file in heldout:
             parts.append(keyframe_object_points(kf))
@@ -279,14 +360,17 @@ def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewSta
     if results.is_file():
         summary = json.loads(results.read_text(encoding="utf-8")).get("heldout", {}).get("aggregate", {})
         rec.log("summary", rr.TextDocument(json.dumps(summary, indent=1)), static=True)
+    return times
 
 
-def _log_raw_frames(rec: Any, rr: Any, survey: Survey, calibration: Calibration, every_s: float) -> int:
+def _log_raw_frames(rec: Any, rr: Any, survey: Survey, calibration: Calibration, every_s: float,
+                    stats: ViewStats) -> dict[str, list[float]]:
+    """Frame sets ``every_s`` apart with their images (the arm states carry the pose); each arm's times."""
     from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb
     from darp.reconstruction.poses import recover_survey_poses
 
     poses = recover_survey_poses(survey, calibration)
-    n = 0
+    times: dict[str, list[float]] = {}
     for arm, traj in poses.trajectories.items():
         lookup = {int(f): k for k, f in enumerate(traj.frame_numbers)}
         recording = survey.open_recording(arm)
@@ -311,12 +395,13 @@ def _log_raw_frames(rec: Any, rr: Any, survey: Survey, calibration: Calibration,
                                                 recording.extrinsics("depth", "color"))
                 ir = None if fs.ir1 is None else np.asarray(fs.ir1.data)
                 rec.set_time("time", timestamp=float(traj.poses.t_s[k]))
-                log_camera(rec, rr, arm, traj.poses.T_world_cam[k], d_intr.K, (d_intr.width, d_intr.height), rgb,
+                log_camera(rec, rr, arm, None, d_intr.K, (d_intr.width, d_intr.height), rgb,
                            depth, 1.0 / recording.depth_scale, ir)
-                n += 1
+                times.setdefault(arm, []).append(float(traj.poses.t_s[k]))
+                stats.images += 1
         finally:
             recording.close()
-    return n
+    return times
 
 
 def rrd_entities(path: str | Path) -> dict[str, set[str]]:
@@ -342,4 +427,5 @@ def rrd_entities(path: str | Path) -> dict[str, set[str]]:
     return entities
 
 
-__all__ = ["ViewStats", "arm_columns", "log_arm_states", "log_camera", "rrd_entities", "view", "viewer_url"]
+__all__ = ["ViewStats", "arm_columns", "default_blueprint", "log_arm_states", "log_camera", "rrd_entities", "view",
+           "viewer_url"]

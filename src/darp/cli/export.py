@@ -1,6 +1,6 @@
 """``darp export FORMAT PROCESSED_DIR -o DIR``: processed surveys in the formats other tools load.
 
-Formats and their exact conventions: docs/ecosystem.md (and darp.export.cameras / darp.export.objects).
+Formats and their exact conventions: docs/ecosystem.md (and darp.export.cameras, .colmap, .bop, .completion).
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """Exports of processed surveys into the formats other tools load (``darp export FORMAT``).
 
-The conventions of each format are in :mod:`darp.export.cameras` and :mod:`darp.export.objects`.
+The conventions of each format are in :mod:`darp.export.cameras`, :mod:`darp.export.bop` and
+:mod:`darp.export.completion`.
 """
 
 from __future__ import annotations
@@ -10,8 +11,10 @@ from pathlib import Path
 from typing import Any
 
 from darp.dataset import ProcessedSurvey, find_processed
-from darp.export.cameras import export_colmap, export_nerfstudio, export_open3d, export_tum
-from darp.export.objects import export_bop, export_completion
+from darp.export.bop import export_bop
+from darp.export.cameras import export_nerfstudio, export_open3d, export_tum
+from darp.export.colmap import export_colmap
+from darp.export.completion import export_completion
 
 PER_SURVEY: dict[str, Callable[[ProcessedSurvey, Path], dict[str, Any]]] = {
     "nerfstudio": export_nerfstudio, "colmap": export_colmap, "open3d": export_open3d, "tum": export_tum,

@@ -16,14 +16,21 @@ OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 def write_png(path: Path, image: np.ndarray) -> Path:
     """An 8-bit (grey or RGB, RGB order in memory) or 16-bit PNG, atomically."""
+    return write_image(path, image)
+
+
+def write_image(path: Path, image: np.ndarray) -> Path:
+    """An image in the format of the path's suffix (``.png``, ``.tiff``), atomically; RGB order in memory."""
     import cv2
 
     img = np.asarray(image)
     if img.ndim == 3:
         img = np.ascontiguousarray(img[:, :, ::-1])  # OpenCV writes BGR
-    ok, buffer = cv2.imencode(".png", img)
+    # TIFF uncompressed: OpenCV's default LZW needs an extra codec package in tifffile / imageio readers
+    params = [cv2.IMWRITE_TIFF_COMPRESSION, 1] if path.suffix in (".tif", ".tiff") else []
+    ok, buffer = cv2.imencode(path.suffix, img, params)
     if not ok:
-        raise FormatError("PNG encoding failed", path)
+        raise FormatError(f"{path.suffix} encoding failed", path)
     with atomic_open(path, "wb") as handle:
         handle.write(buffer.tobytes())
     return path
@@ -45,6 +52,17 @@ def write_pcd(path: Path, points: np.ndarray) -> Path:
         handle.write(header.encode("ascii"))
         handle.write(p.astype("<f4").tobytes())
     return path
+
+
+def colour_valid(kf: Keyframe) -> np.ndarray:
+    """(H, W) bool: pixels the colour camera saw (alignment leaves the rest black; a seen pixel of pure black
+    would read as unseen, which only shrinks the mask)."""
+    return np.asarray(np.asarray(kf.rgb).any(axis=2))
+
+
+def mask_png(mask: np.ndarray) -> np.ndarray:
+    """A boolean mask as an 8-bit single-channel image: 255 where true, 0 elsewhere."""
+    return np.asarray(mask, bool).astype(np.uint8) * 255
 
 
 def write_lines(path: Path, lines: list[str]) -> Path:
