@@ -3,24 +3,23 @@
 How the SDK is used (z1_sdk ``unitree_arm_interface``; :mod:`darp.hardware.z1_binding`; docs/hardware.md):
 
 - ``ArmInterface`` talks UDP to a ``z1_ctrl`` controller process. :meth:`Z1Arm.connect` starts the SDK's
-  own exchange thread (``loopOn()``), waits for the controller's first real state, enters joint tracking
-  (``startTrack(ArmFSMState.JOINTCTRL)``, which waits for the controller) and stops that thread again.
+  own 500 Hz exchange thread (``loopOn()``, C++: it keeps the controller's link alive while Python threads
+  wait for the GIL; the controller goes PASSIVE after about 2 s without the SDK), waits for the
+  controller's first real state and enters joint tracking (``startTrack(ArmFSMState.JOINTCTRL)``).
 - ``MoveJ`` takes a *Cartesian* posture (the controller's IK picks the joints), so it cannot command a
   joint target. Joint targets are streamed instead: a darp control thread samples a smooth, speed- and
-  acceleration-limited trajectory (:mod:`darp.hardware.trajectory`) at 500 Hz, sets each sample with
+  acceleration-limited trajectory (:mod:`darp.hardware.trajectory`) at 500 Hz and sets each sample with
   ``setArmCmd(q, qd, tau)`` (what the controller tracks in JOINTCTRL; ``arm.q``/``arm.qd`` are written
-  too, for older SDK releases) and exchanges with the controller itself (``sendRecv``). So a controller
-  that stops answering is seen within one exchange (the SDK waits 0.5 s for an answer), and no second
-  thread reads the command while darp writes it. ``move_to`` only swaps the trajectory and returns at
-  once. The trajectory's clock advances at most two periods per cycle, so a stalled Python thread slows
-  a move down rather than sending a step.
+  too, for older SDK releases). ``move_to`` only swaps the trajectory and returns at once. The
+  trajectory's clock advances at most two periods per cycle, so a stalled Python thread slows a move down
+  rather than sending a step.
 - The control thread caches the latest joint state with its host-clock time (``time.time()``, the clock
   of RealSense global timestamps), which :meth:`Z1Arm.read_state` returns.
 - If the controller leaves joint control (a motor error, motor link loss, collision protection, another
-  client) or stops answering, the thread stops commanding and the next call raises a HardwareError naming
-  the arm. :meth:`Z1Arm.back_to_start` and :meth:`Z1Arm.passive` hand the arm to the controller's own
-  motions. :meth:`Z1Arm.close` brakes and stops streaming; the controller itself goes PASSIVE about 2 s
-  after the SDK falls silent.
+  client) or stops answering (darp's patched binding: ``isDisconnected()``, about 2 s of receive
+  time-outs), the thread stops commanding and the next call raises a HardwareError naming the arm.
+  :meth:`Z1Arm.back_to_start` and :meth:`Z1Arm.passive` hand the arm to the controller's own motions.
+  :meth:`Z1Arm.close` brakes and stops the SDK loop; the controller itself goes PASSIVE about 2 s later.
 
 Targets outside the Z1's joint limits (the tighter of darp's table and the SDK's model) are refused
 before anything is sent: in joint tracking the vendor controller forwards any position to the motors.
@@ -49,13 +48,14 @@ from darp.hardware.z1_binding import (
     fsm_name,
     is_answer,
     make_arm_interface,
+    read_lowstate,
+    sdk_disconnected,
 )
 from darp.kinematics import z1
 
 log = logging.getLogger(__name__)
 
 CONTROL_HZ = 500.0
-LINK_TIMEOUT_S = 0.25  # a sendRecv that waited this long got no answer (the SDK's own time-out is 0.5 s)
 FSM_TIMEOUT_S = 5.0  # how long an FSM switch (startTrack, setFsm) may take
 BACK_TO_START_TIMEOUT_S = 60.0
 
@@ -144,17 +144,17 @@ class Z1Arm(ArmBackend):
             state = arm.getCurrentState()
             if fsm_name(state) != "JOINTCTRL":
                 raise HardwareError(f"{self.arm_id}: the controller refused joint control (it is in {fsm_name(state)})")
-            q0, qd0 = _lowstate(arm)
+            q0, qd0 = read_lowstate(arm)
         except BaseException:
             self._set_loop(arm, False)
             self._arm, self._observing = None, False
             raise
-        self._set_loop(arm, False)  # from here darp's thread exchanges with the controller itself
         self._start_tracking(arm, q0, qd0)
         log.info("%s: connected to %s at q = %s", self.arm_id, self.connection.describe(), np.round(q0, 4))
 
     def _set_loop(self, arm: Any, on: bool) -> None:
-        """Start or stop the SDK's own 500 Hz exchange thread (needed while an FSM call waits)."""
+        """Start or stop the SDK's own 500 Hz exchange thread (a C++ thread: it keeps the controller's link
+        alive while Python threads wait for the GIL; the controller goes PASSIVE after ~2 s of silence)."""
         if on and not self._loop_on:
             arm.loopOn()
         elif not on and self._loop_on:
@@ -250,11 +250,10 @@ class Z1Arm(ArmBackend):
                 raise HardwareError(f"{self.arm_id}: backToStart ended in state {fsm_name(state)}, not JOINTCTRL")
             call_with_timeout(lambda: arm.startTrack(sdk.ArmFSMState.JOINTCTRL), FSM_TIMEOUT_S,
                               f"{self.arm_id}: startTrack(JOINTCTRL)")
-            q0, qd0 = _lowstate(arm)
+            q0, qd0 = read_lowstate(arm)
         except HardwareError as err:
             self._fault = err
             raise
-        self._set_loop(arm, False)
         self._start_tracking(arm, q0, qd0)
 
     def passive(self) -> None:
@@ -271,12 +270,11 @@ class Z1Arm(ArmBackend):
             raise
 
     def _begin_vendor_motion(self) -> Any:
-        """Stop streaming (after braking) and hand the arm to the SDK's own loop; returns the interface."""
+        """Stop commanding (after braking) and leave the arm to the controller; returns the interface."""
         self._check_running()
         self._brake_and_pause()
         arm = self._arm
         assert arm is not None
-        self._set_loop(arm, True)
         self._observing = True
         return arm
 
@@ -324,23 +322,15 @@ class Z1Arm(ArmBackend):
         return self._latest
 
     def _cycle(self, zeros: np.ndarray) -> None:
-        """Send this period's command and exchange once with the controller (darp's thread does the SDK's
-        ``sendRecv`` itself: a missing answer is then seen at once, and no second thread reads the command)."""
+        """Read the latest state the SDK loop received, check the controller, set this period's command (the
+        SDK's own C++ loop sends it at 500 Hz, whether or not this Python thread gets the GIL in time)."""
         arm = self._arm
         if arm is None:
             raise HardwareError("the SDK interface was closed")
-        with self._lock:
-            q_cmd, qd_cmd, _ = self._connected_plan().sample(self._traj_t)
-        arm.setArmCmd(q_cmd, qd_cmd, zeros)
-        arm.q = q_cmd
-        arm.qd = qd_cmd
-        t0 = time.monotonic()
-        arm.sendRecv()
-        waited = time.monotonic() - t0
-        if waited > LINK_TIMEOUT_S or _disconnected(arm):
-            raise HardwareError(f"no answer from {self.connection.describe()} for {waited:.2f} s: the controller "
-                                f"stopped or the link is down; motion stopped")
-        q_meas, qd_meas = _lowstate(arm)
+        if sdk_disconnected(arm):
+            raise HardwareError(f"no answer from {self.connection.describe()}: the controller stopped or the link "
+                                f"is down (the SDK's receive time-outs); motion stopped")
+        q_meas, qd_meas = read_lowstate(arm)
         stamp = time.time()
         state = arm.getCurrentState()
         if state != self._fsm_jointctrl:
@@ -349,6 +339,10 @@ class Z1Arm(ArmBackend):
                                 f"motion stopped")
         with self._lock:
             self._latest = JointState(stamp, q_meas, qd_meas)
+            q_cmd, qd_cmd, _ = self._connected_plan().sample(self._traj_t)
+        arm.setArmCmd(q_cmd, qd_cmd, zeros)
+        arm.q = q_cmd
+        arm.qd = qd_cmd
 
     def _stop_plan(self, now: float) -> JointPlan:
         q, qd, qdd = self._connected_plan().sample(now)
@@ -372,11 +366,11 @@ class Z1Arm(ArmBackend):
         self._check_running()
         arm = self._arm
         if self._observing and arm is not None:  # passive, or the controller's own motion: the SDK loop reads
-            if _disconnected(arm):
+            if sdk_disconnected(arm):
                 self._fault = HardwareError(f"{self.arm_id}: no answer from {self.connection.describe()}: the "
                                             f"controller stopped or the link is down")
                 raise self._fault
-            q, qd = _lowstate(arm)
+            q, qd = read_lowstate(arm)
             return JointState(time.time(), q, qd)
         with self._lock:
             s = self._connected_state()
@@ -473,24 +467,11 @@ def probe_arm(arm_id: str, connection: Z1Connection | None = None, *, timeout_s:
     try:
         state = reader._wait_for_controller(arm, timeout_s)
         reader._adopt_sdk_limits(arm)
-        q, qd = _lowstate(arm)
+        q, qd = read_lowstate(arm)
     finally:
         arm.loopOff()
     lower, upper = reader.joint_limits
     return ArmProbe(fsm_name(state), q, qd, lower, upper)
-
-
-def _lowstate(arm: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The SDK's latest joint positions and speeds (the first six: index 6 is the gripper)."""
-    q = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
-    qd = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
-    return q, qd
-
-
-def _disconnected(arm: Any) -> bool:
-    """The SDK's own link check (darp's patched binding only: about 2 s of silence; False elsewhere)."""
-    check = getattr(arm, "isDisconnected", None)
-    return bool(check()) if check is not None else False
 
 
 __all__ = ["CONTROL_HZ", "DEFAULT_CONTROLLER_PORT", "DEFAULT_SDK_PORT", "ArmProbe", "MotionLimits", "Z1Arm",

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Any, TypeVar
 
+import numpy as np
+
 from darp.errors import HardwareError
 
 DEFAULT_CONTROLLER_PORT = 8071  # where the stock SDK sends (z1_ctrl's SDK port)
@@ -117,6 +119,19 @@ def make_arm_interface(sdk: ModuleType, connection: Z1Connection, arm_id: str, *
                             int(connection.controller_port), int(connection.sdk_port))
 
 
+def read_lowstate(arm: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The SDK's latest joint positions and speeds (the first six: index 6 is the gripper)."""
+    q = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
+    qd = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+    return q, qd
+
+
+def sdk_disconnected(arm: Any) -> bool:
+    """The SDK's own link check (darp's patched binding only: about 2 s of silence; False elsewhere)."""
+    check = getattr(arm, "isDisconnected", None)
+    return bool(check()) if check is not None else False
+
+
 def call_with_timeout(call: Callable[[], T], timeout_s: float, what: str) -> T:
     """Run a blocking SDK call (an FSM switch waits for the controller, forever if it never answers) with a
     time limit; a HardwareError naming ``what`` on time-out (the call is left to finish in the background)."""
@@ -150,5 +165,7 @@ __all__ = [
     "has_port_patch",
     "is_answer",
     "make_arm_interface",
+    "read_lowstate",
+    "sdk_disconnected",
     "sdk_port_free",
 ]
