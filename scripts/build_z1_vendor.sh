@@ -102,10 +102,16 @@ say "building z1_ctrl_sim and unitree_arm_interface (pybind11 $PYBIND_VERSION) i
 LOG=$OUT/build.log
 WORK=$OUT/build
 mkdir -p "$WORK"
-cp "$VENDOR/z1_sdk/examples_py/arm_python_interface.cpp" "$WORK/arm_python_interface.cpp"
-chmod u+w "$WORK/arm_python_interface.cpp"
-patch -s "$WORK/arm_python_interface.cpp" "$SRC/binding-ports.patch" >"$LOG" 2>&1 \
+cp "$VENDOR/z1_sdk/examples_py/arm_python_interface.cpp" "$WORK/binding.new.cpp"
+chmod u+w "$WORK/binding.new.cpp"
+patch -s "$WORK/binding.new.cpp" "$SRC/binding-ports.patch" >"$LOG" 2>&1 \
     || die "darp's binding patch does not apply to this z1_sdk (log: $LOG)"
+# replaced only when it changed, so that make does not recompile the binding for a controller change
+if cmp -s "$WORK/binding.new.cpp" "$WORK/arm_python_interface.cpp"; then
+    rm -f "$WORK/binding.new.cpp"
+else
+    mv "$WORK/binding.new.cpp" "$WORK/arm_python_interface.cpp"
+fi
 JOBS=$(nproc 2>/dev/null || echo 2)
 {
     cmake -S "$SRC" -B "$WORK" -DCMAKE_BUILD_TYPE=Release -DZ1_VENDOR_DIR="$VENDOR" \

@@ -9,10 +9,14 @@
 // does, for the real arm): a simulated arm must not starve a shared machine.
 //
 // Usage: z1_ctrl_sim [--sdk-port 8071] [--client-port 8072] [--q0 q1,...,q6] [--plant HOST:PORT]
-//                    [--plant-timeout-s 0.1] [--lag-floor-s 0.005] [--verbose]
+//                    [--plant-timeout-s 0.1] [--lag-floor-s 0.005] [--joint-range J:LO:HI]...
+//                    [--exit-with-parent] [--verbose]
 // Run it from a folder whose parent holds config/ (config.xml, savedArmStates.csv), as the vendor's
 // z1_ctrl is run from build/ beside config/. SIGUSR1 toggles a motor link loss (the motors stop
 // answering), SIGINT/SIGTERM end it.
+#include <sys/prctl.h>
+#include <unistd.h>
+
 #include <csignal>
 #include <cstdlib>
 #include <cstring>
@@ -52,11 +56,14 @@ struct Options {
     double plant_timeout_s = 0.1;
     double lag_floor_s = 0.005;
     bool verbose = false;
+    bool exit_with_parent = false;  // end when the process that started it ends (tests, darp hardware vendor-sim)
+    MotorParams params;
 };
 
 [[noreturn]] void usage(const std::string& why) {
     std::cerr << "z1_ctrl_sim: " << why << "\nusage: z1_ctrl_sim [--sdk-port P] [--client-port P] "
-              << "[--q0 q1,...,q6] [--plant HOST:PORT] [--plant-timeout-s S] [--lag-floor-s S] [--verbose]"
+              << "[--q0 q1,...,q6] [--plant HOST:PORT] [--plant-timeout-s S] [--lag-floor-s S] "
+              << "[--joint-range J:LO:HI]... [--exit-with-parent] [--verbose]"
               << std::endl;
     std::exit(2);
 }
@@ -88,6 +95,18 @@ Options parse(int argc, char** argv) {
         else if (a == "--plant-timeout-s") o.plant_timeout_s = number_arg(value(), "--plant-timeout-s");
         else if (a == "--lag-floor-s") o.lag_floor_s = number_arg(value(), "--lag-floor-s");
         else if (a == "--verbose") o.verbose = true;
+        else if (a == "--exit-with-parent") o.exit_with_parent = true;
+        else if (a == "--joint-range") {  // J:LO:HI, joint 1..6: a narrower hard stop (a cable, a fixture)
+            std::stringstream ss(value());
+            std::string j, lo, hi;
+            if (!std::getline(ss, j, ':') || !std::getline(ss, lo, ':') || !std::getline(ss, hi))
+                usage("--joint-range needs J:LO:HI");
+            const int k = static_cast<int>(number_arg(j.c_str(), "--joint-range")) - 1;
+            if (k < 0 || k >= static_cast<int>(NJ)) usage("--joint-range: joint must be 1..6");
+            o.params.q_min[k] = number_arg(lo.c_str(), "--joint-range");
+            o.params.q_max[k] = number_arg(hi.c_str(), "--joint-range");
+            if (o.params.q_min[k] >= o.params.q_max[k]) usage("--joint-range: LO must be below HI");
+        }
         else if (a == "--q0") {
             std::stringstream ss(value());
             std::string item;
@@ -112,6 +131,10 @@ Options parse(int argc, char** argv) {
 
 int main(int argc, char** argv) {
     const Options opt = parse(argc, argv);
+    if (opt.exit_with_parent) {
+        ::prctl(PR_SET_PDEATHSIG, SIGTERM);
+        if (::getppid() == 1) return 0;  // the parent is already gone
+    }
     std::cout << std::fixed << std::setprecision(5);
 
     EmptyAction emptyAction((int)ArmFSMStateName::INVALID);
@@ -122,7 +145,7 @@ int main(int argc, char** argv) {
     ctrlComp->dt = 1.0 / 250.;
     ctrlComp->armConfigPath = "../config/";
     ctrlComp->stateCSV = new CSVTool("../config/savedArmStates.csv");
-    MotorParams params;
+    MotorParams params = opt.params;
     params.lag_floor_s = opt.lag_floor_s;
     std::unique_ptr<PlantLink> plant;
     if (opt.plant_port != 0) plant = std::make_unique<PlantLink>(opt.plant_host, opt.plant_port, opt.plant_timeout_s);

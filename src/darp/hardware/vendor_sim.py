@@ -13,6 +13,7 @@ import os
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -61,20 +62,35 @@ def port_free(port: int, host: str = "127.0.0.1") -> bool:
     return True
 
 
+def request_fsm_state(sdk_port: int, state: int, *, duration_s: float = 0.06, host: str = "127.0.0.1") -> None:
+    """Act as another SDK client for a moment: ask the controller on ``sdk_port`` for FSM ``state`` (its C++
+    value, :data:`darp.hardware.z1_binding.FSM_NAMES`) every 2 ms for ``duration_s`` (fault injection: the
+    controller follows the latest request it reads, at 250 Hz). The datagram is the SDK's ``SendCmd``
+    (arm_common.h, packed: head 0xFE 0xFF, int32 state, bool track, 140-byte value union)."""
+    message = bytes([0xFE, 0xFF]) + struct.pack("<iB", int(state), 0) + bytes(140)
+    deadline = time.monotonic() + duration_s
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        while time.monotonic() < deadline:
+            sock.sendto(message, (host, int(sdk_port)))
+            time.sleep(0.002)
+
+
 class SimController:
     """One ``z1_ctrl_sim``: the vendor controller (FSM, trajectories, safety) driving simulated motors.
 
     ``sdk_port``: where it listens for the SDK (the arm's ``controller_port``); ``client_port``: where it
     sends (the arm's ``sdk_port``); ``q0_rad``: the joints at power-on; ``plant``: ``(host, port)`` of an
-    external plant (:mod:`darp.hardware.vendor_plant`) instead of the built-in motor model. Its output goes
-    to ``<run_dir>/controller.log``. Use as a context manager, or :meth:`start` and :meth:`stop`.
+    external plant (see native/z1_sim/README.md) instead of the built-in motor model; ``joint_ranges``:
+    narrower hard stops by joint number (1..6), e.g. a cable or fixture the arm runs into; ``nice``: the
+    process's nice level (root only). Its output goes to ``<run_dir>/controller.log``. Use as a context
+    manager, or :meth:`start` and :meth:`stop`.
     """
 
     def __init__(self, name: str, sdk_port: int, client_port: int, *,
                  q0_rad: Sequence[float] | np.ndarray | None = None, run_dir: str | Path | None = None,
                  plant: tuple[str, int] | None = None,
                  build: VendorBuild | None = None, verbose: bool = False, lag_floor_s: float | None = None,
-                 nice: int = -10) -> None:
+                 nice: int = -10, joint_ranges: dict[int, tuple[float, float]] | None = None) -> None:
         self.name = name
         self.sdk_port = int(sdk_port)
         self.client_port = int(client_port)
@@ -83,6 +99,7 @@ class SimController:
         self.verbose = verbose
         self.lag_floor_s = lag_floor_s
         self.nice = int(nice)
+        self.joint_ranges = dict(joint_ranges or {})
         self.build = build
         self._own_dir = run_dir is None
         self.run_dir = Path(run_dir) if run_dir is not None else None
@@ -116,10 +133,13 @@ class SimController:
             cmd += ["--q0", ",".join(f"{v:.9f}" for v in self.q0_rad)]
         if self.plant is not None:
             cmd += ["--plant", f"{self.plant[0]}:{self.plant[1]}"]
+        for joint, (lo, hi) in sorted(self.joint_ranges.items()):
+            cmd += ["--joint-range", f"{joint}:{lo:.9f}:{hi:.9f}"]
         if self.lag_floor_s is not None:
             cmd += ["--lag-floor-s", f"{self.lag_floor_s:g}"]
         if self.verbose:
             cmd.append("--verbose")
+        cmd.append("--exit-with-parent")  # no controller outlives the darp process that started it
         return cmd
 
     def start(self, timeout_s: float = 10.0) -> Self:
@@ -210,4 +230,4 @@ class SimController:
         self.remove_run_dir()
 
 
-__all__ = ["BUILD_HINT", "SimController", "VendorBuild", "find_vendor_build", "port_free"]
+__all__ = ["BUILD_HINT", "SimController", "VendorBuild", "find_vendor_build", "port_free", "request_fsm_state"]

@@ -297,7 +297,7 @@ class Z1Arm(ArmBackend):
             except Exception as err:  # any SDK failure stops commanding; reported later
                 message = err.message if isinstance(err, HardwareError) else f"{type(err).__name__}: {err}"
                 self._fault = HardwareError(f"{self.arm_id}: control loop stopped: {message}")
-                log.error("%s", self._fault)
+                log.info("%s", self._fault)  # raised by the next call, reported by the rig's fault()
                 return
             self.cycles += 1
             next_t += period

@@ -10,8 +10,11 @@ against that truth; link deflection and encoder noise are not added (the arms' o
 Time: the twin's simulated clock starts at the wall time of construction and is advanced to the wall
 clock (:meth:`MirrorTwin.pump`) whenever the rig's clock sleeps or a camera is used, never past the newest
 arm state collected, so frames are rendered from states that were really reported. A collector thread reads
-each arm's state every few milliseconds into a history that the cameras interpolate; rendering may lag the
-arms (it renders the backlog at the next pump), it never changes what the arms do.
+each arm's state every few milliseconds into a history that the cameras interpolate. While the cameras
+record, the clock stays where the recording started and the recorded frames are rendered when it stops
+(rendering two cameras can be slower than real time on a small machine: rendered as it went, a survey
+would wait for its frames, record more frames while waiting, and never end); live frames are rendered at
+the wall clock meanwhile. Rendering never changes what the arms do.
 :class:`MirrorClock` is that wall clock, :class:`MirrorCamera` a camera that pumps before it is used.
 """
 
@@ -86,6 +89,7 @@ class MirrorTwin(TwinRig):
         self._stop = threading.Event()
         self._collector: threading.Thread | None = None
         self._hist_lock = threading.Lock()
+        self._finish_s: float | None = None
         super().__init__(settings, rig=rig, obj=obj, placement=placement, board=board, T_world_board=T_world_board,
                          q_initial_rad=dict(q_initial_rad), check_placement=check_placement)
         self.sources: dict[str, ArmBackend] = {}
@@ -147,18 +151,41 @@ class MirrorTwin(TwinRig):
         return now_ns + 3600 * NS_PER_S
 
     # -- time ---------------------------------------------------------------------------------------
-    def pump(self) -> None:
-        """Advance the simulated clock (rendering due frames) to the wall clock, but not past the newest
-        state of an arm that still reports."""
+    @property
+    def recording(self) -> bool:
+        return any(camera._recording for camera in self.cameras.values())
+
+    def sim_time_ns(self, host_s: float) -> int:
+        """Simulation nanoseconds of a host time."""
+        return int((host_s - self.clock.start_time_s) * NS_PER_S)
+
+    def newest_state_s(self) -> float:
+        """The host time up to which every arm that still reports has reported (or now, if none does)."""
         with self._hist_lock:
             live = [h.last_t for h in self._history.values() if not h.frozen]
-            oldest_needed = self.clock.now() - KEEP_S
-            for h in self._history.values():
-                h.trim(oldest_needed)
-        target_s = min([time.time(), *live])
-        target_ns = int((target_s - self.clock.start_time_s) * NS_PER_S)
+        return min([time.time(), *live])
+
+    def finish_time_s(self) -> float:
+        """Where recordings being stopped end: the newest states when the first of them was asked to stop (the
+        cameras stopped one after the other all end there, however long the first one took to render)."""
+        if self._finish_s is None:
+            self._finish_s = self.newest_state_s()
+        return self._finish_s
+
+    def pump(self, *, finish_recordings: bool = False) -> None:
+        """Advance the simulated clock to the present (the newest reported states). While a camera records,
+        only with ``finish_recordings`` (to :meth:`finish_time_s`): recorded frames are rendered when the
+        recording stops, from the collected states, so rendering slower than real time never holds up the
+        arms' survey."""
+        if self.recording and not finish_recordings:
+            return
+        until_s = self.finish_time_s() if finish_recordings else self.newest_state_s()
+        target_ns = self.sim_time_ns(until_s)
         if target_ns > self.clock.elapsed_ns:
             self.clock.advance_to(target_ns)
+        with self._hist_lock:
+            for h in self._history.values():
+                h.trim(self.clock.now() - KEEP_S)
 
     def close(self) -> None:
         self._stop.set()
@@ -199,13 +226,21 @@ class MirrorCamera(CameraBackend):
         return None
 
     def stop_recording(self) -> Path | None:
-        self.mirror.pump()
+        self.mirror.pump(finish_recordings=True)  # render every frame of the recording up to the stop
         self.camera.stop_recording()
+        if not self.mirror.recording:
+            self.mirror._finish_s = None
         return None
 
     def latest_frameset(self) -> LiveFrameSet:
+        """The latest frame tick on the wall clock (rendered now; while recording, ahead of the recording's
+        rendering, which catches up when it stops)."""
         self.mirror.pump()
-        return self.camera.latest_frameset()
+        if not self.mirror.recording:
+            return self.camera.latest_frameset()
+        t_ns = self.mirror.sim_time_ns(self.mirror.newest_state_s())
+        n = max(0, (t_ns - self.camera.phase_ns) * self.camera.spec.fps // NS_PER_S)
+        return self.camera.frameset_at(int(n), self.camera.frame_time_ns(int(n)))
 
     @property
     def depth_intrinsics(self) -> Intrinsics:
