@@ -20,7 +20,7 @@ from darp.hardware.vendor_sim import SimController, request_fsm_state
 from darp.hardware.z1_arm import MotionLimits, Z1Arm
 from darp.hardware.z1_binding import FSM_NAMES, Z1Connection, fsm_name
 from darp.kinematics.rig import load_rig
-from helpers.vendor import PARK, controllers, vendor_build, vendor_sdk  # noqa: F401 (fixtures)
+from helpers.vendor import PARK, free_ports
 
 FAST = MotionLimits(max_speed_rad_s=1.0, max_accel_rad_s2=4.0, settle_timeout_s=2.0)
 # The motors' first-order lag is Kd/Kp of the controller's joint-tracking gains (kp 25/30/20/25/15/30,
@@ -196,8 +196,6 @@ def test_a_failing_controller_is_one_error_naming_the_arm_and_both_arms_stop(ven
 def test_a_joint_pushed_into_its_hard_stop_trips_and_is_reported(vendor_sdk, vendor_build, tmp_path):
     """Joint 1 stops at 0.3 rad on this arm (a cable, a fixture: darp's limits allow more): the motor pushes at
     full torque, trips its over-current protection and the controller drops the arm to PASSIVE."""
-    from helpers.vendor import free_ports
-
     ports = free_ports(2)
     sim = SimController("arm110", ports[0], ports[1], q0_rad=PARK, run_dir=tmp_path, build=vendor_build,
                         joint_ranges={1: (-2.6, 0.3)})

@@ -10,7 +10,7 @@ import threading
 import pytest
 
 from darp.cli._app import run
-from helpers.vendor import controllers, rig_yaml, vendor_build  # noqa: F401 (fixtures)
+from helpers.vendor import rig_yaml
 
 pytestmark = pytest.mark.slow
 
@@ -70,7 +70,8 @@ def test_a_controller_killed_mid_survey_is_one_error_naming_the_arm(vendor_build
     lines = darp_lines(err)
     print("\n".join(lines))
     assert rc == 1 and len(lines) == 1, err
-    assert lines[0].startswith("darp: survey rejected (fault)") and "arm111: control loop stopped: no answer" in lines[0]
+    assert lines[0].startswith("darp: survey rejected (fault)")
+    assert "arm111: control loop stopped: no answer" in lines[0]
     events = [json.loads(line) for line in (tmp_path / "surveys" / "mug.rejected" / "events.jsonl").read_text()
               .splitlines()]
     assert any(e["kind"] == "parked" and e["arm"] == "arm110" and e.get("after_fault") for e in events)
