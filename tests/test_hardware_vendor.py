@@ -231,3 +231,54 @@ def test_a_busy_controller_is_refused_by_name(vendor_sdk, controllers):
         arm.connect()
     assert not arm.connected
     assert fsm_name(vendor_sdk.ArmFSMState.LOWCMD) == "LOWCMD" and int(vendor_sdk.ArmFSMState.LOWCMD) == 16
+
+
+def test_an_external_plant_answers_for_the_motors(vendor_sdk, vendor_build, tmp_path):
+    """``--plant``: the motors' state comes from another process over the documented datagrams (here a
+    kinematic plant in this test; native/z1_sim/README.md, "External plant")."""
+    import struct
+    import threading
+
+    plant = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    plant.bind(("127.0.0.1", 0))
+    plant.settimeout(0.2)
+    q = PARK.copy()
+    seen = {"commands": 0}
+    stop = threading.Event()
+
+    def serve() -> None:
+        nonlocal q
+        while not stop.is_set():
+            try:
+                data, sender = plant.recvfrom(512)
+            except TimeoutError:
+                continue
+            assert len(data) == 256 and data[:4] == b"Z1C1"
+            seq, dt = struct.unpack_from("<Id", data, 4)
+            q_cmd, dq_cmd, tau, kp, kd = (np.array(struct.unpack_from("<6d", data, 16 + 48 * k)) for k in range(5))
+            rate = np.where(kd > 0, dq_cmd + kp / np.maximum(kd, 1e-9) * (q_cmd - q), 0.0)
+            q = q + np.clip(rate, -np.pi, np.pi) * dt
+            seen["commands"] += 1
+            plant.sendto(b"Z1S1" + struct.pack("<I", seq) + struct.pack("<18d", *q, *rate, *tau), sender)
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    ports = free_ports(2)
+    try:
+        with SimController("arm110", ports[0], ports[1], q0_rad=PARK, run_dir=tmp_path, build=vendor_build,
+                           plant=("127.0.0.1", plant.getsockname()[1])) as sim:
+            arm = arm_for(sim, vendor_sdk)
+            try:
+                arm.connect()
+                target = PARK + np.array([0.3, 0.2, -0.2, 0.0, 0.1, 0.0])
+                arm.move_to(target)
+                assert arm.wait_until_still(10.0)
+                assert np.max(np.abs(arm.read_state().q_rad - target)) <= FAST.target_tolerance_rad
+                assert np.max(np.abs(q - target)) <= FAST.target_tolerance_rad  # the plant's own joints
+            finally:
+                arm.close()
+    finally:
+        stop.set()
+        server.join(timeout=2.0)
+        plant.close()
+    assert seen["commands"] > 250  # one exchange per controller cycle (250 Hz)
