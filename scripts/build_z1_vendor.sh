@@ -41,6 +41,7 @@ missing=()
 command -v cmake >/dev/null 2>&1 || missing+=(cmake)
 command -v g++ >/dev/null 2>&1 || missing+=(g++)
 command -v make >/dev/null 2>&1 || missing+=(make)
+command -v patch >/dev/null 2>&1 || missing+=(patch)
 [ -f /usr/include/boost/version.hpp ] || missing+=(libboost-dev)
 [ -f /usr/include/eigen3/Eigen/Core ] || missing+=(libeigen3-dev)
 if [ ${#missing[@]} -gt 0 ]; then

@@ -1,4 +1,4 @@
-"""The hardware commands' rig: real Z1 arms with RealSense cameras, or with twin cameras (``--cameras twin``).
+"""The hardware commands' rig: real Z1 arms with RealSense cameras, or with twin cameras (``--twin-cameras``).
 
 With twin cameras the arms are the rig file's Z1 arms (real ones, or Unitree's controller with simulated
 motors: docs/hardware.md, "Vendor in the loop") and the cameras are the digital twin's, rendering the
@@ -9,34 +9,12 @@ fails.
 
 from __future__ import annotations
 
-import enum
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
-
-import typer
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from darp.hardware.rig import HardwareRig
     from darp.twin.mirror import MirrorTwin
-
-
-class CameraSource(enum.StrEnum):
-    realsense = "realsense"
-    twin = "twin"
-
-
-CamerasOption = Annotated[CameraSource, typer.Option(
-    "--cameras", help="With --hardware: the rig's RealSense cameras, or twin cameras rendering from the arms' "
-    "reported joints (the arms are still the rig file's Z1 controllers; --seed/--profile/--settings choose the "
-    "twin).")]
-
-
-def camera_source(text: str) -> str:
-    """Check a ``--cameras`` value (realsense or twin)."""
-    try:
-        return CameraSource(text).value
-    except ValueError:
-        raise typer.BadParameter("must be realsense or twin", param_hint="'--cameras'") from None
 
 
 def twin_board_pose(rig: Any, board: Any) -> Any:
@@ -60,14 +38,15 @@ def write_capture_truth(out: Path, mirror: MirrorTwin, T_world_board: Any) -> No
     write_json_atomic(truth / "board.json", {"T_world_board": np.asarray(T_world_board).tolist()})
 
 
-def open_hardware(rig_file: Path | None, cameras: CameraSource | str, *, twin_settings: Any = None,
+def open_hardware(rig_file: Path | None, *, twin_settings: Any = None,
                   **twin_scene: Any) -> tuple[HardwareRig, MirrorTwin | None]:
-    """Connect the rig of ``rig_file`` (default: the packaged rig). With twin cameras, ``twin_settings`` is
-    the twin's :class:`~darp.twin.settings.TwinSettings` and ``twin_scene`` goes to
-    :class:`~darp.twin.mirror.MirrorTwin` (``obj`` and ``placement``, or ``board`` and ``T_world_board``)."""
+    """Connect the rig of ``rig_file`` (default: the packaged rig), with its RealSense cameras, or, given
+    ``twin_settings`` (the twin's :class:`~darp.twin.settings.TwinSettings`), with twin cameras;
+    ``twin_scene`` goes to :class:`~darp.twin.mirror.MirrorTwin` (``obj`` and ``placement``, or ``board`` and
+    ``T_world_board``)."""
     from darp.hardware.rig import HardwareRig
 
-    if CameraSource(cameras) is CameraSource.realsense:
+    if twin_settings is None:
         return HardwareRig.open(rig_file), None
     from darp.hardware.settings import load_hardware_settings
     from darp.hardware.z1_arm import Z1Arm, probe_arm
@@ -93,5 +72,4 @@ def open_hardware(rig_file: Path | None, cameras: CameraSource | str, *, twin_se
     return hardware, mirror
 
 
-__all__ = ["CameraSource", "CamerasOption", "camera_source", "open_hardware", "twin_board_pose",
-           "write_capture_truth"]
+__all__ = ["open_hardware", "twin_board_pose", "write_capture_truth"]

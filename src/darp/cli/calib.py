@@ -136,9 +136,10 @@ def capture_command(
     hardware: Annotated[bool, typer.Option("--hardware", help="Capture on the real rig (--rig, with its "
                                            "hardware: section).")] = False,
     rig_file: RigFile = None,
-    cameras: Annotated[str, typer.Option("--cameras", help="With --hardware: realsense, or twin (twin cameras "
-                                         "and board following the arms' reported joints; --seed/--profile/"
-                                         "--settings choose the twin, its truth is written).")] = "realsense",
+    twin_cameras: Annotated[bool, typer.Option("--twin-cameras", help="With --hardware: the twin's cameras and "
+                                               "board following the arms' reported joints instead of RealSense "
+                                               "(--seed/--profile/--settings choose the twin; its truth is "
+                                               "written).")] = False,
     plan_file: Annotated[Path | None, typer.Option("--plan", help="Plan from `darp calib plan` (default: plan now).",
                                                    exists=True, dir_okay=False, show_default=False)] = None,
     seed: Seed = 0,
@@ -173,9 +174,7 @@ def capture_command(
                                 stream=stream.value, rig=load_rig(rig_file) if rig_file is not None else None,
                                 overwrite=overwrite, on_capture=tick)
         else:
-            from darp.cli._hardware_rig import camera_source
-
-            mirror = twin_settings(profile, seed, settings_file) if camera_source(cameras) == "twin" else None
+            mirror = twin_settings(profile, seed, settings_file) if twin_cameras else None
             caps = _capture_hardware(rig_file, out, plan, captures, seed, stream.value, overwrite, tick, mirror)
     counts = ", ".join(f"{a}: {len(caps.for_arm(a))}" for a in caps.arms)
     typer.echo(f"wrote {out} ({counts})")
@@ -197,7 +196,7 @@ def _capture_hardware(rig_file: Path | None, out: Path, plan: Any, n: int, seed:
         board_pose = default_board_pose(rig, DEFAULT_BOARD) if twin is None else twin_board_pose(rig, DEFAULT_BOARD)
         plan = plan_captures(rig, DEFAULT_BOARD, board_pose, settings=PlanSettings(n_per_arm=n), seed=seed)
     scene = {} if twin is None else {"board": plan.board, "T_world_board": plan.T_world_board}
-    backend, mirror = open_hardware(rig_file, "realsense" if twin is None else "twin", twin_settings=twin, **scene)
+    backend, mirror = open_hardware(rig_file, twin_settings=twin, **scene)
     with backend:  # connect first: a rig that fails to connect leaves no capture folder
         source = f"hardware:{rig.name}" + ("" if twin is None else f"+twin:{twin.profile}:seed{twin.seed}")
         writer = CaptureWriter(out, plan.board, source=source, overwrite=overwrite)

@@ -85,10 +85,10 @@ def collect_command(
     hardware: Annotated[bool, typer.Option("--hardware", help="Run on the real rig (--rig, with its hardware: "
                                            "section).")] = False,
     rig_file: RigFile = None,
-    cameras: Annotated[str, typer.Option("--cameras", help="With --hardware: realsense, or twin (twin cameras and "
-                                         "scene following the arms' reported joints: --object, --placement, --seed, "
-                                         "--profile, --fps, --resolution apply; its truth is written).")]
-    = "realsense",
+    twin_cameras: Annotated[bool, typer.Option("--twin-cameras", help="With --hardware: the twin's cameras and "
+                                               "scene following the arms' reported joints instead of RealSense "
+                                               "(--object, --placement, --seed, --profile, --fps, --resolution "
+                                               "apply; its truth is written).")] = False,
     obj_name: Annotated[str, typer.Option("--object", help="Twin: object name, mesh file, or 'none' (an empty "
                                           "table).")] = "mug",
     scale: Annotated[float, typer.Option("--scale", help="Twin: object scale (0.001 for a mesh in "
@@ -131,10 +131,8 @@ def collect_command(
     check_name(name)
     if hardware:
         assert calibration is not None
-        from darp.cli._hardware_rig import camera_source
-
         twin_scene = None
-        if camera_source(cameras) == "twin":
+        if twin_cameras:
             twin_scene = {"settings": twin_settings(profile, seed, settings_file).with_camera(
                 fps=fps, width=resolution.width, height=resolution.height), "object": obj_name, "scale": scale,
                 "placement": placement}
@@ -174,8 +172,8 @@ def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: 
                                                       twin_scene["settings"].seed)
         scene = {"obj": obj, "placement": place}
         object_name = None if obj is None else obj.name
-    rig_backend, mirror = open_hardware(rig_file, "realsense" if twin_scene is None else "twin",
-                                        twin_settings=None if twin_scene is None else twin_scene["settings"], **scene)
+    rig_backend, mirror = open_hardware(rig_file, twin_settings=None if twin_scene is None else twin_scene["settings"],
+                                        **scene)
     if mirror is not None:
         def before_finalise(folder: Path) -> None:
             write_twin_truth(folder, mirror, scene["obj"], scene["placement"], scale)

@@ -1,4 +1,4 @@
-"""``darp hardware check [--rig RIG.yaml] [--json] [--cameras twin]``: pre-flight check of the real rig; reads,
+"""``darp hardware check [--rig RIG.yaml] [--json] [--twin-cameras]``: pre-flight check of the real rig; reads,
 never moves. ``darp hardware vendor-sim [--rig RIG.yaml]``: Unitree's controller with simulated motors for every
 arm of the rig (docs/hardware.md, "Vendor in the loop").
 
@@ -60,16 +60,15 @@ def check(
                                              "to answer.")] = 3.0,
     park_tolerance_rad: Annotated[float, typer.Option("--park-tolerance-rad", min=0.0, help="Radians from the park "
                                                       "pose still 'at park'.")] = 0.05,
-    cameras: Annotated[str, typer.Option("--cameras", help="realsense, or twin (the cameras will be the twin's: "
-                                         "none is looked for).")] = "realsense",
+    twin_cameras: Annotated[bool, typer.Option("--twin-cameras", help="The cameras will be the twin's: no "
+                                               "RealSense is looked for.")] = False,
 ) -> None:
     """Check cameras, streams and arms of the real rig without moving anything; exit 2 if something required fails."""
-    from darp.cli._hardware_rig import camera_source
     from darp.hardware.check import check_rig
     from darp.kinematics.rig import default_rig_path
 
     report = check_rig(rig_file if rig_file is not None else default_rig_path(), arm_timeout_s=timeout_s,
-                       park_tol_rad=park_tolerance_rad, twin_cameras=camera_source(cameras) == "twin")
+                       park_tol_rad=park_tolerance_rad, twin_cameras=twin_cameras)
     if as_json:
         typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
@@ -83,8 +82,8 @@ def check(
 @hardware_app.command("vendor-sim")
 def vendor_sim(
     rig_file: RigFile = None,
-    run_dir: Annotated[Path | None, typer.Option("--run-dir", help="Folder for each controller's config/ and log "
-                                                 "(default: a temporary folder).", show_default=False)] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder that receives each controller's config/ "
+                                             "and log (default: a temporary folder).", show_default=False)] = None,
     duration_s: Annotated[float, typer.Option("--duration-s", min=0.0, help="Stop after this many seconds "
                                               "(0: run until Ctrl-C).")] = 0.0,
 ) -> None:
@@ -105,7 +104,7 @@ def vendor_sim(
             if link.controller_ip != "127.0.0.1":
                 error(f"{arm_id}: controller_ip {link.controller_ip}: a simulated controller runs on 127.0.0.1")
                 raise typer.Exit(code=2)
-            folder = None if run_dir is None else run_dir / arm_id
+            folder = None if out is None else out / arm_id
             sim = SimController(arm_id, link.controller_port, link.sdk_port, q0_rad=rig.arm(arm_id).park_q_rad,
                                 run_dir=folder)
             controllers.append(sim.start())

@@ -262,7 +262,7 @@ def check_rig(rig_path: str | Path, *, arm_timeout_s: float = 3.0, park_tol_rad:
     hardware problems (a bad rig file is one FAIL check and the rest is skipped).
 
     ``rs``/``sdk`` replace the pyrealsense2 and unitree_arm_interface modules (tests); ``twin_cameras``: the
-    cameras will be the twin's (``--cameras twin``), so no RealSense device is looked for.
+    cameras will be the twin's (``--twin-cameras``), so no RealSense device is looked for.
     """
     report = CheckReport(Path(rig_path))
     try:

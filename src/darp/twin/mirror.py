@@ -2,7 +2,7 @@
 
 :class:`MirrorTwin` is a :class:`~darp.twin.rig_backend.TwinRig` whose cameras render the scene (table,
 object or ChArUco board, both arms) at the joint angles that *other* arm backends report, e.g. two Z1 arms
-driven by Unitree's controller (darp.hardware with ``--cameras twin``). Its arms' true angles are the
+driven by Unitree's controller (darp.hardware with ``--twin-cameras``). Its arms' true angles are the
 reported ones plus the true rig's joint-zero offsets (``q_true = q_sdk + dq``, as in the twin), so a
 calibration taken through it solves for offsets, mounts and bases drawn from the twin's seed and is checked
 against that truth; link deflection and encoder noise are not added (the arms' own states are used).
