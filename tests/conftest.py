@@ -63,3 +63,9 @@ def processed_path(survey_path: Path, tmp_path_factory: pytest.TempPathFactory) 
     out = tmp_path_factory.mktemp("processed")
     assert run(["process", str(survey_path), "--truth-poses", "--out", str(out)]) == 0
     return out / survey_path.name
+
+
+# Vendor in the loop: Unitree's controller (simulated motors) and SDK binding, built once per venv (helpers/vendor.py).
+from helpers.vendor import controllers, vendor_build, vendor_sdk  # noqa: E402
+
+__all__ = ["controllers", "vendor_build", "vendor_sdk"]

@@ -186,7 +186,7 @@ def test_controller_leaving_joint_control_is_reported(fake_z1):
 def test_a_second_arm_needs_the_multi_arm_binding(fake_z1):
     fake_z1.add_controller(START, port=8073)
     second = Z1Arm("arm111", Z1Connection(controller_port=8073, sdk_port=8074))
-    with pytest.raises(HardwareError, match="arm111: .*needs a unitree_arm_interface built with multi-arm support"):
+    with pytest.raises(HardwareError, match="arm111: .*needs a unitree_arm_interface built with darp's port patch"):
         second.connect()
 
 

@@ -128,7 +128,7 @@ def test_the_stock_binding_cannot_reach_the_second_arm(fake_z1, fake_rs, tmp_pat
     fake_z1.add_controller(PARK, port=8073)
     rc, _, verdicts, details, _ = check_json(rig_file(tmp_path), capsys)
     assert rc == 2 and verdicts["unitree_arm_interface"] == OK and verdicts["arm110 joints"] == OK
-    assert "needs a unitree_arm_interface built with multi-arm support" in details["arm111 controller"]
+    assert "needs a unitree_arm_interface built with darp's port patch" in details["arm111 controller"]
 
 
 def test_a_missing_stream_profile_fails(fake_z1, fake_rs, tmp_path, capsys):

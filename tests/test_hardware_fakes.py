@@ -14,20 +14,22 @@ from darp.kinematics import z1
 from helpers.fakes import fake_pyrealsense2, fake_unitree_arm_interface
 
 # Every name the z1_sdk Python binding defines (examples_py/arm_python_interface.cpp, z1_sdk 2.x),
-# plus those of the multi-arm patch of docs/hardware.md.
+# plus those of darp's port patch (native/z1_sim/binding-ports.patch).
 Z1_BINDING = {
     "module": {"postureToHomo", "homoToPosture", "ArmFSMState", "LowlevelState", "CtrlComponents", "Z1Model",
-               "ArmInterface", "UDPPort", "BlockYN", "RECVSTATE_LENGTH"},
+               "ArmInterface", "DARP_PORTS"},
     "ArmInterface": {"q", "qd", "tau", "gripperQ", "gripperQd", "gripperTau", "lowstate", "_ctrlComp",
                      "setFsmLowcmd", "getCurrentState", "loopOn", "loopOff", "setFsm", "backToStart", "labelRun",
                      "labelSave", "teach", "teachRepeat", "calibration", "MoveJ", "MoveL", "MoveC", "startTrack",
-                     "sendRecv", "setWait", "jointCtrlCmd", "cartesianCtrlCmd", "setArmCmd", "setGripperCmd"},
-    "LowlevelState": {"getQ", "getQd", "getQdd", "getQTau"},
+                     "sendRecv", "setWait", "jointCtrlCmd", "cartesianCtrlCmd", "setArmCmd", "setGripperCmd",
+                     "isDisconnected"},
+    "LowlevelState": {"getQ", "getQd", "getQTau", "getTau", "getGripperQ"},
     "Z1Model": {"checkInSingularity", "jointProtect", "getJointQMax", "getJointQMin", "getJointSpeedMax",
                 "inverseKinematics", "forwardKinematics", "inverseDynamics", "CalcJacobian", "solveQP"},
 }
 FAKE_CONTROLS = {"WORLD", "reset", "add_controller", "add_camera", "violation", "FakeController", "FakeCamera",
-                 "SdkContractError", "DT", "STOCK_SDK_PORT", "STOCK_CONTROLLER_PORT", "RECVSTATE_LENGTH_VALUE",
+                 "SdkContractError", "DT", "STOCK_SDK_PORT", "STOCK_CONTROLLER_PORT", "RECV_TIMEOUT_S",
+                 "DISCONNECT_AFTER",
                  "SPEED_LIMIT", "JUMP_SLACK_RAD", "SAVED_STATES", "Q_MIN", "Q_MAX", "STEREO_MODES", "COLOR_MODES",
                  "COLOR_FORMATS", "GYRO_RATES", "KEYS", "SENSOR_OF", "SENSOR_NAMES", "EXPOSURE_LATENCY_MS",
                  "BagRecorder", "Db3Recorder"}
@@ -104,8 +106,6 @@ def test_z1_misuse_is_caught(fake_z1):
     arm = fake_z1.ArmInterface(False)
     with pytest.raises(fake_z1.SdkContractError, match="hangs here forever"):
         arm.MoveJ(posture, 1.0)  # the real SDK would wait for an answer that never comes
-    with pytest.raises(fake_z1.SdkContractError, match="never sent"):
-        arm.setArmCmd(START, np.zeros(6), np.zeros(6))
     arm.loopOn()
     with pytest.raises(TypeError):
         arm.setArmCmd(START, np.zeros(6))  # the binding has no default for tau
@@ -120,7 +120,7 @@ def test_z1_misuse_is_caught(fake_z1):
     with pytest.raises(fake_z1.SdkContractError, match="already bound"):
         fake_z1.ArmInterface(False)  # a second stock interface in one process
     arm.startTrack(fake_z1.ArmFSMState.JOINTCTRL)
-    arm.q = START + np.array([0.5, 0, 0, 0, 0, 0])  # a jump the motors could not follow
+    arm.setArmCmd(START + np.array([0.5, 0, 0, 0, 0, 0]), np.zeros(6), np.zeros(6))  # a jump the motors cannot follow
     time.sleep(0.05)
     assert any("jumped" in v for v in fake_z1.WORLD.violations)
     arm.loopOff()

@@ -38,7 +38,7 @@ def test_importing_darp_hardware_loads_no_vendor_sdk():
 def test_a_missing_unitree_sdk_says_how_to_get_it(monkeypatch):
     monkeypatch.setitem(sys.modules, "unitree_arm_interface", None)  # import fails as if not installed
     with pytest.raises(HardwareError,
-                       match="unitree_arm_interface.*cannot be imported.*pybind11.*z1_sdk/lib on PYTHONPATH"):
+                       match="unitree_arm_interface.*cannot be imported.*build_z1_vendor.sh.*pybind11 >= 2.13"):
         Z1Arm("arm110").connect()
     assert "unavailable" in sdk.sdk_report()["unitree_arm_interface"]
 

@@ -136,6 +136,10 @@ def capture_command(
     hardware: Annotated[bool, typer.Option("--hardware", help="Capture on the real rig (--rig, with its "
                                            "hardware: section).")] = False,
     rig_file: RigFile = None,
+    twin_cameras: Annotated[bool, typer.Option("--twin-cameras", help="With --hardware: the twin's cameras and "
+                                               "board following the arms' reported joints instead of RealSense "
+                                               "(--seed/--profile/--settings choose the twin; its truth is "
+                                               "written).")] = False,
     plan_file: Annotated[Path | None, typer.Option("--plan", help="Plan from `darp calib plan` (default: plan now).",
                                                    exists=True, dir_okay=False, show_default=False)] = None,
     seed: Seed = 0,
@@ -170,29 +174,36 @@ def capture_command(
                                 stream=stream.value, rig=load_rig(rig_file) if rig_file is not None else None,
                                 overwrite=overwrite, on_capture=tick)
         else:
-            caps = _capture_hardware(rig_file, out, plan, captures, seed, stream.value, overwrite, tick)
+            mirror = twin_settings(profile, seed, settings_file) if twin_cameras else None
+            caps = _capture_hardware(rig_file, out, plan, captures, seed, stream.value, overwrite, tick, mirror)
     counts = ", ".join(f"{a}: {len(caps.for_arm(a))}" for a in caps.arms)
     typer.echo(f"wrote {out} ({counts})")
 
 
 def _capture_hardware(rig_file: Path | None, out: Path, plan: Any, n: int, seed: int, stream: str,
-                      overwrite: bool, tick: Any) -> Any:
-    """Captures on the real rig through the hardware backend (``darp.hardware.open_rig``)."""
+                      overwrite: bool, tick: Any, twin: Any = None) -> Any:
+    """Captures on the real rig through the hardware backend; ``twin``: the settings of twin cameras (and a
+    twin board) that follow the arms, whose truth is written to ``out/truth`` (docs/hardware.md)."""
     from darp.calibration.board import DEFAULT_BOARD
     from darp.calibration.capture_run import CaptureRunSettings, run_capture_plan
     from darp.calibration.captures import CaptureWriter
     from darp.calibration.plan import PlanSettings, default_board_pose, plan_captures
-    from darp.hardware import open_rig
+    from darp.cli._hardware_rig import open_hardware, twin_board_pose, write_capture_truth
     from darp.kinematics.rig import load_rig
 
     rig = load_rig(rig_file)
     if plan is None:
-        plan = plan_captures(rig, DEFAULT_BOARD, default_board_pose(rig, DEFAULT_BOARD),
-                             settings=PlanSettings(n_per_arm=n), seed=seed)
-    with open_rig(rig) as backend:  # connect first: a rig that fails to connect leaves no capture folder
-        writer = CaptureWriter(out, plan.board, source=f"hardware:{rig.name}", overwrite=overwrite)
+        board_pose = default_board_pose(rig, DEFAULT_BOARD) if twin is None else twin_board_pose(rig, DEFAULT_BOARD)
+        plan = plan_captures(rig, DEFAULT_BOARD, board_pose, settings=PlanSettings(n_per_arm=n), seed=seed)
+    scene = {} if twin is None else {"board": plan.board, "T_world_board": plan.T_world_board}
+    backend, mirror = open_hardware(rig_file, twin_settings=twin, **scene)
+    with backend:  # connect first: a rig that fails to connect leaves no capture folder
+        source = f"hardware:{rig.name}" + ("" if twin is None else f"+twin:{twin.profile}:seed{twin.seed}")
+        writer = CaptureWriter(out, plan.board, source=source, overwrite=overwrite)
         run_capture_plan(backend, plan, writer, park_q={a: rig.arm(a).park_q_rad for a in rig.arm_ids},
                          settings=CaptureRunSettings(stream=stream), on_capture=tick)
+        if mirror is not None:
+            write_capture_truth(out, mirror, plan.T_world_board)
     return writer.close()
 
 

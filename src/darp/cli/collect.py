@@ -85,6 +85,10 @@ def collect_command(
     hardware: Annotated[bool, typer.Option("--hardware", help="Run on the real rig (--rig, with its hardware: "
                                            "section).")] = False,
     rig_file: RigFile = None,
+    twin_cameras: Annotated[bool, typer.Option("--twin-cameras", help="With --hardware: the twin's cameras and "
+                                               "scene following the arms' reported joints instead of RealSense "
+                                               "(--object, --placement, --seed, --profile, --fps, --resolution "
+                                               "apply; its truth is written).")] = False,
     obj_name: Annotated[str, typer.Option("--object", help="Twin: object name, mesh file, or 'none' (an empty "
                                           "table).")] = "mug",
     scale: Annotated[float, typer.Option("--scale", help="Twin: object scale (0.001 for a mesh in "
@@ -127,7 +131,12 @@ def collect_command(
     check_name(name)
     if hardware:
         assert calibration is not None
-        _collect_hardware(name, rig_file, calibration, out, overwrite, quiet, viewpoints)
+        twin_scene = None
+        if twin_cameras:
+            twin_scene = {"settings": twin_settings(profile, seed, settings_file).with_camera(
+                fps=fps, width=resolution.width, height=resolution.height), "object": obj_name, "scale": scale,
+                "placement": placement}
+        _collect_hardware(name, rig_file, calibration, out, overwrite, quiet, viewpoints, twin_scene)
     else:
         settings = twin_settings(profile, seed, settings_file)
         _collect_twin(name, obj_name, scale, placement, settings, fps, resolution, calibration,
@@ -141,17 +150,37 @@ def _settings(viewpoints: Viewpoints) -> Any:
 
 
 def _collect_hardware(name: str, rig_file: Path | None, calibration: Path, out: Path, overwrite: bool,
-                      quiet: bool, viewpoints: Viewpoints = Viewpoints.coverage) -> None:
+                      quiet: bool, viewpoints: Viewpoints = Viewpoints.coverage,
+                      twin_scene: dict[str, Any] | None = None) -> None:
+    """A survey on the rig's arms with its RealSense cameras, or (``twin_scene``) with twin cameras and a twin
+    object that follow the arms (the twin's truth is written into the survey, as on the twin)."""
     from darp.acquisition.survey import run_survey
+    from darp.cli._hardware_rig import open_hardware
     from darp.formats.calibration import read_calibration
-    from darp.hardware.rig import HardwareRig
 
     cal = read_calibration(calibration)
-    rig_backend = HardwareRig.open(rig_file)
+    before_finalise, object_name, scene, scale = None, None, {}, 1.0
+    if twin_scene is not None:
+        scale = twin_scene["scale"]
+        from darp.cli.twin import load_object, place_object
+        from darp.kinematics.rig import load_rig
+        from darp.twin.record import write_twin_truth
+
+        empty = twin_scene["object"].strip().lower() == "none"
+        obj = None if empty else load_object(twin_scene["object"], scale)
+        place = None if obj is None else place_object(twin_scene["placement"], obj, load_rig(rig_file),
+                                                      twin_scene["settings"].seed)
+        scene = {"obj": obj, "placement": place}
+        object_name = None if obj is None else obj.name
+    rig_backend, mirror = open_hardware(rig_file, twin_settings=None if twin_scene is None else twin_scene["settings"],
+                                        **scene)
+    if mirror is not None:
+        def before_finalise(folder: Path) -> None:
+            write_twin_truth(folder, mirror, scene["obj"], scene["placement"], scale)
     with rig_backend:
         outcome = _run_with_progress(quiet, name, lambda progress: run_survey(
             rig_backend, rig_backend.rig, out, name, calibration=cal, overwrite=overwrite, progress=progress,
-            settings=_settings(viewpoints)))
+            object_name=object_name, before_finalise=before_finalise, settings=_settings(viewpoints)))
     _report(outcome)
 
 

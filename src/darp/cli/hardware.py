@@ -1,4 +1,6 @@
-"""``darp hardware check [--rig RIG.yaml] [--json]``: pre-flight check of the real rig; reads, never moves.
+"""``darp hardware check [--rig RIG.yaml] [--json] [--twin-cameras]``: pre-flight check of the real rig; reads,
+never moves. ``darp hardware vendor-sim [--rig RIG.yaml]``: Unitree's controller with simulated motors for every
+arm of the rig (docs/hardware.md, "Vendor in the loop").
 
 Prints a table of checks (ok / warning / FAIL with the reason), then one ``darp: error:`` line per
 failure on stderr. Exit codes: 0 when nothing required failed, 2 otherwise (a bad rig file, a missing
@@ -9,6 +11,7 @@ camera or stream profile, an unreachable arm, a joint outside its limits). The l
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from typing import Annotated, Any
 
 import typer
@@ -16,7 +19,8 @@ import typer
 from darp.cli._app import app, error
 from darp.cli._options import RigFile
 
-hardware_app = typer.Typer(help="The real rig: pre-flight checks (nothing moves).", no_args_is_help=True)
+hardware_app = typer.Typer(help="The real rig: pre-flight checks (nothing moves); Unitree's controller with "
+                           "simulated motors.", no_args_is_help=True)
 app.add_typer(hardware_app, name="hardware")
 
 STYLE = {"ok": "green", "warning": "yellow", "FAIL": "bold red"}
@@ -56,13 +60,15 @@ def check(
                                              "to answer.")] = 3.0,
     park_tolerance_rad: Annotated[float, typer.Option("--park-tolerance-rad", min=0.0, help="Radians from the park "
                                                       "pose still 'at park'.")] = 0.05,
+    twin_cameras: Annotated[bool, typer.Option("--twin-cameras", help="The cameras will be the twin's: no "
+                                               "RealSense is looked for.")] = False,
 ) -> None:
     """Check cameras, streams and arms of the real rig without moving anything; exit 2 if something required fails."""
     from darp.hardware.check import check_rig
     from darp.kinematics.rig import default_rig_path
 
     report = check_rig(rig_file if rig_file is not None else default_rig_path(), arm_timeout_s=timeout_s,
-                       park_tol_rad=park_tolerance_rad)
+                       park_tol_rad=park_tolerance_rad, twin_cameras=twin_cameras)
     if as_json:
         typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
@@ -71,3 +77,49 @@ def check(
         error(f"{failure.name}: {failure.detail}")
     if report.failures:
         raise typer.Exit(code=2)
+
+
+@hardware_app.command("vendor-sim")
+def vendor_sim(
+    rig_file: RigFile = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder that receives each controller's config/ "
+                                             "and log (default: a temporary folder).", show_default=False)] = None,
+    duration_s: Annotated[float, typer.Option("--duration-s", min=0.0, help="Stop after this many seconds "
+                                              "(0: run until Ctrl-C).")] = 0.0,
+) -> None:
+    """Run Unitree's controller with simulated motors for every arm of the rig, on its ports, at its park pose."""
+    import time
+
+    from darp.hardware.settings import load_hardware_settings
+    from darp.hardware.vendor_sim import SimController
+    from darp.kinematics.rig import default_rig_path, load_rig
+
+    path = rig_file if rig_file is not None else default_rig_path()
+    rig = load_rig(path)
+    settings = load_hardware_settings(path, rig.arm_ids)
+    controllers: list[SimController] = []
+    try:
+        for arm_id in rig.arm_ids:
+            link = settings.arms[arm_id]
+            if link.controller_ip != "127.0.0.1":
+                error(f"{arm_id}: controller_ip {link.controller_ip}: a simulated controller runs on 127.0.0.1")
+                raise typer.Exit(code=2)
+            folder = None if out is None else out / arm_id
+            sim = SimController(arm_id, link.controller_port, link.sdk_port, q0_rad=rig.arm(arm_id).park_q_rad,
+                                run_dir=folder)
+            controllers.append(sim.start())
+            typer.echo(f"{arm_id}: z1_ctrl_sim pid {sim.pid} on SDK ports {link.controller_port}/{link.sdk_port} "
+                       f"(log {sim.log_path})")
+        typer.echo("controllers running; Ctrl-C stops them")
+        deadline = time.monotonic() + duration_s if duration_s > 0 else None
+        while all(c.running for c in controllers) and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.2)
+        for c in controllers:
+            if not c.running:
+                error(f"{c.name}: z1_ctrl_sim ended (log {c.log_path})")
+                raise typer.Exit(code=2)
+    except KeyboardInterrupt:
+        typer.echo("stopping")
+    finally:
+        for c in controllers:
+            c.stop()

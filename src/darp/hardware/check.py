@@ -257,11 +257,12 @@ def check_arms(report: CheckReport, rig: Rig, settings: HardwareSettings, *, tim
 
 # -- everything ---------------------------------------------------------------------------------------
 def check_rig(rig_path: str | Path, *, arm_timeout_s: float = 3.0, park_tol_rad: float = PARK_TOLERANCE_RAD,
-              rs: ModuleType | None = None, sdk: ModuleType | None = None) -> CheckReport:
+              rs: ModuleType | None = None, sdk: ModuleType | None = None, twin_cameras: bool = False) -> CheckReport:
     """Run every pre-flight check on the rig of ``rig_path``; nothing moves, nothing is raised for
     hardware problems (a bad rig file is one FAIL check and the rest is skipped).
 
-    ``rs``/``sdk`` replace the pyrealsense2 and unitree_arm_interface modules (tests).
+    ``rs``/``sdk`` replace the pyrealsense2 and unitree_arm_interface modules (tests); ``twin_cameras``: the
+    cameras will be the twin's (``--twin-cameras``), so no RealSense device is looked for.
     """
     report = CheckReport(Path(rig_path))
     try:
@@ -273,7 +274,10 @@ def check_rig(rig_path: str | Path, *, arm_timeout_s: float = 3.0, park_tol_rad:
     c = settings.cameras
     report.add("rig file", OK, f"{len(rig.arm_ids)} arms ({', '.join(rig.arm_ids)}); cameras {c.width}x{c.height}"
                f"@{c.fps}, imu {c.imu}")
-    check_cameras(report, rig, settings, rs)
+    if twin_cameras:
+        report.add("cameras", OK, "twin cameras, rendered from the arms' reported joints (no RealSense checked)")
+    else:
+        check_cameras(report, rig, settings, rs)
     check_arms(report, rig, settings, timeout_s=arm_timeout_s, park_tol_rad=park_tol_rad, sdk=sdk)
     return report
 

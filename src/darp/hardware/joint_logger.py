@@ -86,7 +86,7 @@ class JointLogger:
                     self._stop.wait(delay)
         except BaseException as err:  # any failure stops the log; stop() raises it
             self._error = err
-            log.error("joint log stopped: %s", err)
+            log.info("joint log stopped: %s", err)  # stop() raises it
 
     def _tick(self) -> None:
         assert self._writer is not None

@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,11 +47,15 @@ class HardwareRig(RigBackend):
     """Two Z1 arms and their wrist cameras. Use :meth:`open` (connects) and ``with``/:meth:`close`."""
 
     def __init__(self, rig: Rig, settings: HardwareSettings | None = None, *,
-                 arms: dict[str, ArmBackend] | None = None, cameras: dict[str, CameraBackend] | None = None) -> None:
-        """Build (not connect) the backends; ``arms``/``cameras`` replace the SDK-backed ones (tests)."""
+                 arms: dict[str, ArmBackend] | None = None, cameras: dict[str, CameraBackend] | None = None,
+                 clock: Clock | None = None, companions: Sequence[Any] = ()) -> None:
+        """Build (not connect) the backends; ``arms``/``cameras`` replace the SDK-backed ones (tests, or twin
+        cameras following these arms); ``clock`` replaces the wall clock (one that renders such cameras as
+        time passes); ``companions`` are closed after everything else (e.g. the twin those cameras belong to)."""
         self.rig = rig
         self.settings = settings or HardwareSettings.defaults(rig.arm_ids)
-        self.clock = WallClock()
+        self.clock = clock if clock is not None else WallClock()
+        self.companions = list(companions)
         s = self.settings
         self.arms = arms if arms is not None else {
             arm_id: Z1Arm(arm_id, s.arms[arm_id], motion=s.motion) for arm_id in rig.arm_ids}
@@ -151,6 +156,8 @@ class HardwareRig(RigBackend):
         for arm_id, arm in self.arms.items():
             if hasattr(arm, "close"):
                 attempt(arm.close, arm_id)
+        for companion in self.companions:
+            attempt(companion.close, type(companion).__name__)
         self.recordings = {}
         if errors:
             first = errors[0]

@@ -25,8 +25,8 @@ LAST_BAG_VERSION = (2, 57)  # the last pyrealsense2 whose recorder writes ROS1 .
 RECORDING_FORMATS = ("auto", "bag", "db3")
 
 UNITREE_HINT = (
-    "build Unitree's z1_sdk with pybind11 installed for this Python (its CMake build then makes the module in "
-    "z1_sdk/lib) and put z1_sdk/lib on PYTHONPATH; see docs/hardware.md"
+    "build it for this Python with scripts/build_z1_vendor.sh (pybind11 >= 2.13, darp's port patch; it puts the "
+    "module on this venv's path); see docs/hardware.md"
 )
 REALSENSE_HINT = "install it with: pip install 'darp[realsense]' (or pip install pyrealsense2)"
 
@@ -113,9 +113,9 @@ def sdk_report() -> dict[str, str]:
 
 
 # What a binding must expose, beyond the stock one, to reach a controller on other ports (docs/hardware.md):
-# the C++ SDK's multi-robot path (CtrlComponents() + its udp = UDPPort(...) + unitreeArm(CtrlComponents*)).
-# The stock binding already has CtrlComponents and Z1Model classes, but without these constructors.
-MULTI_ARM_NAMES = ("UDPPort", "BlockYN", "RECVSTATE_LENGTH")
+# darp's port patch (native/z1_sim/binding-ports.patch) marks itself with DARP_PORTS and adds
+# ArmInterface(hasGripper, controllerIP, controllerPort, sdkPort), built in C++ like the SDK's multi-robot example.
+MULTI_ARM_NAMES = ("DARP_PORTS",)
 
 
 __all__ = [

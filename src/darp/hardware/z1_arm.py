@@ -1,27 +1,28 @@
 """``Z1Arm``: one Unitree Z1 driven through the Z1 SDK's Python binding as an :class:`ArmBackend`.
 
-How the SDK is used (z1_sdk ``unitree_arm_interface``; docs/hardware.md):
+How the SDK is used (z1_sdk ``unitree_arm_interface``; :mod:`darp.hardware.z1_binding`; docs/hardware.md):
 
-- ``ArmInterface`` talks UDP to a ``z1_ctrl`` controller process. The SDK's own 500 Hz exchange thread
-  is started with ``loopOn()``; until its first exchange ``lowstate`` holds zeros and
-  ``getCurrentState()`` is ``INVALID``, so :meth:`Z1Arm.connect` waits for a real state first.
+- ``ArmInterface`` talks UDP to a ``z1_ctrl`` controller process. :meth:`Z1Arm.connect` starts the SDK's
+  own 500 Hz exchange thread (``loopOn()``, C++: it keeps the controller's link alive while Python threads
+  wait for the GIL; the controller goes PASSIVE after about 2 s without the SDK), waits for the
+  controller's first real state and enters joint tracking (``startTrack(ArmFSMState.JOINTCTRL)``).
 - ``MoveJ`` takes a *Cartesian* posture (the controller's IK picks the joints), so it cannot command a
-  joint target. Joint targets are streamed instead: ``startTrack(ArmFSMState.JOINTCTRL)`` makes the
-  controller track ``(q, qd)`` commands, and a darp control thread samples a smooth, speed- and
-  acceleration-limited trajectory (:mod:`darp.hardware.trajectory`) at 500 Hz and sends each sample
-  with ``setArmCmd(q, qd, tau)`` (also written to ``arm.q``/``arm.qd``, which older SDK releases send
-  instead). ``move_to`` only swaps the trajectory, so it returns at once. The trajectory's clock
-  advances at most two periods per cycle, so a stalled Python thread slows a move down rather than
-  sending a step.
-- Every SDK call happens in the control thread after connecting; it caches the latest joint state with
-  its host-clock time (``time.time()``, the clock of RealSense global timestamps), which
-  :meth:`Z1Arm.read_state` returns.
-- If the controller leaves joint control (collision protection, another client), the thread stops
-  commanding and the next call raises a HardwareError. :meth:`Z1Arm.close` brakes, holds and stops the
-  SDK loop; it never switches the arm to PASSIVE (the arm would fall).
+  joint target. Joint targets are streamed instead: a darp control thread samples a smooth, speed- and
+  acceleration-limited trajectory (:mod:`darp.hardware.trajectory`) at 500 Hz and sets each sample with
+  ``setArmCmd(q, qd, tau)`` (what the controller tracks in JOINTCTRL; ``arm.q``/``arm.qd`` are written
+  too, for older SDK releases). ``move_to`` only swaps the trajectory and returns at once. The
+  trajectory's clock advances at most two periods per cycle, so a stalled Python thread slows a move down
+  rather than sending a step.
+- The control thread caches the latest joint state with its host-clock time (``time.time()``, the clock
+  of RealSense global timestamps), which :meth:`Z1Arm.read_state` returns.
+- If the controller leaves joint control (a motor error, motor link loss, collision protection, another
+  client) or stops answering (darp's patched binding: ``isDisconnected()`` for ``LINK_GRACE_S``, about
+  3 s after a controller dies), the thread stops commanding and the next call raises a HardwareError naming the arm.
+  :meth:`Z1Arm.back_to_start` and :meth:`Z1Arm.passive` hand the arm to the controller's own motions.
+  :meth:`Z1Arm.close` brakes and stops the SDK loop; the controller itself goes PASSIVE about 2 s later.
 
 Targets outside the Z1's joint limits (the tighter of darp's table and the SDK's model) are refused
-before anything is sent.
+before anything is sent: in joint tracking the vendor controller forwards any position to the motors.
 """
 
 from __future__ import annotations
@@ -39,34 +40,28 @@ from darp.backend import ArmBackend, JointState
 from darp.errors import ConfigError, HardwareError, KinematicsError
 from darp.hardware import sdk as sdk_loader
 from darp.hardware.trajectory import JointPlan, plan_hold, plan_move, plan_stop
+from darp.hardware.z1_binding import (
+    DEFAULT_CONTROLLER_PORT,
+    DEFAULT_SDK_PORT,
+    Z1Connection,
+    call_with_timeout,
+    fsm_name,
+    is_answer,
+    make_arm_interface,
+    read_lowstate,
+    sdk_disconnected,
+)
 from darp.kinematics import z1
 
 log = logging.getLogger(__name__)
 
 CONTROL_HZ = 500.0
-DEFAULT_CONTROLLER_PORT = 8071  # where the stock SDK sends (z1_ctrl's SDK port)
-DEFAULT_SDK_PORT = 8072  # where the stock SDK listens
-
-
-@dataclass(frozen=True)
-class Z1Connection:
-    """How to reach one arm's ``z1_ctrl`` controller (UDP on this host)."""
-
-    controller_ip: str = "127.0.0.1"
-    controller_port: int = DEFAULT_CONTROLLER_PORT
-    sdk_port: int = DEFAULT_SDK_PORT
-    has_gripper: bool = False
-    arm_ip: str | None = None  # the arm's own address in that controller's config.xml (for messages)
-
-    @property
-    def uses_stock_ports(self) -> bool:
-        """True when the stock binding (which hard-codes 127.0.0.1:8071/8072) can reach the controller."""
-        return (self.controller_ip, self.controller_port, self.sdk_port) == (
-            "127.0.0.1", DEFAULT_CONTROLLER_PORT, DEFAULT_SDK_PORT)
-
-    def describe(self) -> str:
-        arm = f", arm {self.arm_ip}" if self.arm_ip else ""
-        return f"z1_ctrl at {self.controller_ip}:{self.controller_port} (SDK port {self.sdk_port}{arm})"
+FSM_TIMEOUT_S = 5.0  # how long an FSM switch (startTrack, setFsm) may take
+BACK_TO_START_TIMEOUT_S = 60.0
+# The SDK reports a lost link after four 0.5 s receive time-outs, and (measured) also for a moment while the
+# controller still hears it, on a busy host ("[STATE] UDP connection restablished" follows): darp takes the
+# link for lost when the SDK says so for this long.
+LINK_GRACE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -90,30 +85,6 @@ class MotionLimits:
             raise ConfigError(f"motion.limit_margin_rad: must be >= 0, got {self.limit_margin_rad}")
 
 
-def make_arm_interface(sdk: ModuleType, connection: Z1Connection, arm_id: str) -> Any:
-    """An ``ArmInterface`` for ``connection``: the stock constructor, or the multi-arm one for other ports.
-
-    The binding has no type information: its objects are ``Any`` here."""
-    if connection.uses_stock_ports:
-        return sdk.ArmInterface(bool(connection.has_gripper))
-    missing = [name for name in sdk_loader.MULTI_ARM_NAMES if not hasattr(sdk, name)]
-    if missing:
-        raise HardwareError(
-            f"{arm_id}: {connection.describe()} needs a unitree_arm_interface built with multi-arm support "
-            f"(missing: {', '.join(missing)}); the stock binding only reaches 127.0.0.1:8071 from port 8072. "
-            f"Rebuild it with darp's patch (docs/hardware.md, 'Two arms')")
-    try:
-        comp = sdk.CtrlComponents()
-        comp.dt = 1.0 / CONTROL_HZ
-        comp.udp = sdk.UDPPort(connection.controller_ip, int(connection.controller_port), int(connection.sdk_port),
-                               sdk.RECVSTATE_LENGTH, sdk.BlockYN.NO, 500000)
-        comp.armModel = sdk.Z1Model()
-        return sdk.ArmInterface(comp)
-    except TypeError as err:  # pybind11: a constructor the binding does not define
-        raise HardwareError(f"{arm_id}: this unitree_arm_interface cannot build an arm for {connection.describe()} "
-                            f"({err}); rebuild it with darp's multi-arm patch (docs/hardware.md, 'Two arms')") from err
-
-
 class Z1Arm(ArmBackend):
     """One Z1 through the SDK; a 500 Hz control thread streams a smooth trajectory to the target."""
 
@@ -134,6 +105,9 @@ class Z1Arm(ArmBackend):
         self._latest: JointState | None = None
         self._fault: HardwareError | None = None
         self._fsm_jointctrl: Any = None  # the SDK's ArmFSMState.JOINTCTRL
+        self._silent_since: float | None = None  # since when the SDK says the link is lost
+        self._loop_on = False  # the SDK's own exchange thread (only while an FSM call waits, or passive)
+        self._observing = False  # passive or in the controller's own motion: no darp commands
         self.cycles = 0
         self.late_cycles = 0
         lower = np.maximum(z1.JOINT_LOWER, z1.SDK_JOINT_LOWER)
@@ -143,7 +117,8 @@ class Z1Arm(ArmBackend):
     # -- connection -------------------------------------------------------------------------------
     @property
     def connected(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        """True while streaming joint commands, or observing a passive arm (:meth:`passive`)."""
+        return self._arm is not None and (self._observing or (self._thread is not None and self._thread.is_alive()))
 
     @property
     def joint_limits(self) -> tuple[np.ndarray, np.ndarray]:
@@ -152,29 +127,50 @@ class Z1Arm(ArmBackend):
         return self._lower + m, self._upper - m
 
     def connect(self, timeout_s: float = 3.0) -> None:
-        """Start the SDK loop, wait for the controller, enter joint tracking holding the current pose."""
-        if self.connected:
+        """Reach the controller, enter joint tracking holding the current pose, stream commands at 500 Hz.
+
+        Also takes a passive arm (:meth:`passive`) back into joint tracking."""
+        if self._thread is not None and self._thread.is_alive():
             return
         sdk = self._sdk if self._sdk is not None else sdk_loader.load_unitree_sdk()
         self._sdk = sdk
         states = sdk.ArmFSMState
         self._fsm_jointctrl = states.JOINTCTRL
-        arm = make_arm_interface(sdk, self.connection, self.arm_id)
-        arm.loopOn()
+        arm = self._arm if self._arm is not None else make_arm_interface(sdk, self.connection, self.arm_id)
+        self._set_loop(arm, True)
         try:
-            state = self._wait_for_controller(arm, states, timeout_s)
-            if state not in (states.PASSIVE, states.JOINTCTRL):
-                raise HardwareError(f"{self.arm_id}: the controller is busy in state {_name(state)} "
+            state = self._wait_for_controller(arm, timeout_s)
+            if fsm_name(state) not in ("PASSIVE", "JOINTCTRL"):
+                raise HardwareError(f"{self.arm_id}: the controller is busy in state {fsm_name(state)} "
                                     f"(another program is driving the arm?)")
             self._adopt_sdk_limits(arm)
-            arm.startTrack(states.JOINTCTRL)
-            q0 = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
-            qd0 = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+            call_with_timeout(lambda: arm.startTrack(states.JOINTCTRL), FSM_TIMEOUT_S,
+                              f"{self.arm_id}: startTrack(JOINTCTRL) at {self.connection.describe()}")
+            state = arm.getCurrentState()
+            if fsm_name(state) != "JOINTCTRL":
+                raise HardwareError(f"{self.arm_id}: the controller refused joint control (it is in {fsm_name(state)})")
+            q0, qd0 = read_lowstate(arm)
         except BaseException:
-            arm.loopOff()
+            self._set_loop(arm, False)
+            self._arm, self._observing = None, False
             raise
+        self._start_tracking(arm, q0, qd0)
+        log.info("%s: connected to %s at q = %s", self.arm_id, self.connection.describe(), np.round(q0, 4))
+
+    def _set_loop(self, arm: Any, on: bool) -> None:
+        """Start or stop the SDK's own 500 Hz exchange thread (a C++ thread: it keeps the controller's link
+        alive while Python threads wait for the GIL; the controller goes PASSIVE after ~2 s of silence)."""
+        if on and not self._loop_on:
+            arm.loopOn()
+        elif not on and self._loop_on:
+            arm.loopOff()
+        self._loop_on = on
+
+    def _start_tracking(self, arm: Any, q0: np.ndarray, qd0: np.ndarray) -> None:
         self._arm = arm
+        self._observing = False
         self._fault = None
+        self._silent_since = None
         self._latest = JointState(time.time(), q0, qd0)
         self._wall_t = time.monotonic()
         self._traj_t = 0.0
@@ -182,16 +178,13 @@ class Z1Arm(ArmBackend):
         self._stop_event.clear()
         self._thread = threading.Thread(target=self._run, name=f"z1-{self.arm_id}", daemon=True)
         self._thread.start()
-        log.info("%s: connected to %s at q = %s", self.arm_id, self.connection.describe(), np.round(q0, 4))
 
-    def _wait_for_controller(self, arm: Any, states: Any, timeout_s: float) -> Any:
-        if not hasattr(arm, "getCurrentState"):  # older bindings: no way to ask, give the loop a moment
-            time.sleep(0.1)
-            return states.PASSIVE
+    def _wait_for_controller(self, arm: Any, timeout_s: float) -> Any:
+        """The controller's first real state (until its first answer the SDK's is INVALID or garbage)."""
         deadline = time.monotonic() + timeout_s
         while True:
             state = arm.getCurrentState()
-            if state != states.INVALID:
+            if is_answer(state):
                 return state
             if time.monotonic() > deadline:
                 raise HardwareError(f"{self.arm_id}: no answer from {self.connection.describe()} within "
@@ -210,26 +203,36 @@ class Z1Arm(ArmBackend):
             self._lower = np.maximum(self._lower, q_min)
             self._upper = np.minimum(self._upper, q_max)
 
-    def close(self, brake_timeout_s: float = 3.0) -> None:
-        """Brake to rest, hold that pose, stop the control thread and the SDK loop (idempotent)."""
-        if self._thread is None:
+    def _brake_and_pause(self, brake_timeout_s: float = 3.0) -> None:
+        """Brake to rest at the acceleration limit, then stop darp's thread (the controller holds the pose)."""
+        thread = self._thread
+        if thread is None:
             return
         try:
-            if self._thread.is_alive() and self._fault is None:
+            if thread.is_alive() and self._fault is None:
                 with self._lock:
                     plan = self._plan = self._stop_plan(self._traj_t)
                     end = plan.end_s
                 deadline = time.monotonic() + brake_timeout_s
-                while self._traj_t < end + 0.05 and time.monotonic() < deadline and self._thread.is_alive():
+                while self._traj_t < end + 0.05 and time.monotonic() < deadline and thread.is_alive():
                     time.sleep(0.01)
         finally:
             self._stop_event.set()
-            self._thread.join(timeout=2.0)
+            thread.join(timeout=2.0)
             self._thread = None
+
+    def close(self, brake_timeout_s: float = 3.0) -> None:
+        """Brake to rest, stop streaming and the SDK link (idempotent). About 2 s later the vendor controller,
+        no longer hearing the SDK, switches the arm to PASSIVE by itself (damping only: a real arm sinks)."""
+        if self._arm is None:
+            return
+        try:
+            self._brake_and_pause(brake_timeout_s)
+        finally:
             arm, self._arm = self._arm, None
-            if arm is not None:
-                arm.loopOff()
-        log.info("%s: disconnected (holding its last pose)", self.arm_id)
+            self._observing = False
+            self._set_loop(arm, False)
+        log.info("%s: disconnected", self.arm_id)
 
     def __enter__(self) -> Self:
         self.connect()
@@ -238,6 +241,48 @@ class Z1Arm(ArmBackend):
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         self.close()
+
+    # -- the controller's own motions -------------------------------------------------------------
+    def back_to_start(self, timeout_s: float = BACK_TO_START_TIMEOUT_S) -> None:
+        """The controller's ``backToStart``: its own trajectory to the home pose (startFlat, folded), then
+        joint tracking again from there. Blocks until done; no darp collision check applies to this path."""
+        arm = self._begin_vendor_motion()
+        sdk = self._sdk
+        assert sdk is not None
+        try:
+            call_with_timeout(arm.backToStart, timeout_s, f"{self.arm_id}: backToStart")
+            state = arm.getCurrentState()
+            if fsm_name(state) != "JOINTCTRL":
+                raise HardwareError(f"{self.arm_id}: backToStart ended in state {fsm_name(state)}, not JOINTCTRL")
+            call_with_timeout(lambda: arm.startTrack(sdk.ArmFSMState.JOINTCTRL), FSM_TIMEOUT_S,
+                              f"{self.arm_id}: startTrack(JOINTCTRL)")
+            q0, qd0 = read_lowstate(arm)
+        except HardwareError as err:
+            self._fault = err
+            raise
+        self._start_tracking(arm, q0, qd0)
+
+    def passive(self) -> None:
+        """Switch the controller to PASSIVE (motors damped only: a real arm sinks under gravity). The state is
+        still read (the SDK loop stays on); :meth:`connect` takes the arm back into joint tracking."""
+        arm = self._begin_vendor_motion()
+        sdk = self._sdk
+        assert sdk is not None
+        try:
+            call_with_timeout(lambda: arm.setFsm(sdk.ArmFSMState.PASSIVE), FSM_TIMEOUT_S,
+                              f"{self.arm_id}: setFsm(PASSIVE)")
+        except HardwareError as err:
+            self._fault = err
+            raise
+
+    def _begin_vendor_motion(self) -> Any:
+        """Stop commanding (after braking) and leave the arm to the controller; returns the interface."""
+        self._check_running()
+        self._brake_and_pause()
+        arm = self._arm
+        assert arm is not None
+        self._observing = True
+        return arm
 
     # -- control thread ---------------------------------------------------------------------------
     def _run(self) -> None:
@@ -258,7 +303,7 @@ class Z1Arm(ArmBackend):
             except Exception as err:  # any SDK failure stops commanding; reported later
                 message = err.message if isinstance(err, HardwareError) else f"{type(err).__name__}: {err}"
                 self._fault = HardwareError(f"{self.arm_id}: control loop stopped: {message}")
-                log.error("%s", self._fault)
+                log.info("%s", self._fault)  # raised by the next call, reported by the rig's fault()
                 return
             self.cycles += 1
             next_t += period
@@ -283,23 +328,32 @@ class Z1Arm(ArmBackend):
         return self._latest
 
     def _cycle(self, zeros: np.ndarray) -> None:
+        """Read the latest state the SDK loop received, check the controller, set this period's command (the
+        SDK's own C++ loop sends it at 500 Hz, whether or not this Python thread gets the GIL in time)."""
         arm = self._arm
         if arm is None:
             raise HardwareError("the SDK interface was closed")
-        q_meas = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
-        qd_meas = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+        if sdk_disconnected(arm):  # the SDK's flag also rises for a moment on a busy host: it must persist
+            now = time.monotonic()
+            self._silent_since = self._silent_since if self._silent_since is not None else now
+            if now - self._silent_since >= LINK_GRACE_S:
+                raise HardwareError(f"no answer from {self.connection.describe()}: the controller stopped or the "
+                                    f"link is down (the SDK's receive time-outs); motion stopped")
+        else:
+            self._silent_since = None
+        q_meas, qd_meas = read_lowstate(arm)
         stamp = time.time()
-        if hasattr(arm, "getCurrentState"):
-            state = arm.getCurrentState()
-            if state != self._fsm_jointctrl:
-                raise HardwareError(f"the controller left joint control (now {_name(state)}): collision "
-                                    f"protection, an emergency stop or another client; motion stopped")
+        state = arm.getCurrentState()
+        if state != self._fsm_jointctrl:
+            raise HardwareError(f"the controller left joint control (now {fsm_name(state)}): a motor error or "
+                                f"link loss, collision protection, an emergency stop or another client; "
+                                f"motion stopped")
         with self._lock:
             self._latest = JointState(stamp, q_meas, qd_meas)
             q_cmd, qd_cmd, _ = self._connected_plan().sample(self._traj_t)
+        arm.setArmCmd(q_cmd, qd_cmd, zeros)
         arm.q = q_cmd
         arm.qd = qd_cmd
-        arm.setArmCmd(q_cmd, qd_cmd, zeros)
 
     def _stop_plan(self, now: float) -> JointPlan:
         q, qd, qdd = self._connected_plan().sample(now)
@@ -321,6 +375,14 @@ class Z1Arm(ArmBackend):
     def read_state(self) -> JointState:
         """The latest joint state from the controller (at most one control cycle old), host-clock time."""
         self._check_running()
+        arm = self._arm
+        if self._observing and arm is not None:  # passive, or the controller's own motion: the SDK loop reads
+            if sdk_disconnected(arm):
+                self._fault = HardwareError(f"{self.arm_id}: no answer from {self.connection.describe()}: the "
+                                            f"controller stopped or the link is down")
+                raise self._fault
+            q, qd = read_lowstate(arm)
+            return JointState(time.time(), q, qd)
         with self._lock:
             s = self._connected_state()
         return JointState(s.time_s, s.q_rad.copy(), s.qd_rad_s.copy())
@@ -333,6 +395,8 @@ class Z1Arm(ArmBackend):
         if not (np.isfinite(speed) and 0 < speed <= top):
             raise KinematicsError(f"{self.arm_id}: max speed must be in (0, {top:.4f}] rad/s, got {speed}")
         self._check_running()
+        if self._observing:
+            raise HardwareError(f"{self.arm_id}: the arm is passive (connect() takes it back into joint tracking)")
         with self._lock:
             now = self._traj_t
             q, qd, qdd = self._connected_plan().sample(now)
@@ -342,6 +406,8 @@ class Z1Arm(ArmBackend):
     def is_moving(self) -> bool:
         """True until the trajectory has ended and the measured joints are within tolerance of its end."""
         self._check_running()
+        if self._observing:
+            return False
         with self._lock:
             plan = self._connected_plan()
             now, end, target, q = self._traj_t, plan.end_s, plan.q_end, self._connected_state().q_rad
@@ -357,8 +423,10 @@ class Z1Arm(ArmBackend):
                             f"{self.motion.settle_timeout_s:g} s after the move ended (blocked or overloaded?)")
 
     def stop(self) -> None:
-        """Brake to rest at the acceleration limit and hold there."""
+        """Brake to rest at the acceleration limit and hold there (nothing to do for a passive arm)."""
         self._check_running()
+        if self._observing:
+            return
         with self._lock:
             self._plan = self._stop_plan(self._traj_t)
 
@@ -408,18 +476,14 @@ def probe_arm(arm_id: str, connection: Z1Connection | None = None, *, timeout_s:
     arm = make_arm_interface(sdk, reader.connection, arm_id)
     arm.loopOn()
     try:
-        state = reader._wait_for_controller(arm, sdk.ArmFSMState, timeout_s)
+        state = reader._wait_for_controller(arm, timeout_s)
         reader._adopt_sdk_limits(arm)
-        q = np.array(arm.lowstate.getQ(), dtype=np.float64).reshape(-1)[:6]
-        qd = np.array(arm.lowstate.getQd(), dtype=np.float64).reshape(-1)[:6]
+        q, qd = read_lowstate(arm)
     finally:
         arm.loopOff()
     lower, upper = reader.joint_limits
-    return ArmProbe(_name(state), q, qd, lower, upper)
+    return ArmProbe(fsm_name(state), q, qd, lower, upper)
 
 
-def _name(state: object) -> str:
-    return getattr(state, "name", None) or str(state)
-
-
-__all__ = ["CONTROL_HZ", "ArmProbe", "MotionLimits", "Z1Arm", "Z1Connection", "make_arm_interface", "probe_arm"]
+__all__ = ["CONTROL_HZ", "DEFAULT_CONTROLLER_PORT", "DEFAULT_SDK_PORT", "ArmProbe", "MotionLimits", "Z1Arm",
+           "Z1Connection", "make_arm_interface", "probe_arm"]

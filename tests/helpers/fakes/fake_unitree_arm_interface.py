@@ -6,11 +6,16 @@ likely to work on the rig:
 
 - ``ArmInterface(hasGripper)`` binds the SDK port 8072 and talks to the controller on 8071; a second
   stock interface in one process cannot bind 8072 again. The stock binding has ``CtrlComponents`` and
-  ``Z1Model`` classes without default constructors; with ``reset(multi_arm=True)`` it also has
-  ``UDPPort``, ``BlockYN``, ``RECVSTATE_LENGTH``, ``CtrlComponents()``, ``Z1Model()`` and
-  ``ArmInterface(ctrlComp)`` (the patched binding of docs/hardware.md).
+  ``Z1Model`` classes without constructors; with ``reset(multi_arm=True)`` it is darp's patched binding
+  (native/z1_sim/binding-ports.patch): ``DARP_PORTS``, ``ArmInterface(hasGripper, controllerIP,
+  controllerPort, sdkPort)`` and ``isDisconnected()``.
 - ``lowstate`` holds zeros and ``getCurrentState()`` is INVALID until an exchange with a running
   controller; exchanges happen in the SDK loop (500 Hz wall time after ``loopOn()``) or per ``sendRecv()``.
+  An exchange nobody answers waits the SDK's 0.5 s receive time-out; four in a row and ``isDisconnected()``
+  is true (as measured on the vendor SDK). In JOINTCTRL the controller tracks what ``setArmCmd`` set
+  (flavour ``lowcmd``, the vendor SDK's behaviour) or, with flavour ``members``, ``arm.q``/``arm.qd``.
+- ``ArmFSMState`` has the C++ values of arm_common.h (the vendor's ``.pyi`` gives wrong ones) and only the
+  names the binding exports.
 - FSM calls wait for the controller like the SDK: ``setFsm``/``startTrack``/``labelRun``/``backToStart``
   and ``MoveJ`` with ``setWait(True)`` block until the state changes (the real SDK would hang forever
   with the loop off: here that is an error). With ``setWait(False)`` ``MoveJ`` returns at once.
@@ -25,7 +30,6 @@ The simulated arm tracks joint commands with a first-order lag (``lag_s``) at mo
 from __future__ import annotations
 
 import contextlib
-import enum
 import math
 import threading
 import time
@@ -48,7 +52,8 @@ from helpers.fakes.fake_z1_controller import (
 )
 
 STOCK_SDK_PORT, STOCK_CONTROLLER_PORT = 8072, 8071
-RECVSTATE_LENGTH_VALUE = 471
+RECV_TIMEOUT_S = 0.5  # the SDK's UDPPort waits this long for an answer
+DISCONNECT_AFTER = 4  # time-outs in a row before the SDK's isDisConnect
 SAVED_STATES = {name: np.array(q, dtype=float) for name, q in {
     "forward": [0.0, 1.5, -1.0, -0.54, 0.0, 0.0], "startFlat": [0.0, 0.0, -0.005, -0.074, 0.0, 0.0],
     "show_left": [-1.0, 0.9, -1.0, -0.3, 0.0, 0.0], "show_mid": [0.0, 0.9, -1.2, 0.3, 0.0, 0.0],
@@ -90,7 +95,7 @@ def add_controller(q0=SAVED_STATES["startFlat"], *, port: int = STOCK_CONTROLLER
     return controller
 
 
-def reset(*, multi_arm: bool = False, flavour: str = "members") -> None:
+def reset(*, multi_arm: bool = False, flavour: str = "lowcmd") -> None:
     """Forget every controller, port and violation; choose the binding variant."""
     for ref in WORLD.interfaces:
         arm = ref()
@@ -99,11 +104,13 @@ def reset(*, multi_arm: bool = False, flavour: str = "members") -> None:
     WORLD.__init__()
     WORLD.flavour = flavour
     WORLD.multi_arm = multi_arm
-    for name, value in {"UDPPort": _UDPPort, "BlockYN": _BlockYN, "RECVSTATE_LENGTH": RECVSTATE_LENGTH_VALUE}.items():
-        if multi_arm:
-            globals()[name] = value
-        else:
-            globals().pop(name, None)
+    if multi_arm:
+        globals()["DARP_PORTS"] = 1
+        ArmInterface.isDisconnected = ArmInterface._is_disconnected  # type: ignore[attr-defined]
+    else:
+        globals().pop("DARP_PORTS", None)
+        if "isDisconnected" in vars(ArmInterface):
+            del ArmInterface.isDisconnected
 
 
 def postureToHomo(posture) -> np.ndarray:
@@ -116,31 +123,14 @@ def homoToPosture(T) -> np.ndarray:
 
 def _bind(port: int) -> None:
     if port in WORLD.bound_ports:
-        violation(f"UDPPort bind failed: port {port} is already bound in this process (a second stock "
-                  f"ArmInterface shares the SDK port 8072; a second arm needs the multi-arm binding)")
+        violation(f"UDPPort bind failed: port {port} is already bound in this process (the real SDK exits the "
+                  f"process here; a second stock ArmInterface shares the SDK port 8072)")
     WORLD.bound_ports.add(port)
-
-
-class _BlockYN(enum.Enum):
-    YES = 0
-    NO = 1
-
-
-class _UDPPort:
-    def __init__(self, toIP: str, toPort: int, ownPort: int, recvLength: int = 0,
-                 blockYN=_BlockYN.NO, timeOutUs: int = 20000) -> None:
-        if not isinstance(toIP, str) or not all(isinstance(p, int) for p in (toPort, ownPort, recvLength)):
-            raise TypeError("UDPPort(): incompatible function arguments")
-        if recvLength != RECVSTATE_LENGTH_VALUE:
-            violation(f"UDPPort recvLength {recvLength} != RECVSTATE_LENGTH: states would be cut")
-        _bind(ownPort)
-        self.to, self.own = (toIP, toPort), ownPort
-        weakref.finalize(self, WORLD.bound_ports.discard, ownPort)
 
 
 class Z1Model:
     def __init__(self, *args) -> None:
-        if len(args) != 4 and not (len(args) == 0 and WORLD.multi_arm):
+        if len(args) != 4:
             raise TypeError("Z1Model(): incompatible constructor arguments (endPosLocal, endEffectorMass, "
                             "endEffectorCom, endEffectorInertia)")
         self.end_frame = "flange"
@@ -169,20 +159,15 @@ class Z1Model:
 
 class CtrlComponents:
     def __init__(self) -> None:
-        if not WORLD.multi_arm:
-            raise TypeError("unitree_arm_interface.CtrlComponents: No constructor defined!")
-        self._setup()
-
-    def _setup(self) -> CtrlComponents:
-        self.dt = DT
-        self.udp: _UDPPort | None = None
-        self.armModel = object.__new__(Z1Model)
-        self.armModel.end_frame = "flange"
-        return self
+        raise TypeError("unitree_arm_interface.CtrlComponents: No constructor defined!")
 
     @classmethod
     def _internal(cls) -> CtrlComponents:
-        return object.__new__(cls)._setup()
+        comp = object.__new__(cls)
+        comp.dt = DT
+        comp.armModel = object.__new__(Z1Model)
+        comp.armModel.end_frame = "flange"
+        return comp
 
 
 class LowlevelState:
@@ -195,30 +180,35 @@ class LowlevelState:
     def getQd(self) -> np.ndarray:
         return self._qd.copy()
 
-    def getQdd(self) -> np.ndarray:
-        return self._qdd.copy()
-
     def getQTau(self) -> np.ndarray:
         return self._tau.copy()
+
+    def getTau(self) -> np.ndarray:
+        return self._tau.copy()
+
+    def getGripperQ(self) -> float:
+        return 0.0
 
 
 class ArmInterface:
     """The SDK's ``unitreeArm`` as bound to Python."""
 
-    def __init__(self, hasGripper=True) -> None:
-        if isinstance(hasGripper, CtrlComponents):
-            if not WORLD.multi_arm:
+    def __init__(self, hasGripper=True, *ports) -> None:
+        self._has_gripper = _bool(hasGripper, "ArmInterface.__init__")
+        if ports:
+            if not WORLD.multi_arm or len(ports) != 3:
                 raise TypeError("ArmInterface(): incompatible constructor arguments (stock binding: hasGripper)")
-            if hasGripper.udp is None:
-                violation("ArmInterface(ctrlComp) without ctrlComp.udp: the SDK would dereference a null port")
-            self._ctrlComp, self._has_gripper = hasGripper, False
-            self._to = hasGripper.udp.to
+            ip, to_port, own_port = ports
+            if not isinstance(ip, str) or not all(isinstance(p, int) and not isinstance(p, bool)
+                                                  for p in (to_port, own_port)):
+                raise TypeError("ArmInterface(): incompatible constructor arguments (bool, str, int, int)")
         else:
-            self._has_gripper = _bool(hasGripper, "ArmInterface.__init__")
-            _bind(STOCK_SDK_PORT)
-            weakref.finalize(self, WORLD.bound_ports.discard, STOCK_SDK_PORT)
-            self._ctrlComp = CtrlComponents._internal()
-            self._to = ("127.0.0.1", STOCK_CONTROLLER_PORT)
+            ip, to_port, own_port = "127.0.0.1", STOCK_CONTROLLER_PORT, STOCK_SDK_PORT
+        _bind(own_port)
+        weakref.finalize(self, WORLD.bound_ports.discard, own_port)
+        self._ctrlComp = CtrlComponents._internal()
+        self._to = (ip, to_port)
+        self._timeouts = 0
         if self._has_gripper:
             self._ctrlComp.armModel.end_frame = "gripper"
         self.lowstate = LowlevelState()
@@ -244,8 +234,11 @@ class ArmInterface:
     def _exchange(self) -> None:
         with self._exchange_lock:
             controller = WORLD.controllers.get(self._to)
-            if controller is None:
-                return  # nothing answers: lowstate keeps its values, the state stays as it was
+            if controller is None:  # nothing answers: the SDK waits for its time-out; lowstate keeps its values
+                time.sleep(RECV_TIMEOUT_S)
+                self._timeouts += 1
+                return
+            self._timeouts = 0
             q_cmd, qd_cmd = (self._q, self._qd) if WORLD.flavour == "members" else (self._low_q, self._low_qd)
             state = controller.exchange(self._request, self._track, q_cmd.copy(), qd_cmd.copy(), self._move)
             if self._request is not None and state == self._request:
@@ -288,6 +281,9 @@ class ArmInterface:
         if self._loop is not None:
             self._loop.join(timeout=1.0)
         self._loop = None
+
+    def _is_disconnected(self) -> bool:
+        return self._timeouts >= DISCONNECT_AFTER
 
     def sendRecv(self) -> None:
         if self._loop_on:
@@ -338,9 +334,7 @@ class ArmInterface:
     def setArmCmd(self, q, qd, tau) -> None:
         q, qd = _vec6(q, "setArmCmd q"), _vec6(qd, "setArmCmd qd")
         _vec6(tau, "setArmCmd tau")
-        if not self._loop_on and self._recv != ArmFSMState.LOWCMD:
-            violation("setArmCmd() with the SDK loop off outside LOWCMD: the command is never sent")
-        self._low_q, self._low_qd = q, qd
+        self._low_q, self._low_qd = q, qd  # sent with the next exchange (SDK loop or sendRecv)
 
     def setGripperCmd(self, gripperPos, gripperW, gripperTau) -> None:
         for value, name in ((gripperPos, "gripperPos"), (gripperW, "gripperW"), (gripperTau, "gripperTau")):

@@ -24,6 +24,8 @@ Q_MIN, Q_MAX = np.asarray(z1.SDK_JOINT_LOWER), np.asarray(z1.SDK_JOINT_UPPER)
 
 
 class ArmFSMState(enum.IntEnum):
+    """The names the binding exports, with arm_common.h's values (BACKTOSTART = 14 etc. are not exported)."""
+
     INVALID = 0
     PASSIVE = 1
     JOINTCTRL = 2
@@ -31,12 +33,12 @@ class ArmFSMState(enum.IntEnum):
     MOVEJ = 4
     MOVEL = 5
     MOVEC = 6
-    TEACH = 7
-    TEACHREPEAT = 8
-    TOSTATE = 9
-    SAVESTATE = 10
-    TRAJECTORY = 11
-    LOWCMD = 12
+    TRAJECTORY = 7
+    TOSTATE = 8
+    SAVESTATE = 9
+    TEACH = 10
+    TEACHREPEAT = 11
+    LOWCMD = 16
 
 
 class SdkContractError(RuntimeError):
@@ -48,7 +50,7 @@ class _World:
         self.controllers: dict[tuple[str, int], FakeController] = {}
         self.bound_ports: set[int] = set()
         self.violations: list[str] = []
-        self.flavour = "members"  # which command the SDK sends in JOINTCTRL: members q/qd or setArmCmd's lowcmd
+        self.flavour = "lowcmd"  # which command the SDK sends in JOINTCTRL: members q/qd or setArmCmd's lowcmd
         self.interfaces: list[weakref.ref] = []
         self.multi_arm = False
 

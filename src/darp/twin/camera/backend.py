@@ -288,7 +288,10 @@ class TwinCameraBackend(CameraBackend):
         n = max(0, self._tick - 1)
         while n > 0 and self.frame_time_ns(n) > now:
             n -= 1
-        t_ns = min(self.frame_time_ns(n), now)
+        return self.frameset_at(n, min(self.frame_time_ns(n), now))
+
+    def frameset_at(self, n: int, t_ns: int) -> LiveFrameSet:
+        """Frame tick ``n`` at simulation time ``t_ns``, rendered now by the live camera (not recorded)."""
         data = self.host.prepare_world(t_ns)
         T_world_cam = self.host.true_camera_poses(self.arm_id, np.array([t_ns]))[0]
         stamp_ms = self.frame_stamp_ms(n, t_ns)
