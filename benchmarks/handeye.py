@@ -108,7 +108,7 @@ def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray
             from darp.kinematics.transforms import pose_error
 
             p = solve(obs)
-            errs = [pose_error(p.T_flange_cam[a], truth[a]) for a in obs.arms]
+            errs = [pose_error(p.T_wrist_cam[a], truth[a]) for a in obs.arms]
             row += f" | {1e3 * max(e[0] for e in errs):.3f} / {np.degrees(max(e[1] for e in errs)):.3f}"
         print(row)
     print()
@@ -127,8 +127,8 @@ def twin_path_equivalence(caps: object, generic: Path) -> None:
     obs = build_observations(detect_captures(caps), caps.board, arms)  # type: ignore[arg-type, attr-defined]
     native = calibrate_observations(obs, RefineSettings(estimate_offsets=False), {a: np.zeros(6, bool) for a in arms})
     gen = solve_folder(generic, folds=0, compare=False)
-    diffs = [float(np.abs(native.params.T_flange_cam[a] @ np.asarray(caps.for_arm(a)[0].T_depth_stream)  # type: ignore[attr-defined]
-                          - gen.params.T_flange_cam[a]).max()) for a in arms]
+    diffs = [float(np.abs(native.params.T_wrist_cam[a] @ np.asarray(caps.for_arm(a)[0].T_depth_stream)  # type: ignore[attr-defined]
+                          - gen.params.T_wrist_cam[a]).max()) for a in arms]
     b2b = float(np.abs(native.params.T_ref_base[arms[-1]] - gen.params.T_ref_base[arms[-1]]).max())
     print(f"twin path: generic folder vs darp's solver (offsets at 0): hand-eye max |diff| {max(diffs):.2e}, "
           f"base-to-base {b2b:.2e} (matrix elements, m)")

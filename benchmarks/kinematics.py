@@ -114,7 +114,7 @@ def bench_ik(poses: int) -> dict[str, float]:
 def bench_look_at(n: int) -> None:
     rng = np.random.default_rng(2)
     targets = np.column_stack([rng.uniform(0.25, 0.5, n), rng.uniform(-0.25, 0.25, n), rng.uniform(0.0, 0.15, n)])
-    T_fc = collision.NOMINAL_T_FLANGE_CAM
+    T_fc = collision.NOMINAL_T_WRIST_CAM
     for label, given in (("given view direction", True), ("free view direction", False)):
         times, ok = [], 0
         for p in targets:

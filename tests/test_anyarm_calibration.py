@@ -93,7 +93,7 @@ def test_real_doosan_heldout_board_consistency_beats_every_opencv_method(doosan)
     # The data's own noise: about 1.5 mm mean / 3 mm max (shared/realdata/README.md).
     assert mm["mean"] < 1.5 and mm["max"] < 3.0 and deg["mean"] < 1.2
     # A D435 about 30 mm off the flange axis, looking along the flange z (upstream's hand-set value: 32 mm off).
-    X = doosan.params.T_flange_cam["doosan"]
+    X = doosan.params.T_wrist_cam["doosan"]
     assert 0.02 < np.linalg.norm(X[:3, 3]) < 0.06
     assert X[2, 2] > 0.99
 
@@ -267,7 +267,7 @@ def test_eye_to_hand_recovers_the_fixed_camera(tmp_path: Path) -> None:
     # darp's board-pose refinement must beat OpenCV's PARK on the same poses.
     t, r = pose_error(np.asarray(rep["T_base_cam"]), T_base_cam)
     park = opencv_solver("calibrateHandEye/PARK")(out.observations)
-    t_park, _ = pose_error(park.T_flange_cam["arm"], T_base_cam)
+    t_park, _ = pose_error(park.T_wrist_cam["arm"], T_base_cam)
     assert t < 6e-3 and np.degrees(r) < 0.7 and t < t_park
     t, r = pose_error(np.asarray(rep["T_flange_board"]), T_flange_board)
     assert t < 3e-3 and np.degrees(r) < 0.8
@@ -301,7 +301,7 @@ def test_exported_darp_captures_give_darp_solvers_calibration(tmp_path: Path) ->
     # Two solvers of the same problem stop within their convergence tolerance of each other (about 1e-5 rad
     # and 0.01 mm with numpy 2.4 / scipy 1.17); a convention slip would be millimetres to centimetres off.
     for a in arms:  # generic hand-eye is for the image stream; darp's for the depth frame
-        assert_same_pose(native.params.T_flange_cam[a] @ T_DEPTH_COLOR, generic.params.T_flange_cam[a])
+        assert_same_pose(native.params.T_wrist_cam[a] @ T_DEPTH_COLOR, generic.params.T_wrist_cam[a])
     assert_same_pose(native.params.T_ref_base["arm111"], generic.params.T_ref_base["arm111"])
     assert "arm110->arm111" in generic.calibration.report["base_to_base"]
     with pytest.raises(CalibrationError, match="not empty"):

@@ -95,7 +95,7 @@ def test_check_flags_a_knocked_camera_mount(solved, tmp_path: Path, capsys: pyte
     root, truth, T_wb = solved
     knock = make_transform(axis_angle_to_rotation([1.0, 0.4, -0.3], np.radians(0.5)), [0.002, 0.0, 0.0])
     arms = dict(truth.arms)
-    arms["arm110"] = dataclasses.replace(arms["arm110"], T_flange_cam=knock @ arms["arm110"].T_flange_cam)
+    arms["arm110"] = dataclasses.replace(arms["arm110"], T_wrist_cam=knock @ arms["arm110"].T_wrist_cam)
     knocked = dataclasses.replace(truth, arms=arms)
     caps = _new_captures(tmp_path / "knocked", knocked, T_wb, seed=12)
     assert run(["calib", "check", str(caps), "-c", str(root / "cal.json")]) == 1

@@ -150,8 +150,8 @@ def test_calibration_file_carries_the_model_and_old_files_still_read(data, cores
     assert kin is not None and kin["model"] == "kinematic+compliance"
     assert set(kin["estimated"]) <= set(PARAM_NAMES)
     assert np.allclose(KinematicParams.from_dict(kin).origin_m, core.params.kin["arm110"].origin_m)
-    assert np.allclose(kin["T_wrist_cam"], core.params.T_flange_cam["arm110"])
-    assert np.allclose(back.arms["arm110"].T_wrist_cam, paper.params.T_flange_cam["arm110"])  # main: paper model
+    assert np.allclose(kin["T_wrist_cam"], core.params.T_wrist_cam["arm110"])
+    assert np.allclose(back.arms["arm110"].T_wrist_cam, paper.params.T_wrist_cam["arm110"])  # main: paper model
     assert back.arms["arm111"].kinematics is None  # absent: nothing to apply
 
 

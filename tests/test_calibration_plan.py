@@ -45,7 +45,7 @@ def test_every_pose_is_feasible_safe_and_sees_the_board(rig, plan) -> None:
         for p in poses:
             assert np.all(p.q_rad >= z1.JOINT_LOWER + m.joint_limit_margin_rad - 1e-9)
             assert np.all(p.q_rad <= z1.JOINT_UPPER - m.joint_limit_margin_rad + 1e-9)
-            T = cfg.T_world_base @ z1.fk(p.q_rad) @ cfg.T_flange_cam
+            T = cfg.T_world_base @ z1.fk(p.q_rad) @ cfg.T_wrist_cam
             assert np.allclose(T, p.T_world_cam, atol=1e-9)
             clear = rig.clearances({arm: p.q_rad, other: rig.arm(other).park_q_rad})
             assert clear[f"{arm}.table"].distance_m >= m.table_clearance_m

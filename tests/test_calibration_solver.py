@@ -80,7 +80,7 @@ def test_opencv_hand_eye_is_exact_on_noiseless_data_without_joint_offsets() -> N
         assert len(estimates) == len(HAND_EYE_METHODS) + 2
         for e in estimates:
             assert e.ok and e.median_px < 0.01, e.method
-            assert np.allclose(e.T_flange_cam, truth.arms[arm].T_flange_cam, atol=1e-5), e.method
+            assert np.allclose(e.T_wrist_cam, truth.arms[arm].T_wrist_cam, atol=1e-5), e.method
 
 
 def test_identifiability_finds_joint1_and_joint6_degenerate_and_the_rest_identifiable(core0) -> None:

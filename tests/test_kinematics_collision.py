@@ -135,7 +135,7 @@ def test_link_geometry_is_the_facts_table() -> None:
     np.testing.assert_allclose(prims.half[i], [0.0325, 0.0325, 0.0335], atol=1e-12)
     cam = col.arm_primitives(np.zeros(6)).to_list()
     body = next(p for p in cam if p.name == "camera_body")
-    # Body centre: T_flange_cam @ (0.0175, 0, -0.0083) with the flange at (0.049, 0, 0.1605).
+    # Body centre: T_wrist_cam @ (0.0175, 0, -0.0083) with the flange at (0.049, 0, 0.1605).
     np.testing.assert_allclose(body.T_frame_shape[:3, 3], [0.049 - 0.0083, -0.0175, 0.1605 + 0.055], atol=1e-12)
 
 
@@ -238,7 +238,7 @@ def test_envelope_distance_constructed() -> None:
 
 def test_camera_mount_variants_and_errors() -> None:
     T_side = tf.make_transform(tf.rot_y(np.pi / 2), [0.0, 0.08, 0.0])
-    mount = col.CameraMount(T_flange_cam=T_side, body_size_m=(0.1, 0.03, 0.03))
+    mount = col.CameraMount(T_wrist_cam=T_side, body_size_m=(0.1, 0.03, 0.03))
     prims = col.arm_primitives(np.zeros(6), camera_mount=mount)
     body = prims.to_list()[prims.names.index("camera_body")]
     np.testing.assert_allclose(body.half_extents_m, [0.05, 0.015, 0.015])

@@ -8,7 +8,7 @@ import pytest
 from darp.errors import KinematicsError
 from darp.kinematics import ik, z1
 from darp.kinematics import transforms as tf
-from darp.kinematics.collision import NOMINAL_T_FLANGE_CAM
+from darp.kinematics.collision import NOMINAL_T_WRIST_CAM
 
 TOL = 1e-6
 
@@ -147,7 +147,7 @@ def _targets(n: int, seed: int) -> np.ndarray:
 def _check_look_at(r: ik.LookAtResult, target: np.ndarray, distance: float) -> None:
     assert r.success, r.message
     assert z1.within_limits(r.q)
-    T_bc = z1.fk(r.q) @ NOMINAL_T_FLANGE_CAM  # recomputed independently of the result's pose
+    T_bc = z1.fk(r.q) @ NOMINAL_T_WRIST_CAM  # recomputed independently of the result's pose
     np.testing.assert_allclose(r.T_base_cam, T_bc, atol=1e-12)
     rel = target - T_bc[:3, 3]
     depth = rel @ T_bc[:3, 2]
@@ -160,7 +160,7 @@ def test_look_at_with_given_view_direction() -> None:
     for i, target in enumerate(_targets(30, 21)):
         view_dir = target - np.array([0.0, 0.0, 0.45])  # from above and behind, like an orbit view
         distance = 0.30 + 0.05 * (i % 3)
-        r = ik.solve_look_at(target, distance, T_frame_cam=NOMINAL_T_FLANGE_CAM, view_dir_base=view_dir)
+        r = ik.solve_look_at(target, distance, T_frame_cam=NOMINAL_T_WRIST_CAM, view_dir_base=view_dir)
         _check_look_at(r, target, distance)
         z_cam = r.T_base_cam[:3, 2]
         assert np.arccos(np.clip(z_cam @ view_dir / np.linalg.norm(view_dir), -1, 1)) < TOL
@@ -170,7 +170,7 @@ def test_look_at_with_given_view_direction() -> None:
 
 def test_look_at_with_free_direction() -> None:
     for target in _targets(20, 22):
-        r = ik.solve_look_at(target, 0.32, T_frame_cam=NOMINAL_T_FLANGE_CAM)
+        r = ik.solve_look_at(target, 0.32, T_frame_cam=NOMINAL_T_WRIST_CAM)
         _check_look_at(r, target, 0.32)
 
 
@@ -178,15 +178,15 @@ def test_look_at_roll_follows_up_hint_and_q_init() -> None:
     target = np.array([0.4, 0.05, 0.05])
     view_dir = target - np.array([0.1, 0.0, 0.4])
     up = np.array([0.0, 1.0, 0.0])
-    r = ik.solve_look_at(target, 0.3, T_frame_cam=NOMINAL_T_FLANGE_CAM, view_dir_base=view_dir, up_hint=up)
+    r = ik.solve_look_at(target, 0.3, T_frame_cam=NOMINAL_T_WRIST_CAM, view_dir_base=view_dir, up_hint=up)
     _check_look_at(r, target, 0.3)
     image_up = -r.T_base_cam[:3, 1]
     up_perp = up - (up @ r.T_base_cam[:3, 2]) * r.T_base_cam[:3, 2]
     angle = np.arccos(np.clip(image_up @ up_perp / np.linalg.norm(up_perp), -1, 1))
     assert r.roll_rad == 0.0 and angle < 1e-9  # exactly upright to the hint (reachable here)
     # With only q_init, the solution stays near it: a small target move gives a small joint move.
-    r0 = ik.solve_look_at(target, 0.3, T_frame_cam=NOMINAL_T_FLANGE_CAM, view_dir_base=view_dir)
-    r1 = ik.solve_look_at(target + [0.005, 0.0, 0.0], 0.3, T_frame_cam=NOMINAL_T_FLANGE_CAM,
+    r0 = ik.solve_look_at(target, 0.3, T_frame_cam=NOMINAL_T_WRIST_CAM, view_dir_base=view_dir)
+    r1 = ik.solve_look_at(target + [0.005, 0.0, 0.0], 0.3, T_frame_cam=NOMINAL_T_WRIST_CAM,
                           view_dir_base=view_dir, q_init=r0.q)
     _check_look_at(r1, target + [0.005, 0.0, 0.0], 0.3)
     assert np.max(np.abs(r1.q - r0.q)) < 0.1
@@ -194,9 +194,9 @@ def test_look_at_roll_follows_up_hint_and_q_init() -> None:
 
 def test_look_at_impossible_requests() -> None:
     target = np.array([0.4, 0.0, 0.05])
-    r = ik.solve_look_at(target, 2.0, T_frame_cam=NOMINAL_T_FLANGE_CAM, view_dir_base=[1.0, 0.0, -0.5])
+    r = ik.solve_look_at(target, 2.0, T_frame_cam=NOMINAL_T_WRIST_CAM, view_dir_base=[1.0, 0.0, -0.5])
     assert not r.success and "no joint solution" in r.message
     with pytest.raises(KinematicsError, match="positive"):
-        ik.solve_look_at(target, -0.1, T_frame_cam=NOMINAL_T_FLANGE_CAM)
+        ik.solve_look_at(target, -0.1, T_frame_cam=NOMINAL_T_WRIST_CAM)
     with pytest.raises(KinematicsError, match="4x4"):
         ik.solve_look_at(target, 0.3, T_frame_cam=np.eye(3))

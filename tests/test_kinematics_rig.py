@@ -52,7 +52,7 @@ def test_base_geometry_matches_the_paper(rig) -> None:
 
 
 def test_camera_looks_along_the_tool_axis(rig) -> None:
-    T_fc = rig.arm("arm110").T_flange_cam
+    T_fc = rig.arm("arm110").T_wrist_cam
     np.testing.assert_allclose(T_fc[:3, 2], [1, 0, 0], atol=1e-12)  # optical z = flange x
     np.testing.assert_allclose(T_fc[:3, 1], [0, 0, -1], atol=1e-12)  # image down = flange -z
     assert 0.02 < np.linalg.norm(T_fc[:3, 3]) < 0.10
@@ -92,7 +92,7 @@ def test_clearances_detect_a_camera_driven_into_the_table(rig) -> None:
 
 def test_camera_mount_in_collision_model_follows_the_rig(rig) -> None:
     mount = rig.camera_mount("arm111")
-    np.testing.assert_allclose(mount.T_flange_cam, rig.arm("arm111").T_flange_cam)
+    np.testing.assert_allclose(mount.T_wrist_cam, rig.arm("arm111").T_wrist_cam)
     np.testing.assert_allclose(mount.body_size_m, rig.camera_body.size_m)
     assert isinstance(mount, collision.CameraMount)
 
@@ -101,7 +101,7 @@ def test_T_world_cam_is_eq1_nominal_and_batched(rig) -> None:
     rng = np.random.default_rng(0)
     Q = z1.random_configurations(5, rng)
     arm = rig.arm("arm111")
-    expected = np.array([arm.T_world_base @ z1.fk(q) @ arm.T_flange_cam for q in Q])
+    expected = np.array([arm.T_world_base @ z1.fk(q) @ arm.T_wrist_cam for q in Q])
     np.testing.assert_allclose(rig.T_world_cam("arm111", Q), expected, atol=1e-12)
     np.testing.assert_allclose(rig.T_world_cam("arm111", Q[0]), expected[0], atol=1e-12)
     np.testing.assert_allclose(rig.camera_positions("arm111", Q), expected[:, :3, 3], atol=1e-12)
@@ -116,7 +116,7 @@ def test_T_world_cam_with_a_calibration_uses_it(rig, tmp_path: Path) -> None:
     cal = rig.nominal_calibration()
     arm = cal.arms["arm110"]
     arm.T_world_base = make_transform(rot_z(0.01), [-0.70, 0.002, 0.001])
-    arm.T_wrist_cam = make_transform(rot_z(0.02) @ rig.arm("arm110").T_flange_cam[:3, :3], [0.001, -0.002, 0.056])
+    arm.T_wrist_cam = make_transform(rot_z(0.02) @ rig.arm("arm110").T_wrist_cam[:3, :3], [0.001, -0.002, 0.056])
     arm.joint_offsets_rad = np.array([0.01, -0.02, 0.015, 0.0, 0.01, -0.01])
     path = tmp_path / "calibration.json"
     write_calibration(path, cal)  # the nominal calibration is a valid calibration file
@@ -141,7 +141,7 @@ def test_yaml_round_trip(rig, tmp_path: Path) -> None:
     for arm_id in rig.arm_ids:
         a, b = rig.arm(arm_id), again.arm(arm_id)
         np.testing.assert_allclose(b.T_world_base, a.T_world_base, atol=1e-10)
-        np.testing.assert_allclose(b.T_flange_cam, a.T_flange_cam, atol=1e-10)
+        np.testing.assert_allclose(b.T_wrist_cam, a.T_wrist_cam, atol=1e-10)
         np.testing.assert_array_equal(b.park_q_rad, a.park_q_rad)
         assert b.camera_serial == a.camera_serial
     assert again.table == rig.table and again.workspace == rig.workspace and again.margins == rig.margins
@@ -174,7 +174,7 @@ _SHEAR = [[1.0, 0.2, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0
     ("field", "value", "message"),
     [
         ("table.height_m", _DELETE, "table.height_m: missing field"),
-        ("arms.arm110.T_flange_cam", _DELETE, "arms.arm110.T_flange_cam: missing field"),
+        ("arms.arm110.T_wrist_cam", _DELETE, "arms.arm110.T_wrist_cam: missing field"),
         ("arms.arm111.T_world_base", {"matrix": _SHEAR}, "arms.arm111.T_world_base: not a rigid transform"),
         ("arms.arm110.T_world_base.xyz_m", [0.0, 0.0], "xyz_m: expected a list of 3 numbers"),
         ("arms.arm110.T_world_base.rpy_deg", [0, 0, "ninety"], "rpy_deg: expected numbers"),

@@ -151,7 +151,7 @@ def test_realistic_errors_are_in_the_data_and_the_truth_explains_them(realistic:
                                 T_wrist_cam=cal.T_wrist_cam, joint_offsets_rad=cal.joint_offsets_rad)
         nom = nominal.arms[arm]
         nominal_cal = camera_poses(log.times(arm), log.joints(arm), t, T_world_base=nom.T_world_base,
-                                   T_wrist_cam=nom.T_flange_cam)
+                                   T_wrist_cam=nom.T_wrist_cam)
         err_true = pose_error(true_cal.T_world_cam, p["T_world_cam"])[0]
         err_nominal = pose_error(nominal_cal.T_world_cam, p["T_world_cam"])[0]
         assert np.max(err_true) < 1e-3
@@ -280,7 +280,7 @@ def test_camera_clock_offset_shifts_the_bag_timestamps_only(tmp_path: Path) -> N
     log = read_arm_poses(tmp_path / "arm_poses.csv")
     cal = draw_true_rig(load_rig(), settings).arms["arm110"]
     recovered = camera_poses(log.times("arm110"), log.joints("arm110"), stamps / 1e3, clock_offset_s=0.025,
-                             T_world_base=cal.T_world_base, T_wrist_cam=cal.T_flange_cam)
+                             T_world_base=cal.T_world_base, T_wrist_cam=cal.T_wrist_cam)
     assert np.max(pose_error(recovered.T_world_cam, poses["T_world_cam"])[0]) < 5e-4
 
 

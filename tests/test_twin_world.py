@@ -71,7 +71,7 @@ def test_true_rig_errors_have_the_set_magnitudes(rig) -> None:
     for arm_id, arm in true.arms.items():
         assert np.all(np.abs(arm.joint_offsets_rad) <= np.deg2rad(s.joints.zero_bias_max_deg))
         assert np.max(np.abs(arm.joint_offsets_rad)) > np.deg2rad(0.1)
-        T_err = np.linalg.inv(rig.arms[arm_id].T_flange_cam) @ arm.T_flange_cam
+        T_err = np.linalg.inv(rig.arms[arm_id].T_wrist_cam) @ arm.T_wrist_cam
         assert np.linalg.norm(T_err[:3, 3]) * 1e3 == pytest.approx(s.mounts.hand_eye_translation_mm)
         assert np.degrees(rotation_error_rad(np.eye(3), T_err[:3, :3])) == pytest.approx(s.mounts.hand_eye_rotation_deg)
     # the second base is off its nominal place relative to the first by the set magnitudes
@@ -101,7 +101,7 @@ def test_ideal_true_rig_is_the_nominal_rig(rig) -> None:
     true = draw_true_rig(rig, TwinSettings.from_profile("ideal", seed=8))
     for arm_id, arm in true.arms.items():
         np.testing.assert_array_equal(arm.T_world_base, rig.arms[arm_id].T_world_base)
-        np.testing.assert_array_equal(arm.T_flange_cam, rig.arms[arm_id].T_flange_cam)
+        np.testing.assert_array_equal(arm.T_wrist_cam, rig.arms[arm_id].T_wrist_cam)
         np.testing.assert_array_equal(arm.joint_offsets_rad, np.zeros(6))
 
 

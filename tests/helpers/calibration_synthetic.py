@@ -61,7 +61,7 @@ def random_poses(rig: Rig, arm: str, n: int, T_world_board: np.ndarray, seed: in
         away = target - cfg.T_world_base[:3, 3]
         away -= (away @ view) * view
         up = axis_angle_to_rotation(view, np.radians(rng.uniform(-90, 90))) @ (away / np.linalg.norm(away))
-        res = solve_look_at(T_bw[:3, :3] @ target + T_bw[:3, 3], d, T_frame_cam=cfg.T_flange_cam,
+        res = solve_look_at(T_bw[:3, :3] @ target + T_bw[:3, 3], d, T_frame_cam=cfg.T_wrist_cam,
                             view_dir_base=T_bw[:3, :3] @ view, up_hint=T_bw[:3, :3] @ up)
         if res.success:
             out.append(res.q)

@@ -123,7 +123,7 @@ class ArmCollisionModel:
         rig.arm(arm_id)
         self.calibration = calibration
         self.margins = margins if margins is not None else ClearanceMargins.from_rig(rig)
-        self.T_world_base, self.T_flange_cam, self.dq = rig.extrinsics(arm_id, calibration)
+        self.T_world_base, self.T_wrist_cam, self.dq = rig.extrinsics(arm_id, calibration)
         self.mount = rig.camera_mount(arm_id, calibration)
         others = [a for a in rig.arm_ids if a != arm_id]
         self.other_id = others[0]
@@ -157,7 +157,7 @@ class ArmCollisionModel:
 
     def T_world_cam(self, q_rad: Array) -> Array:
         """Eq. 1 at commanded joints ``q_rad``."""
-        return cast(Array, self.T_world_base @ z1.fk(self.model_q(q_rad), self.rig.wrist_frame) @ self.T_flange_cam)
+        return cast(Array, self.T_world_base @ z1.fk(self.model_q(q_rad), self.rig.wrist_frame) @ self.T_wrist_cam)
 
     # -- configurations ---------------------------------------------------------------------------
     def joint_limit_verdict(self, q_rad: Array) -> Verdict:

@@ -377,7 +377,7 @@ class ViewpointPlanner:
         for roll_deg in self.roll_hints_deg:
             a = np.radians(roll_deg)
             hint = np.cos(a) * up + np.sin(a) * side
-            result = solve_look_at(target_base, distance_m, T_frame_cam=m.T_flange_cam, view_dir_base=view_dir_base,
+            result = solve_look_at(target_base, distance_m, T_frame_cam=m.T_wrist_cam, view_dir_base=view_dir_base,
                                    frame=m.rig.wrist_frame, q_init=q_seed, up_hint=hint)
             if not result.success:
                 message = result.message

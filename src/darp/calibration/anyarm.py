@@ -228,7 +228,7 @@ def refine_metric(p0: ChainParams, obs: Observations, centre_board: np.ndarray |
         T = np.empty_like(B)
         for a, arm in enumerate(obs.arms):
             sel = obs.arm_index == a
-            T[sel] = p.T_ref_base[arm] @ F[sel] @ p.T_flange_cam[arm] @ B[sel]
+            T[sel] = p.T_ref_base[arm] @ F[sel] @ p.T_wrist_cam[arm] @ B[sel]
         d = 1e3 * ((T @ c)[:, :3] - (p.T_ref_board @ c)[:3])
         r = lever_mm * log_delta(invert_transform(p.T_ref_board) @ T)[:, :3]
         return np.concatenate([d.ravel(), r.ravel()])
@@ -266,7 +266,7 @@ def board_in_reference(params: ChainParams, obs: Observations) -> np.ndarray:
     for a, arm in enumerate(obs.arms):
         sel = obs.arm_index == a
         if np.any(sel):
-            out[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm]) @ params.T_flange_cam[arm]
+            out[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm]) @ params.T_wrist_cam[arm]
                         @ obs.T_depth_board_pnp[sel])
     return out
 
@@ -369,17 +369,17 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
     }
     if folder.eye_to_hand:
         a0 = obs.arms[0]
-        report["T_base_cam"] = params.T_flange_cam[a0]
+        report["T_base_cam"] = params.T_wrist_cam[a0]
         report["T_flange_board"] = params.T_ref_board
     if len(obs.arms) > 1:
         report["base_to_base"] = {f"{obs.arms[0]}->{a}": params.T_ref_base[a] for a in obs.arms[1:]}
     arms_out = {}
     for a in obs.arms:
         if folder.eye_to_hand:  # world = the fixed camera; the "wrist camera" is the board on the flange
-            arms_out[a] = ArmCalibration("", invert_transform(params.T_flange_cam[a]), params.T_ref_board.copy(),
+            arms_out[a] = ArmCalibration("", invert_transform(params.T_wrist_cam[a]), params.T_ref_board.copy(),
                                          n_captures=int(np.sum(obs.for_arm(a))))
         else:
-            arms_out[a] = ArmCalibration("", params.T_ref_base[a].copy(), params.T_flange_cam[a].copy(),
+            arms_out[a] = ArmCalibration("", params.T_ref_base[a].copy(), params.T_wrist_cam[a].copy(),
                                          n_captures=int(np.sum(obs.for_arm(a))))
     world = ("eye-to-hand: world = the fixed camera's optical frame; T_wrist_cam holds the board on the flange "
              "(T_flange_board)" if folder.eye_to_hand else

@@ -87,7 +87,7 @@ class CheckResult:
 def chain_from_calibration(cal: Calibration, arms: tuple[str, ...], T_world_board: np.ndarray) -> ChainParams:
     """The calibration as chain parameters whose reference frame is the world."""
     return ChainParams(arms=arms, T_ref_base={a: cal.arms[a].T_world_base.copy() for a in arms},
-                       T_flange_cam={a: cal.arms[a].T_wrist_cam.copy() for a in arms},
+                       T_wrist_cam={a: cal.arms[a].T_wrist_cam.copy() for a in arms},
                        dq={a: np.asarray(cal.arms[a].joint_offsets_rad, float).copy() for a in arms},
                        T_ref_board=np.asarray(T_world_board, float).copy())
 

@@ -40,7 +40,7 @@ class HandEyeEstimate:
 
     arm: str
     method: str  # e.g. "calibrateHandEye/TSAI"
-    T_flange_cam: np.ndarray
+    T_wrist_cam: np.ndarray
     T_base_board: np.ndarray
     median_px: float  # median reprojection error of every corner through the chain (dq = 0)
     ok: bool = True
@@ -58,7 +58,7 @@ def _to_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def _single_arm_params(arm: str, X: np.ndarray, T_base_board: np.ndarray) -> ChainParams:
-    return ChainParams(arms=(arm,), T_ref_base={arm: np.eye(4)}, T_flange_cam={arm: X},
+    return ChainParams(arms=(arm,), T_ref_base={arm: np.eye(4)}, T_wrist_cam={arm: X},
                        dq={arm: np.zeros(6)}, T_ref_board=T_base_board)
 
 
@@ -146,7 +146,7 @@ def chain_from_estimates(chosen: dict[str, HandEyeEstimate], arms: tuple[str, ..
         arms=arms,
         T_ref_base={a: (np.eye(4) if a == ref else T_ref_board @ invert_transform(chosen[a].T_base_board))
                     for a in arms},
-        T_flange_cam={a: chosen[a].T_flange_cam.copy() for a in arms},
+        T_wrist_cam={a: chosen[a].T_wrist_cam.copy() for a in arms},
         dq={a: np.zeros(6) for a in arms},
         T_ref_board=T_ref_board.copy(),
     )

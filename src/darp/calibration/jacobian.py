@@ -77,7 +77,7 @@ def residuals_and_jacobian(x: np.ndarray, layout: object, p0: ChainParams, obs: 
                 Q = obs.q_rad[sel] + p.dq[arm]
                 F[sel] = z1.fk_batch(Q, wrist_frame)
                 links[sel] = z1.link_transforms_batch(Q)
-            B[sel], X[sel] = p.T_ref_base[arm], p.T_flange_cam[arm]
+            B[sel], X[sel] = p.T_ref_base[arm], p.T_wrist_cam[arm]
     S = obs.T_stream_depth
     Xi, Fi, Bi = invert_transform(X), invert_transform(F), invert_transform(B)
     W = p.T_ref_board

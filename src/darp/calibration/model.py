@@ -2,7 +2,7 @@
 
 For capture i of arm a (logged joints q_i), the board corner P (board frame) is seen at
 
-    u = pi(K_i, T_stream_depth_i @ inv(T_ref_base_a @ fk(q_i + dq_a) @ T_flange_cam_a) @ T_ref_board @ P)
+    u = pi(K_i, T_stream_depth_i @ inv(T_ref_base_a @ fk(q_i + dq_a) @ T_wrist_cam_a) @ T_ref_board @ P)
 
 in the *ideal* pinhole image of the capture's stream (pixels undistorted at detection).
 ``T_ref_*`` are expressed in the **reference frame** of the solve: the base frame of the first arm,
@@ -33,7 +33,7 @@ class ChainParams:
 
     arms: tuple[str, ...]
     T_ref_base: dict[str, np.ndarray]
-    T_flange_cam: dict[str, np.ndarray]
+    T_wrist_cam: dict[str, np.ndarray]
     dq: dict[str, np.ndarray]
     T_ref_board: np.ndarray
     # arm -> kinematic parameter errors of the richer model (absent: the nominal Z1, the paper's model)
@@ -41,7 +41,7 @@ class ChainParams:
 
     def copy(self) -> ChainParams:
         return replace(self, T_ref_base={a: T.copy() for a, T in self.T_ref_base.items()},
-                       T_flange_cam={a: T.copy() for a, T in self.T_flange_cam.items()},
+                       T_wrist_cam={a: T.copy() for a, T in self.T_wrist_cam.items()},
                        dq={a: v.copy() for a, v in self.dq.items()}, T_ref_board=self.T_ref_board.copy(),
                        kin={a: k.copy() for a, k in self.kin.items()})
 
@@ -156,7 +156,7 @@ def camera_poses(params: ChainParams, obs: Observations, wrist_frame: str = "fla
         if np.any(sel):
             T[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm], wrist_frame,
                                                             params.kin.get(arm))
-                      @ params.T_flange_cam[arm])
+                      @ params.T_wrist_cam[arm])
     return T
 
 

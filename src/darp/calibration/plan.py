@@ -228,7 +228,7 @@ def _candidates(rig: Rig, arm: str, board: CharucoBoardSpec, T_world_board: np.n
             away = np.cross(view, e1)
         up = axis_angle_to_rotation(view, roll) @ (away / np.linalg.norm(away))
         res = solve_look_at(T_base_world[:3, :3] @ target + T_base_world[:3, 3], distance,
-                            T_frame_cam=cfg.T_flange_cam, view_dir_base=T_base_world[:3, :3] @ view,
+                            T_frame_cam=cfg.T_wrist_cam, view_dir_base=T_base_world[:3, :3] @ view,
                             up_hint=T_base_world[:3, :3] @ up, frame=rig.wrist_frame)
         if not res.success:
             rejected["no IK solution"] = rejected.get("no IK solution", 0) + 1
@@ -238,7 +238,7 @@ def _candidates(rig: Rig, arm: str, board: CharucoBoardSpec, T_world_board: np.n
         if why:
             rejected[why] = rejected.get(why, 0) + 1
             continue
-        T_world_cam = cfg.T_world_base @ z1.fk(q, rig.wrist_frame) @ cfg.T_flange_cam
+        T_world_cam = cfg.T_world_base @ z1.fk(q, rig.wrist_frame) @ cfg.T_wrist_cam
         frac = _visible_fraction(T_world_cam, corners_world, s)
         if frac < s.min_visible_fraction:
             rejected["board not in view"] = rejected.get("board not in view", 0) + 1

@@ -102,7 +102,7 @@ class Layout:
         for a in self.arms[1:]:
             p.T_ref_base[a] = p0.T_ref_base[a] @ delta(x[self.slices[f"base:{a}"]])
         for a in self.arms:
-            p.T_flange_cam[a] = p0.T_flange_cam[a] @ delta(x[self.slices[f"handeye:{a}"]])
+            p.T_wrist_cam[a] = p0.T_wrist_cam[a] @ delta(x[self.slices[f"handeye:{a}"]])
             dq = p0.dq[a].copy()
             dq[self.free_joints[a]] += x[self.slices[f"dq:{a}"]]
             p.dq[a] = dq

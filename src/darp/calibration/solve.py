@@ -131,7 +131,7 @@ def to_calibration(params: ChainParams, T_ref_world: np.ndarray, serials: dict[s
     """A calibration file object for ``params`` in the world ``T_ref_world``."""
     T_world_ref = invert_transform(T_ref_world)
     arms = {a: ArmCalibration(serial=serials[a], T_world_base=T_world_ref @ params.T_ref_base[a],
-                              T_wrist_cam=params.T_flange_cam[a].copy(), joint_offsets_rad=params.dq[a].copy())
+                              T_wrist_cam=params.T_wrist_cam[a].copy(), joint_offsets_rad=params.dq[a].copy())
             for a in params.arms}
     return Calibration(epoch=epoch, date=date, arms=arms, board=board, world_frame=WORLD_FRAME_TEXT)
 
@@ -273,7 +273,7 @@ def _kinematics_entry(core: CoreResult, arm: str, obs: Observations, T_ref_world
         std[core.kin_ident.free[arm]] = res.std(f"kin:{arm}")
     return {"model": core.kin_ident.model,
             "T_world_base": (invert_transform(T_ref_world) @ p.T_ref_base[arm]).tolist(),
-            "T_wrist_cam": p.T_flange_cam[arm].tolist(), "joint_offsets_rad": p.dq[arm].tolist(),
+            "T_wrist_cam": p.T_wrist_cam[arm].tolist(), "joint_offsets_rad": p.dq[arm].tolist(),
             **kin.to_dict(),
             "fit_reprojection_px": summarise(fit),
             "heldout": None if heldout is None else {k: summarise(v) for k, v in heldout["per_arm"][arm].items()},

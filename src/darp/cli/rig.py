@@ -47,12 +47,12 @@ def show(
         return "(" + ", ".join(f"{v:+.{digits}f}" for v in values) + ")"
 
     table = Table(title="arms", show_lines=True)
-    for column in ("arm", "side", "camera", "base xyz (m) / rpy (deg)", "T_flange_cam xyz (m) / rpy (deg)",
+    for column in ("arm", "side", "camera", "base xyz (m) / rpy (deg)", "T_wrist_cam xyz (m) / rpy (deg)",
                    "park q (rad)", "camera at park (m)"):
         table.add_column(column)
     for arm_id, arm in rig.arms.items():
         base_xyz, base_rpy = xyz_rpy_from_pose(arm.T_world_base)
-        cam_xyz, cam_rpy = xyz_rpy_from_pose(arm.T_flange_cam)
+        cam_xyz, cam_rpy = xyz_rpy_from_pose(arm.T_wrist_cam)
         park_cam = rig.T_world_cam(arm_id, arm.park_q_rad)
         table.add_row(
             arm_id, arm.side, arm.camera_serial,

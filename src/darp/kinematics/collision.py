@@ -1,7 +1,7 @@
 """Collision geometry of the Z1 and its wrist camera, and the distance queries planning needs.
 
 Model (exact shapes, no inflation): every link cylinder of the facts' table is a solid cylinder;
-the wrist camera body is a box (default 90 x 25 x 25 mm, as the default rig) at ``T_flange_cam``;
+the wrist camera body is a box (default 90 x 25 x 25 mm, as the default rig) at ``T_wrist_cam``;
 its bracket is a capsule post from the tool axis to the body centre. Distances are signed (negative:
 penetration depth) and exact to ~0.1 um for shapes that are apart (see
 :mod:`darp.kinematics.collision_shapes`); they are never over-reported.
@@ -46,7 +46,7 @@ __all__ = [
     "ALLOWED_PAIRS",
     "LINK_CYLINDERS",
     "NOMINAL_CAMERA_MOUNT",
-    "NOMINAL_T_FLANGE_CAM",
+    "NOMINAL_T_WRIST_CAM",
     "CameraMount",
     "DistanceResult",
     "LinkCylinder",
@@ -98,19 +98,19 @@ ADJACENT_LINKS: frozenset[frozenset[str]] = frozenset(
 ALLOWED_PAIRS: tuple[tuple[str, str], ...] = (("shoulder_motor", "flange_motor"),)
 
 # Same extrinsic as the default rig: optical +z = flange +x, image right = flange -y, 55 mm above.
-NOMINAL_T_FLANGE_CAM: Array = make_transform(rpy_to_rotation(*np.radians([-90.0, 0.0, -90.0])),
+NOMINAL_T_WRIST_CAM: Array = make_transform(rpy_to_rotation(*np.radians([-90.0, 0.0, -90.0])),
                                              [0.0, 0.0, 0.055])
-NOMINAL_T_FLANGE_CAM.setflags(write=False)
+NOMINAL_T_WRIST_CAM.setflags(write=False)
 _T_LINK06_FLANGE = make_transform(t=[z1.WRIST_FRAMES["flange"], 0.0, 0.0])
 
 
 @dataclass(frozen=True, eq=False)
 class CameraMount:
-    """Wrist camera at ``T_flange_cam``: a box body (size along camera x, y, z; centre in the optical
+    """Wrist camera at ``T_wrist_cam``: a box body (size along camera x, y, z; centre in the optical
     frame) on a capsule bracket from ``bracket_anchor_flange_m`` (default: the point of the tool axis
     under the body centre, clamped to link06) to the body centre."""
 
-    T_flange_cam: Array = field(default_factory=lambda: NOMINAL_T_FLANGE_CAM.copy())
+    T_wrist_cam: Array = field(default_factory=lambda: NOMINAL_T_WRIST_CAM.copy())
     body_size_m: tuple[float, float, float] = (0.090, 0.025, 0.025)
     body_center_cam_m: tuple[float, float, float] = (0.0175, 0.0, -0.0083)
     bracket_radius_m: float = 0.01
@@ -124,9 +124,9 @@ class CameraMount:
         return self._link06  # type: ignore[attr-defined, no-any-return]
 
     def _build(self) -> PrimitiveSet:
-        T = np.asarray(self.T_flange_cam, dtype=np.float64)
+        T = np.asarray(self.T_wrist_cam, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-            raise KinematicsError("camera mount T_flange_cam must be a finite 4x4 transform")
+            raise KinematicsError("camera mount T_wrist_cam must be a finite 4x4 transform")
         T_flange_body = T @ make_transform(t=self.body_center_cam_m)
         centre = T_flange_body[:3, 3]
         if self.bracket_anchor_flange_m is None:

@@ -57,7 +57,7 @@ class ArmConfig:
     side: str
     camera_serial: str
     T_world_base: np.ndarray
-    T_flange_cam: np.ndarray
+    T_wrist_cam: np.ndarray
     park_q_rad: np.ndarray
 
     def __post_init__(self) -> None:
@@ -68,9 +68,9 @@ class ArmConfig:
         if not (isinstance(self.camera_serial, str) and self.camera_serial.isdigit()):
             raise ConfigError(f"arms.{self.arm_id}.camera_serial: must be a string of digits, "
                               f"got {self.camera_serial!r}")
-        for name in ("T_world_base", "T_flange_cam"):
-            matrix = check_rigid(getattr(self, name), f"arms.{self.arm_id}.{name}", error=ConfigError)
-            object.__setattr__(self, name, _frozen_array(matrix, (4, 4), f"arms.{self.arm_id}.{name}"))
+        for name, key in (("T_world_base", "T_world_base"), ("T_wrist_cam", "T_flange_cam")):  # rig YAML keys
+            matrix = check_rigid(getattr(self, name), f"arms.{self.arm_id}.{key}", error=ConfigError)
+            object.__setattr__(self, name, _frozen_array(matrix, (4, 4), f"arms.{self.arm_id}.{key}"))
         park = _frozen_array(self.park_q_rad, (6,), f"arms.{self.arm_id}.park_q_rad")
         _check_within_limits(park, f"arms.{self.arm_id}.park_q_rad")
         object.__setattr__(self, "park_q_rad", park)
@@ -235,7 +235,7 @@ class Rig:
         """``(T_world_base, T_wrist_cam, joint_offsets_rad)``: calibrated if given, else nominal."""
         arm = self.arm(arm_id)
         if calibration is None:
-            return arm.T_world_base, arm.T_flange_cam, np.zeros(6)
+            return arm.T_world_base, arm.T_wrist_cam, np.zeros(6)
         try:
             cal = calibration.arms[arm_id]
         except KeyError:
@@ -276,7 +276,7 @@ class Rig:
         """The collision model of ``arm_id``'s camera: the rig's body box at the (calibrated) mount."""
         _, T_wrist_cam, _ = self.extrinsics(arm_id, calibration)
         body = self.camera_body
-        return collision.CameraMount(T_flange_cam=T_wrist_cam, body_size_m=tuple(body.size_m.tolist()),
+        return collision.CameraMount(T_wrist_cam=T_wrist_cam, body_size_m=tuple(body.size_m.tolist()),
                                      body_center_cam_m=tuple(body.center_cam_m.tolist()))
 
     def arm_primitives(self, arm_id: str, q: np.ndarray, *, calibration: Calibration | None = None
@@ -315,7 +315,7 @@ class Rig:
             arm_id: ArmCalibration(
                 serial=arm.camera_serial,
                 T_world_base=arm.T_world_base.copy(),
-                T_wrist_cam=arm.T_flange_cam.copy(),
+                T_wrist_cam=arm.T_wrist_cam.copy(),
                 joint_offsets_rad=np.zeros(6),
             )
             for arm_id, arm in self.arms.items()
@@ -368,7 +368,7 @@ def rig_from_dict(data: Mapping[str, Any], source: Path | None = None) -> Rig:
             side=arm.get("side", str),
             camera_serial=str(arm.get("camera_serial", (str, int))),
             T_world_base=arm.transform("T_world_base"),
-            T_flange_cam=arm.transform("T_flange_cam"),
+            T_wrist_cam=arm.transform("T_flange_cam"),
             park_q_rad=rig_yaml.check_joints(arm.numbers("park_q_rad", 6), f"arms.{arm_id}.park_q_rad"),
         )
     body, table, ws, margins = (reader.sub(k) for k in ("camera_body", "table", "workspace", "margins"))

@@ -2,7 +2,7 @@
 
 A transform in a rig file is ``{xyz_m: [x, y, z], rpy_deg: [roll, pitch, yaw]}`` with
 ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (the Z1 SDK's posture convention), or ``{matrix: 4x4 rows}``.
-Every error is a :class:`ConfigError` naming the field (``arms.arm110.T_flange_cam.rpy_deg``);
+Every error is a :class:`ConfigError` naming the field (``arms.arm110.T_wrist_cam.rpy_deg``);
 :func:`darp.kinematics.rig.load_rig` adds the file.
 """
 
@@ -168,7 +168,7 @@ def rig_to_dict(rig: Rig, rig_schema: str = "darp-rig/1") -> dict[str, Any]:
                 "side": arm.side,
                 "camera_serial": arm.camera_serial,
                 "T_world_base": transform_to_yaml(arm.T_world_base),
-                "T_flange_cam": transform_to_yaml(arm.T_flange_cam),
+                "T_flange_cam": transform_to_yaml(arm.T_wrist_cam),
                 "park_q_rad": [float(v) for v in arm.park_q_rad],
             }
             for arm_id, arm in rig.arms.items()

@@ -13,8 +13,8 @@ Frames (all orientations equal link06's):
 - ``flange`` (darp's *wrist* frame, the SDK end-effector without gripper): 0.0618 m along link06 x.
 - ``gripper`` (SDK end-effector with the gripper, on the gripper joint axis): 0.1 m along link06 x.
 
-Hand-eye transforms are ``T_flange_cam``; eq. 1 of the paper is
-``T_world_cam = T_world_base @ fk(q + dq, "flange") @ T_flange_cam``.
+Hand-eye transforms are ``T_wrist_cam``; eq. 1 of the paper is
+``T_world_cam = T_world_base @ fk(q + dq, "flange") @ T_wrist_cam``.
 """
 
 from __future__ import annotations

@@ -192,7 +192,7 @@ def _unabsorbable_map() -> np.ndarray:
     the test points' displacement that joint offsets, a base and a hand-eye correction cannot absorb."""
     Q = CALIBRATION_Q_RAD
     rig = load_rig()  # the default rig's nominal camera mount (both arms mount it alike)
-    flange_cam = np.asarray(rig.arms[sorted(rig.arms)[0]].T_flange_cam, dtype=float)
+    flange_cam = np.asarray(rig.arms[sorted(rig.arms)[0]].T_wrist_cam, dtype=float)
     o0, a0 = np.asarray(z1.JOINT_ORIGINS_M, float), tilted_axes(np.zeros((6, 3)))
     zero6 = np.zeros(6)
     p0 = _points(Q, o0, a0, zero6, zero6, zero6, flange_cam)

@@ -27,8 +27,8 @@ from darp.kinematics.rig import Rig, load_rig
 
 
 def moved_rig(rig: Rig, mount_offsets: dict[str, np.ndarray]) -> Rig:
-    """``rig`` with camera mounts moved: ``T_flange_cam <- T_offset @ T_flange_cam`` per arm."""
-    arms = {a: (dataclasses.replace(cfg, T_flange_cam=np.asarray(mount_offsets[a]) @ cfg.T_flange_cam)
+    """``rig`` with camera mounts moved: ``T_wrist_cam <- T_offset @ T_wrist_cam`` per arm."""
+    arms = {a: (dataclasses.replace(cfg, T_wrist_cam=np.asarray(mount_offsets[a]) @ cfg.T_wrist_cam)
                 if a in mount_offsets else cfg) for a, cfg in rig.arms.items()}
     return dataclasses.replace(rig, arms=arms)
 

@@ -9,7 +9,7 @@ How the magnitudes are used (see :mod:`darp.twin.truth`):
 
 - joint-zero bias: per joint, uniform in ``[-zero_bias_max_deg, +zero_bias_max_deg]``;
 - encoder noise: white Gaussian on every reported angle, ``encoder_noise_std_deg``;
-- hand-eye mount error: a rigid perturbation of the nominal ``T_flange_cam`` whose translation has
+- hand-eye mount error: a rigid perturbation of the nominal ``T_wrist_cam`` whose translation has
   length exactly ``hand_eye_translation_mm`` and whose rotation has angle exactly
   ``hand_eye_rotation_deg``, both about random directions (so the error size is known);
 - second base error: the second arm's base moves by ``base_translation_mm`` in the table plane,

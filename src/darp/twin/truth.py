@@ -6,7 +6,7 @@ The true rig differs from the nominal rig file by the errors of :mod:`darp.twin.
 - joint-zero offsets ``dq`` per arm (uniform per joint); the true link angles are ``q_sdk + dq``,
   the sign convention of eq. 1, so ``truth/calibration.json`` is exactly what a perfect calibration
   would find;
-- each camera mount ``T_flange_cam = T_flange_cam_nominal @ T_err`` (the error expressed in the
+- each camera mount ``T_wrist_cam = T_wrist_cam_nominal @ T_err`` (the error expressed in the
   camera frame: a translation of fixed length and a rotation of fixed angle, random directions);
 - the second arm's base moved in the table plane, turned about the vertical and tilted slightly about
   its own origin, relative to the first; then both bases are expressed in darp's world as the rig
@@ -70,7 +70,7 @@ class TrueArm:
     arm_id: str
     serial: str
     T_world_base: np.ndarray
-    T_flange_cam: np.ndarray
+    T_wrist_cam: np.ndarray
     joint_offsets_rad: np.ndarray  # dq: q_true = q_sdk + dq
     kinematic_errors: KinematicErrors | None = None  # link origin and axis errors (None: the nominal Z1)
 
@@ -88,7 +88,7 @@ class TrueRig:
         Q = np.atleast_2d(q_true_rad)
         T_base_wrist = (z1.fk_batch(Q, self.nominal.wrist_frame) if arm.kinematic_errors is None
                         else fk_batch_with_errors(Q, arm.kinematic_errors, self.nominal.wrist_frame))
-        poses = compose(arm.T_world_base, T_base_wrist, arm.T_flange_cam)
+        poses = compose(arm.T_world_base, T_base_wrist, arm.T_wrist_cam)
         return poses[0] if np.ndim(q_true_rad) == 1 else poses
 
     def calibration(self, settings: TwinSettings) -> Calibration:
@@ -98,7 +98,7 @@ class TrueRig:
             arm_id: ArmCalibration(
                 serial=arm.serial,
                 T_world_base=arm.T_world_base.copy(),
-                T_wrist_cam=arm.T_flange_cam.copy(),
+                T_wrist_cam=arm.T_wrist_cam.copy(),
                 joint_offsets_rad=arm.joint_offsets_rad.copy(),
                 residuals={},
             )
@@ -137,7 +137,7 @@ def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
         dq = g_joint.uniform(-bias, bias, 6) if bias > 0 else np.zeros(6)
         g_mount = settings.rng(f"mount:{arm_id}")
         T_err = perturbation(g_mount, m.hand_eye_translation_mm * 1e-3, np.deg2rad(m.hand_eye_rotation_deg))
-        T_flange_cam = compose(nominal.T_flange_cam, T_err)
+        T_wrist_cam = compose(nominal.T_wrist_cam, T_err)
         T_world_base = np.array(nominal.T_world_base, dtype=float)
         if index > 0:
             g_base = settings.rng(f"base:{arm_id}")
@@ -150,7 +150,7 @@ def draw_true_rig(rig: Rig, settings: TwinSettings) -> TrueRig:
                                           T_world_base[:3, 3] + m.base_translation_mm * 1e-3
                                           * np.array([np.cos(phi), np.sin(phi), 0.0]))
         kin = KinematicErrors.draw(settings.arm_errors, settings.rng(f"kinematics:{arm_id}"))
-        arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_flange_cam, dq, kin)
+        arms[arm_id] = TrueArm(arm_id, nominal.camera_serial, T_world_base, T_wrist_cam, dq, kin)
     return TrueRig(nominal=rig, arms=_in_rig_world(arms))
 
 

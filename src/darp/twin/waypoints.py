@@ -236,7 +236,7 @@ def orbit_waypoints(rig: Any, arm_id: str, center_world: Sequence[float], distan
     for az in np.deg2rad(np.asarray(azimuths_deg, dtype=float)):
         a = heading + np.pi + az  # camera on the base's side of the object
         view_from = np.array([np.cos(a) * np.cos(elev), np.sin(a) * np.cos(elev), np.sin(elev)])
-        result = solve_look_at(center_base, distance_m, T_frame_cam=arm.T_flange_cam, view_dir_base=-view_from,
+        result = solve_look_at(center_base, distance_m, T_frame_cam=arm.T_wrist_cam, view_dir_base=-view_from,
                                q_init=q_prev, up_hint=np.array([0.0, 0.0, 1.0]), limits="sdk")
         if result.success:
             out.append(Waypoint(np.asarray(result.q, dtype=float), dwell_s))

@@ -183,7 +183,7 @@ def _add_rod(spec: mujoco.MjSpec, body: Any, name: str, a: np.ndarray, b: np.nda
 
 
 def _add_arm(spec: mujoco.MjSpec, arm_id: str, index: int, T_world_base: np.ndarray,
-             T_flange_cam: np.ndarray, camera_body: Any, kinematic_errors: Any | None = None) -> None:
+             T_wrist_cam: np.ndarray, camera_body: Any, kinematic_errors: Any | None = None) -> None:
     own = ARM_BITS[index]
     other = ARM_BITS[1 - index]
     affinity = ARM_COLLIDES_WITH | other
@@ -207,7 +207,7 @@ def _add_arm(spec: mujoco.MjSpec, arm_id: str, index: int, T_world_base: np.ndar
         rgba = MOTOR_RGBA if "motor" in cyl.name else LINK_RGBA.get(cyl.link, MOTOR_RGBA)
         _add_rod(spec, bodies[cyl.link], f"{arm_id}_{cyl.name}", a, b, cyl.radius_m, "cylinder", rgba, own, affinity)
     flange = z1.WRIST_FRAMES["flange"]
-    T_link6_cam = compose(make_transform(t=[flange, 0.0, 0.0]), T_flange_cam)
+    T_link6_cam = compose(make_transform(t=[flange, 0.0, 0.0]), T_wrist_cam)
     cam = bodies["link06"].add_body(name=f"{arm_id}_camera")
     _set_pose(cam, T_link6_cam)
     size = np.asarray(camera_body.size_m, dtype=float)
@@ -216,7 +216,7 @@ def _add_arm(spec: mujoco.MjSpec, arm_id: str, index: int, T_world_base: np.ndar
                  contype=own, conaffinity=affinity, mass=0.0)
     # Bracket post as in darp.kinematics.collision.CameraMount: a capsule from the tool axis under the
     # housing centre (clamped to link06) up to the housing, radius 1 cm.
-    centre = matvec(T_flange_cam, np.append(np.asarray(camera_body.center_cam_m, dtype=float), 1.0))[:3]
+    centre = matvec(T_wrist_cam, np.append(np.asarray(camera_body.center_cam_m, dtype=float), 1.0))[:3]
     anchor = np.array([np.clip(centre[0], -flange, 0.0), 0.0, 0.0])
     offset = np.array([flange, 0.0, 0.0])
     _add_rod(spec, bodies["link06"], f"{arm_id}_camera_bracket", anchor + offset, centre + offset, BRACKET_RADIUS_M,
@@ -274,7 +274,7 @@ class TwinWorld:
     def __init__(self, rig: Any, true_arms: dict[str, Any], *, parts: Sequence[Any] = (),
                  T_world_object: np.ndarray | None = None, board: CharucoBoardSpec | None = None,
                  T_world_board: np.ndarray | None = None, seed: int = 0, lighting: Any = None) -> None:
-        """``true_arms``: arm id -> object with ``T_world_base`` and ``T_flange_cam`` (a :class:`TrueArm`).
+        """``true_arms``: arm id -> object with ``T_world_base`` and ``T_wrist_cam`` (a :class:`TrueArm`).
 
         ``board``: the calibration board record, drawn at ``T_world_board`` with the twin's default
         texture (:data:`darp.twin.objects.board.DEFAULT_TEXTURE`).
@@ -293,7 +293,7 @@ class TwinWorld:
         _add_environment(spec, rig, seed, lighting)
         for index, arm_id in enumerate(self.arm_ids):
             arm = true_arms[arm_id]
-            _add_arm(spec, arm_id, index, np.asarray(arm.T_world_base, float), np.asarray(arm.T_flange_cam, float),
+            _add_arm(spec, arm_id, index, np.asarray(arm.T_world_base, float), np.asarray(arm.T_wrist_cam, float),
                      rig.camera_body, getattr(arm, "kinematic_errors", None))
         object_parts = []
         if parts:
