@@ -340,8 +340,8 @@ def test_lighting_setting_changes_the_colour_images_and_stays_out_of_default_set
         assert TwinSettings.from_dict(lit.to_dict()).lighting == lit.lighting  # round trip through YAML
         with TwinRig(lit) as twin:
             frame = twin.cameras["arm110"].latest_frameset()
-            assert frame.color_bgr is not None
-            means.append(float(frame.color_bgr.mean()))
+            assert frame.colour_bgr is not None
+            means.append(float(frame.colour_bgr.mean()))
     assert means[1] > means[0] + 40  # brighter lights, brighter images
     with pytest.raises(ConfigError, match=r"lighting\.key"):
         LightingSettings(key=1.5)
