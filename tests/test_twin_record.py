@@ -68,8 +68,8 @@ def test_survey_folder_is_complete_and_readable(ideal: Path) -> None:
 
 def test_bags_play_back_in_pyrealsense2(ideal: Path) -> None:
     truth = read_truth(ideal)
-    spec = make_camera_spec(UnitCalibration(), depth_resolution=(424, 240), color_resolution=(424, 240), fps=6,
-                            color_fps=6)
+    spec = make_camera_spec(UnitCalibration(), depth_resolution=(424, 240), colour_resolution=(424, 240), fps=6,
+                            colour_fps=6)
     for arm, cal in truth.calibration.arms.items():
         path = ideal / f"cam{cal.serial}.bag"
         played = play_back(path)

@@ -359,9 +359,9 @@ class RealSenseCamera(CameraBackend):
             depth_p = profile.get_stream(rs.stream.depth).as_video_stream_profile()
             self._depth_intrinsics = _intrinsics(depth_p.get_intrinsics())
             if self.settings.color:
-                color_p = profile.get_stream(rs.stream.color).as_video_stream_profile()
-                self._colour_intrinsics = _intrinsics(color_p.get_intrinsics())
-                self._T_color_depth = _transform(depth_p.get_extrinsics_to(color_p))
+                colour_p = profile.get_stream(rs.stream.color).as_video_stream_profile()
+                self._colour_intrinsics = _intrinsics(colour_p.get_intrinsics())
+                self._T_color_depth = _transform(depth_p.get_extrinsics_to(colour_p))
         except RuntimeError as err:
             raise HardwareError(f"{self._label()}: cannot configure the streaming device: {err}") from err
 
