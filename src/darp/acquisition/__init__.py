@@ -19,7 +19,9 @@ _lazy = LazyExports(__name__, {
     ".localise": ("Localiser", "LocalisationResult"),
     ".estimate": ("LocaliseSettings", "ObjectEstimate", "estimate_from_depth"),
     ".confirm": ("ConfirmSettings", "Decision", "decide"),
-    ".coverage": ("CoverageSettings", "CoveragePlan", "CoverageTracker", "plan_coverage"),
+    ".coverage": ("CoverageSettings",),
+    ".coverage_plan": ("CoveragePlan", "plan_coverage"),
+    ".coverage_track": ("CoverageTracker",),
     ".viewpoints": ("ViewpointSettings", "ViewpointPlanner", "ViewPlan", "Candidate"),
     ".motion_check": (
         "MotionSettings", "ClearanceMargins", "UnsafeMoveError", "MotionFault", "checked_move", "stop_all_arms"
@@ -31,7 +33,9 @@ __dir__ = _lazy.names
 
 if TYPE_CHECKING:
     from darp.acquisition.confirm import ConfirmSettings, Decision, decide
-    from darp.acquisition.coverage import CoveragePlan, CoverageSettings, CoverageTracker, plan_coverage
+    from darp.acquisition.coverage import CoverageSettings
+    from darp.acquisition.coverage_plan import CoveragePlan, plan_coverage
+    from darp.acquisition.coverage_track import CoverageTracker
     from darp.acquisition.episode import Episode, EventLog, read_events
     from darp.acquisition.estimate import LocaliseSettings, ObjectEstimate, estimate_from_depth
     from darp.acquisition.localise import LocalisationResult, Localiser
