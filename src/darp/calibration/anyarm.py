@@ -37,6 +37,7 @@ from darp.errors import CalibrationError, FormatError
 from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.captures import CaptureFolder, read_capture_folder
 from darp.formats.intrinsics import CameraModel
+from darp.formats.io_input import decode_image
 from darp.kinematics.transforms import invert_transform, pose_error
 
 OPENCV_METHODS = tuple(f"calibrateHandEye/{m}" for m in handeye.HAND_EYE_METHODS)
@@ -88,7 +89,7 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
     size: tuple[int, int] | None = None
     for arm in folder.arms:
         for key, img_path in arm.images.items():
-            grey = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE)
+            grey = decode_image(img_path, cv2.IMREAD_GRAYSCALE, "a board image")
             if grey is None:
                 raise FormatError("cannot read the image", img_path)
             if size is None:

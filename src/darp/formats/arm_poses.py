@@ -26,6 +26,7 @@ from typing import NoReturn, Self
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.io_input import LIMITS
 from darp.formats.limits import JOINT_ABS_MAX_RAD, TIME_MAX_S, TIME_MIN_S
 from darp.formats.text import read_utf8_text
 
@@ -106,7 +107,7 @@ def read_arm_poses(
     instead of refusing them. ``strict_tail`` makes a cut-short last line an error instead of dropping it.
     """
     path = Path(path)
-    text = read_utf8_text(path, "a CSV file")
+    text = read_utf8_text(path, "a CSV file", limit=LIMITS["csv"])
     if not text.strip():
         raise FormatError("empty file: expected a header row " + ",".join(COLUMNS), path)
 

@@ -15,20 +15,16 @@ from typing import Any
 import yaml
 
 from darp.errors import ConfigError, DarpError, FormatError
+from darp.formats.io_input import LIMITS, read_input_bytes
 
 
-def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatError) -> str:
+def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatError, *,
+                   limit: int = LIMITS["text"]) -> str:
     """The text of ``path`` (a leading BOM dropped); ``what`` names the expected kind in the folder
-    error ("is a folder, not a JSON file")."""
+    error ("is a folder, not a JSON file"). Read through :func:`darp.formats.io_input.read_input_bytes`:
+    a regular file of at most ``limit`` bytes."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise error("no such file", path) from None
-    except IsADirectoryError:
-        raise error(f"is a folder, not {what}", path) from None
-    except PermissionError:
-        raise error("permission denied", path) from None
+    data = read_input_bytes(path, what, error, limit=limit)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
@@ -81,7 +77,7 @@ def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, 
     """Parse a YAML (or JSON) file whose top level is a mapping; every failure is a ConfigError naming
     ``path``. ``empty_ok``: an empty file is an empty mapping (a settings file that changes nothing)."""
     path = Path(path)
-    text = read_utf8_text(path, "a file", ConfigError)
+    text = read_utf8_text(path, "a YAML file", ConfigError, limit=LIMITS["yaml"])
     try:
         data = load_yaml(text)
     except yaml.YAMLError as err:
