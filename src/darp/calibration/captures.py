@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 
 from darp.errors import CalibrationError, FormatError
-from darp.formats.atomic import atomic_path
+from darp.formats.atomic import UNFINISHED_FILE, atomic_path
 from darp.formats.calibration import CharucoBoardSpec
 from darp.formats.calibration import board_from_dict as parse_board
 from darp.formats.io_input import decode_image
@@ -285,6 +285,8 @@ def read_captures(folder: str | Path) -> CaptureSet:
     if not folder.is_dir():
         raise FormatError("not a capture folder (no such directory)", folder)
     index_path = folder / INDEX_FILE
+    if (folder / UNFINISHED_FILE).is_file():
+        raise FormatError(f"unfinished capture folder ({UNFINISHED_FILE}: its capture run did not complete)", folder)
     index = load_json_object(index_path)
     if index.get("schema") != INDEX_SCHEMA:
         raise FormatError(f"schema: expected {INDEX_SCHEMA!r}, got {index.get('schema')!r}", index_path)
@@ -321,6 +323,10 @@ class CaptureWriter:
         if (self.folder / INDEX_FILE).exists() and not overwrite:
             raise CalibrationError("already holds captures (captures.json); choose another folder",
                                    self.folder)
+        if self.folder.is_dir() and not (self.folder / INDEX_FILE).exists() and any(
+                p.name != UNFINISHED_FILE for p in self.folder.iterdir()):  # a survey, a user's files: not ours
+            raise CalibrationError("is not empty and holds no captures (captures.json): choose a new or empty "
+                                   "folder", self.folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.board = board
         self.source = source

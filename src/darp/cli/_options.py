@@ -245,8 +245,11 @@ def parse_camera_arm(text: str | CameraArm) -> CameraArm:
 RIG_HELP = "Rig YAML file (default: the packaged rig)."
 
 
-def out_option(help: str, *, show_default: bool = False) -> Any:
-    """``-o/--out``: the output file or folder."""
+def out_option(help: str, *, show_default: bool = False, folder: bool = False) -> Any:
+    """``-o/--out``: the output file or folder. ``folder``: the command writes into this folder, so it may not
+    hold an input (checked for every command by :mod:`darp.cli._outputs`)."""
+    if folder:
+        return typer.Option("--out", "-o", help=help, show_default=show_default, file_okay=False)
     return typer.Option("--out", "-o", help=help, show_default=show_default)
 
 

@@ -51,7 +51,7 @@ class QuaternionOrder(StrEnum):
 def import_command(
     sequence: Annotated[Path, input_argument("Folder of colour and 16-bit depth images (names or sub-folders "
                                              "with 'color'/'rgb' and 'depth'; frames matched by their number).")],
-    out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).")],
+    out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).", folder=True)],
     intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Depth/colour intrinsics (registered "
                                                     "streams): 3x3 .txt/.npy, .npz or .json; a nerfstudio "
                                                     "transforms.json gives its own; a RealSense .bag/.db3 its "
@@ -163,7 +163,10 @@ def import_command(
                       envelope=envelope, intrinsics_by_key=by_key)
     if posed is not None:
         spec.colour_files, spec.depth_files, spec.stamps = posed.colour, posed.depth, posed.stamps
-    record = import_sequence(spec)
+    from darp.formats.io_output import unfinished_folder
+
+    with unfinished_folder(out, "darp import"):
+        record = import_sequence(spec)
     typer.echo(f"wrote {out} ({record['frames']} frames, {record['heldout']} held out; median depth "
                f"{record['median_depth_m']:.2f} m; neighbouring frames agree to "
                f"{record['pose_check']['neighbour_median_mm']:.1f} mm median)")

@@ -41,10 +41,17 @@ PLACEMENT_HELP = "x,y,yaw_deg of the object on the table, in metres, metres and 
 
 def load_object(spec: str, scale: float) -> Any:
     """A built-in twin object by name, or a mesh file (``darp twin objects`` lists the names)."""
-    from darp.twin.objects.model import load_mesh_object, make_object
+    from darp.cli._outputs import add_input
+    from darp.twin.objects.model import OBJECT_NAMES, load_mesh_object, make_object
 
     path = Path(spec)
-    if path.suffix.lower() in MESH_SUFFIXES or path.exists():
+    if spec in OBJECT_NAMES:  # a built-in name is the built-in object, even with a file of that name here
+        if path.exists():
+            typer.echo(f"darp: warning: --object {spec}: using the built-in object (a file {spec!r} is in the "
+                       f"working folder: give ./{spec} to use it)", err=True)
+        return make_object(spec, scale=scale)
+    if path.suffix.lower() in MESH_SUFFIXES or path.exists() or "/" in spec:
+        add_input(path)  # the mesh is an input: -o may not be it
         return load_mesh_object(path, scale=scale)
     return make_object(spec, scale=scale)
 
