@@ -137,3 +137,31 @@ def test_cli_named_pipe_input_is_one_line_not_a_hang(option: str, tmp_path: Path
                             env={**os.environ})
     assert result.returncode == 2, result.stderr
     assert result.stderr.count("\n") == 1 and "named pipe" in result.stderr and str(fifo) in result.stderr
+
+
+@pytest.mark.parametrize("chunk", [7, 64, 4 * 1024 * 1024])
+def test_the_streamed_joint_log_equals_its_rows_at_any_piece_size(chunk: int, tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reader parses pieces of the file; rows split across pieces, CRLF, blank lines and a cut-short last line
+    come out as a whole-file read would (the expected arrays are computed here with numpy from the text)."""
+    import darp.formats.arm_poses as arm_poses
+
+    rng = np.random.default_rng(chunk)
+    rows = []
+    for k in range(300):
+        arm = ("arm110", "arm111")[k % 2]
+        rows.append((1.7e9 + k * 0.015, arm, *rng.uniform(-2, 2, 6)))
+    lines = [f"{t:.6f},{a}," + ",".join(f"{v:.9f}" for v in q) for t, a, *q in rows]
+    lines.insert(100, "")  # a blank line keeps the true line numbers
+    text = "time_s,arm,q1,q2,q3,q4,q5,q6\r\n" + "\r\n".join(lines) + "\r\n1.0,arm1"  # cut short: dropped
+    path = tmp_path / "arm_poses.csv"
+    path.write_bytes(text.encode())
+    monkeypatch.setattr(arm_poses, "CHUNK_BYTES", chunk)
+    log = arm_poses.read_arm_poses(path)
+    assert log.truncated_tail_line == len(lines) + 2
+    for j, arm in enumerate(("arm110", "arm111")):
+        mine = [r for r in rows if r[1] == arm]
+        assert np.array_equal(log.times(arm), [float(f"{r[0]:.6f}") for r in mine])
+        assert np.array_equal(log.joints(arm), [[float(f"{v:.9f}") for v in r[2:]] for r in mine])
+        numbers = [n + 2 + (n >= 100) for n in range(j, 300, 2)]
+        assert log.lines(arm).tolist() == numbers

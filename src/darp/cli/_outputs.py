@@ -1,4 +1,5 @@
-"""The output guard every command runs through (issue 32): before a command's body runs, each of its outputs
+"""The guard every command runs through (issue 32): before a command's body runs, every float option is checked to
+be finite (NaN passes click's ranges), and each of its outputs
 (``-o/--out``, ``--report``, ``--save``) is checked against each of its inputs (every path parameter, plus the
 paths a command adds with :func:`add_input`) and locked.
 
@@ -12,6 +13,7 @@ paths a command adds with :func:`add_input`) and locked.
 from __future__ import annotations
 
 import contextlib
+import math
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -68,6 +70,15 @@ def _check(out: Path, folder: bool, inputs: Iterable[Path], option: str) -> None
                                      param_hint=f"'{option}'")
 
 
+def _check_finite(param: Any, value: Any) -> None:
+    """No option takes NaN or infinity (click's ranges let NaN through: every comparison with it is false)."""
+    values = value if isinstance(value, (list, tuple)) else [value]
+    for v in values:
+        if isinstance(v, float) and not math.isfinite(v):
+            option = max(getattr(param, "opts", None) or [param.name], key=len)
+            raise typer.BadParameter(f"must be a finite number, got {v!r}", param_hint=f"'{option}'")
+
+
 def guarded(invoke: Callable[[Any], Any]) -> Callable[[Any], Any]:
     """Wrap a click command's ``invoke``: check its outputs against its inputs and lock them around the call."""
 
@@ -79,6 +90,7 @@ def guarded(invoke: Callable[[Any], Any]) -> Callable[[Any], Any]:
             param = params.get(name)
             if param is None or value is None:
                 continue
+            _check_finite(param, value)
             if name in OUTPUT_PARAMS and isinstance(value, Path):
                 option = max(getattr(param, "opts", [f"--{name}"]), key=len)
                 outputs.append((option, value, _folder_only(param)))

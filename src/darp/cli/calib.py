@@ -51,7 +51,15 @@ SquareMm = Annotated[float, typer.Option("--square-mm", help="Square side, milli
 MarkerMm = Annotated[float, typer.Option("--marker-mm", help="ArUco marker side, millimetres.")]
 DictionaryOption = Annotated[Dictionary, typer.Option("--dictionary", help="OpenCV ArUco dictionary.")]
 Captures = Annotated[int, typer.Option("--captures", min=1, help="Captures per arm (when planning).")]
-Seed = Annotated[int, typer.Option("--seed", help="Seed of the random candidates (and, on the twin, of its "
+def _folds(value: int) -> int:
+    if value != 0 and value < 2:  # one fold holds everything out; a negative count is no count
+        raise typer.BadParameter(f"expected 0 (no held-out evaluation) or at least 2 folds, got {value}")
+    return value
+
+
+Folds = Annotated[int, typer.Option("--folds", callback=_folds, help="k of the k-fold held-out evaluation "
+                                    "(0: none, else at least 2).")]
+Seed = Annotated[int, typer.Option("--seed", min=0, help="Seed of the random candidates (and, on the twin, of its "
                                    "true rig errors).")]
 
 
@@ -216,7 +224,7 @@ def solve_command(
     report: Annotated[Path | None, typer.Option(
         "--report", help="Report folder to write (figures, summary.md).", file_okay=False,
                                                 show_default=False)] = None,
-    folds: Annotated[int, typer.Option("--folds", help="k of the k-fold held-out evaluation (0: none).")] = 5,
+    folds: Folds = 5,
     truth: Annotated[Path | None, typer.Option("--truth", help="True calibration to compare with (default: the "
                                                "captures' truth/calibration.json when present).", exists=True,
                                                dir_okay=False, show_default=False)] = None,
@@ -339,8 +347,8 @@ def handeye_command(
     report: Annotated[Path | None, typer.Option(
         "--report", help="Report folder to write (figures, summary.md).", file_okay=False,
                                                 show_default=False)] = None,
-    folds: Annotated[int, typer.Option("--folds", help="k of the k-fold held-out evaluation (0: none).")] = 5,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the fold assignment.")] = 0,
+    folds: Folds = 5,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the fold assignment.")] = 0,
     compare: Annotated[bool, typer.Option("--compare/--no-compare", help="Also score each OpenCV calibrateHandEye "
                                           "method on the same held-out folds.")] = True,
 ) -> None:

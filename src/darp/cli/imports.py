@@ -21,6 +21,7 @@ import typer
 
 from darp.cli._app import app
 from darp.cli._options import calibration_option, input_argument, out_option
+from darp.formats.limits import DEPTH_SCALE_MAX_M
 from darp.formats.trajectories import TUM_MAX_DT_S
 
 
@@ -57,7 +58,8 @@ def import_command(
                                                     "transforms.json gives its own; a RealSense .bag/.db3 its "
                                                     "colour stream's.", exists=True,
                                                     dir_okay=False, show_default=False)] = None,
-    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", help="Metres per depth unit (0.001: mm); "
+    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", min=0.0, max=DEPTH_SCALE_MAX_M,
+                                                        help="Metres per depth unit (0.001: mm); "
                                                         "default: the folder format's (TUM 1/5000, nerfstudio's "
                                                         "depth_unit_scale_factor), else 0.001.",
                                                         show_default=False)] = None,
@@ -84,6 +86,8 @@ def import_command(
                                                          "image's and its pose's.")] = TUM_MAX_DT_S,
 ) -> None:
     """Import an RGB-D sequence with poses as a survey that darp process fuses, meshes and evaluates."""
+    if depth_scale_m == 0.0:  # 0 is not "the default": a depth image at 0 m per unit has no depth
+        raise typer.BadParameter("must be > 0 metres per depth unit, got 0", param_hint="'--depth-scale-m'")
     from darp.formats.calibration import read_calibration
     from darp.formats.intrinsics import load_intrinsics
     from darp.formats.poses import PoseConventions, read_pose_csv, read_pose_folder

@@ -259,6 +259,9 @@ def export_command(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Write into a non-empty output folder.")] = False,
 ) -> None:
     """Write one file per frame (depth 16-bit, colour, IR 8-bit), imu.csv, intrinsics.json and frames.csv."""
+    if start_ms is not None and stop_ms is not None and start_ms >= stop_ms:
+        raise typer.BadParameter(f"--start-ms {start_ms:g} is not before --stop-ms {stop_ms:g}: no frame is between",
+                                 param_hint="'--start-ms' / '--stop-ms'")
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
