@@ -33,7 +33,8 @@ from darp.acquisition.coverage import (
     predict,
     visibility,
 )
-from darp.acquisition.viewpoints import SHOULDER_BASE_M, Candidate, OrbitShape, ViewPlan, ViewpointPlanner, tour_cost
+from darp.acquisition.tour import tour_cost
+from darp.acquisition.viewpoints import SHOULDER_BASE_M, Candidate, OrbitShape, ViewPlan, ViewpointPlanner
 
 
 @dataclass
