@@ -112,7 +112,7 @@ def test_imports_follow_the_layer_table(path: Path) -> None:
 def test_the_table_is_read_from_the_doc() -> None:
     layers = [layer for layer, _ in ROWS]
     assert layers[0] == "__main__" and layers[-1] == "errors" and "formats.realsense" in layers
-    assert ALLOWED["formats.realsense"] == {"geometry", "formats.text", "errors", "lazy"}
+    assert ALLOWED["formats.realsense"] == {"geometry", "formats.text", "formats.io_input", "errors", "lazy"}
     assert "formats" not in ALLOWED["formats.realsense"] and "formats.realsense" in ALLOWED["formats"]
     assert "twin" not in ALLOWED["hardware"] and "hardware" not in ALLOWED["twin"]
     assert "acquisition" not in ALLOWED["twin"] | ALLOWED["hardware"] | ALLOWED["calibration"]

@@ -193,7 +193,7 @@ def test_a_json_file_over_the_size_limit_is_refused_unread_in_one_line(kind: str
     with pytest.raises(FormatError) as caught:
         reader(path)
     message = str(caught.value)
-    assert message == f"{path}: {MAX_JSON_BYTES + 1} bytes, larger than any darp JSON file (limit 256 MiB)"
+    assert message == f"{path}: {MAX_JSON_BYTES + 1} bytes, over darp's limit for a JSON file (256 MiB)"
     path.write_bytes(valid())  # the same file at its real size is read
     reader(path)
 

@@ -188,7 +188,10 @@ def _interrupted(err: BaseException) -> int:
 def _run_app(argv: list[str] | None) -> int:
     try:
         # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
-        rc = app(args=argv, prog_name="darp", standalone_mode=False)
+        from darp.cli._outputs import guard_commands  # every command's outputs checked and locked
+
+        command = guard_commands(typer.main.get_command(app))
+        rc = command.main(args=argv, prog_name="darp", standalone_mode=False)
     except DarpError as err:
         error(str(err))
         return 2

@@ -96,7 +96,7 @@ def collect_command(
     placement: Annotated[Placement | None, typer.Option(
         "--placement", parser=parse_placement, metavar="X,Y,YAW_DEG",
         help=f"Twin: {PLACEMENT_HELP} (default: random, seeded).", show_default=False)] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Twin: seed of every random draw.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Twin: seed of every random draw.")] = 0,
     profile: ProfileOption = Profile.realistic,
     settings_file: SettingsFile = None,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Twin: camera frame rate.")] = 30,

@@ -98,7 +98,7 @@ def _stage_callback(progress: Any, label: str) -> Any:
 def keyframes(
     survey: Annotated[Path, input_argument("Survey folder (cam<serial>.bag x2, arm_poses.csv, "
                                            "manip_envelope.json).")],
-    out: Annotated[Path, out_option("Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/).")],
+    out: Annotated[Path, out_option("Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/).", folder=True)],
     calibration: Annotated[Path | None, calibration_option(CALIBRATION_HELP)] = None,
     truth_poses: TruthPoses = False,
     settings_file: SettingsFile = None,
