@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -201,6 +202,10 @@ def _run_stages(job: J, stages: Sequence[Stage[J]], resume: bool, fingerprints: 
             summary = stage.run(job)
         except DarpError as err:
             _fail(job, stages, stage, stages_state, str(err), err.path)
+        except OSError as err:  # a full or read-only disk while the stage writes: this stage's failure, named
+            where = f"{os.fsdecode(err.filename)}: " if err.filename is not None else ""
+            _fail(job, stages, stage, stages_state, f"{where}{(err.strerror or str(err)).lower()}",
+                  None if err.filename is None else Path(os.fsdecode(err.filename)))
         except (ValueError, RuntimeError, ArithmeticError, IndexError, KeyError, MemoryError) as err:
             # a library failing inside a stage (Open3D, numpy, ...): still this survey's, named and contained
             _fail(job, stages, stage, stages_state, f"{type(err).__name__}: {err}".splitlines()[0], None)
@@ -224,9 +229,10 @@ def _fail(job: J, stages: Sequence[Stage[J]], stage: Stage[J], stages_state: dic
             target = job.out / output
             if target.is_file():
                 target.unlink()
-    write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state,
-                                              "failed": {"stage": stage.name, "reason": reason}})
-    _mark_unfinished(job.out, f"failed: {stage.name}: {reason}")
+    with contextlib.suppress(OSError):  # on a full disk these may fail too: the marker of the run start stays
+        write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state,
+                                                  "failed": {"stage": stage.name, "reason": reason}})
+        _mark_unfinished(job.out, f"failed: {stage.name}: {reason}")
     raise StageFailure(job.name, stage.name, reason, path)
 
 
