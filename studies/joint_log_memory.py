@@ -36,7 +36,8 @@ for arm in log.arms:
     query = np.linspace(t[0], t[-1], 10_000)
     posed += int(interpolate_joints(t, log.joints(arm), query, max_gap_s=1.0).posed.sum())
 print(json.dumps({"rows": log.n_rows, "read_s": round(read_s, 2), "total_s": round(time.perf_counter() - start, 2),
-                  "posed_frames": posed, "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))
+                  "posed_frames": posed,
+                  "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)}))
 """
 
 

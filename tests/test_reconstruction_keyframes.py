@@ -401,7 +401,7 @@ def test_keyframes_read_without_the_images_a_stage_does_not_use(tmp_path: Path, 
                 assert np.array_equal(got, getattr(kf, name)), name
         assert np.array_equal(part.posed_depth(colour=False).depth, kf.depth)
     assert part.posed_depth(colour=False).colour is None
-    with pytest.raises(ValueError, match="cannot skip depth"):
+    with pytest.raises(ReconstructionError, match="cannot skip depth"):
         read_keyframe(tmp_path / "arm110/000007.npz", skip=("depth",))
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import os
 import stat
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -157,6 +158,25 @@ def image_too_large(width: int, height: int) -> bool:
     return width <= 0 or height <= 0 or width * height > MAX_IMAGE_PIXELS
 
 
+@contextlib.contextmanager
+def native_stderr_silenced() -> Iterator[None]:
+    """Send what C libraries print on stderr (libpng's "libpng error: ...", OpenCV's decoder warnings) to
+    /dev/null for the block: darp reports the damaged file itself, in one line."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no usable fd 2: nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def png_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) from a PNG's IHDR, or None when ``data`` is not a PNG."""
     if len(data) >= 24 and data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
@@ -170,8 +190,6 @@ def decode_image(path: str | Path, flags: int, what: str = "an image", error: ty
     at most :data:`MAX_IMAGE_PIXELS` pixels (checked from a PNG's header before decoding). Returns the array,
     or None when OpenCV cannot decode it (the caller says what that means for its file)."""
     import cv2  # heavy: only when an image is read
-
-    from darp.formats.text import native_stderr_silenced
 
     data = read_input_bytes(path, what, error, limit=LIMITS["image"])
     size = png_size(data)

@@ -4,11 +4,7 @@ bytes that are not UTF-8."""
 
 from __future__ import annotations
 
-import contextlib
-import os
 import re
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,25 +25,6 @@ def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatE
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise error(f"not UTF-8 text (byte {err.start})", path) from err
-
-
-@contextlib.contextmanager
-def native_stderr_silenced() -> Iterator[None]:
-    """Send what C libraries print on stderr (libpng's "libpng error: ...", OpenCV's decoder warnings) to
-    /dev/null for the block: darp reports the damaged file itself, in one line."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no usable fd 2: nothing to silence
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 class YamlLoader(yaml.SafeLoader):
@@ -95,4 +72,4 @@ def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, 
     return data
 
 
-__all__ = ["YamlLoader", "load_yaml", "native_stderr_silenced", "read_utf8_text", "read_yaml_mapping"]
+__all__ = ["YamlLoader", "load_yaml", "read_utf8_text", "read_yaml_mapping"]

@@ -55,6 +55,7 @@ import numpy as np
 
 from darp.errors import ReconstructionError
 from darp.formats.realsense.types import Intrinsics
+from darp.formats.schema import dataclass_from_mapping
 
 FUSE, HELDOUT = "fuse", "heldout"
 HELDOUT_UNITS = ("keyframe", "view")
@@ -114,11 +115,7 @@ class KeyframeSettings:
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> KeyframeSettings:
-        unknown = sorted(set(values) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise ReconstructionError(f"unknown keyframe setting(s) {', '.join(unknown)} "
-                                      f"(known: {', '.join(cls.__dataclass_fields__)})")
-        return cls(**values)
+        return dataclass_from_mapping(cls, values, "keyframes", error=ReconstructionError)
 
 
 @dataclass(frozen=True, eq=False)
