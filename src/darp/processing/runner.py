@@ -34,6 +34,7 @@ from typing import Any, Generic, Protocol, TypeVar
 
 from darp.errors import DarpError, DarpWarning, FormatError, ProcessingError
 from darp.formats.atomic import UNFINISHED_FILE, atomic_path, write_json_atomic, write_text_atomic
+from darp.formats.io_input import marker_text
 from darp.formats.schema import load_json_object
 
 STAGES_FILE = "stages.json"
@@ -126,12 +127,9 @@ def read_stage_state(out: Path, *, strict: bool = False) -> dict[str, Any]:
 def unfinished_reason(out: str | Path) -> str | None:
     """The first line of ``UNFINISHED.txt`` in an output folder, or None when the run completed."""
     marker = Path(out) / UNFINISHED_FILE
-    if not marker.is_file():
+    if not marker.exists():
         return None
-    try:
-        text = marker.read_text(encoding="utf-8", errors="replace").strip()
-    except OSError:
-        return "unfinished (UNFINISHED.txt unreadable)"
+    text = marker_text(marker).strip()  # a marker that cannot be read (a pipe, a folder) still marks
     return text.splitlines()[0] if text else "unfinished"
 
 
