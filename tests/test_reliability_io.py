@@ -27,7 +27,10 @@ def _readers() -> dict[str, Callable[[Path], Any]]:
     from darp.formats.schema import load_json_object
     from darp.formats.trajectories import read_nerfstudio_folder, read_tum_trajectory
     from darp.kinematics.rig import load_rig
+    from darp.processing.results import read_results
     from darp.processing.settings import load_settings
+    from darp.reconstruction.cloud_io import read_ply
+    from darp.reconstruction.keyframe_io import read_keyframe, read_keyframe_index
     from darp.twin.settings import TwinSettings
     from darp.twin.waypoints import load_waypoints
 
@@ -35,7 +38,9 @@ def _readers() -> dict[str, Callable[[Path], Any]]:
             "twin settings (--settings)": TwinSettings.load, "waypoints (-w)": load_waypoints,
             "arm_poses.csv": read_arm_poses, "capture JSON": load_json_object,
             "captures.json": lambda p: read_captures(p.parent), "intrinsics.npz": load_intrinsics,
-            "transforms.json": read_nerfstudio_folder, "TUM trajectory": read_tum_trajectory}
+            "transforms.json": read_nerfstudio_folder, "TUM trajectory": read_tum_trajectory,
+            "keyframe .npz": read_keyframe, "keyframes.json": read_keyframe_index, "PLY cloud": read_ply,
+            "results.json": read_results}
 
 
 @pytest.fixture(scope="module")
@@ -47,11 +52,11 @@ def readers() -> dict[str, Callable[[Path], Any]]:
 @pytest.mark.parametrize("name", list(_readers()))
 def test_every_reader_refuses_a_special_file_at_once(name: str, kind: str, tmp_path: Path,
                                                      readers: dict[str, Callable[[Path], Any]]) -> None:
-    fname = {"captures.json": "captures.json", "intrinsics.npz": "intrinsics.npz",
-             "transforms.json": "transforms.json"}.get(name, "input.yaml")
+    fname = {"captures.json": "captures.json", "intrinsics.npz": "intrinsics.npz", "transforms.json": "transforms.json",
+             "keyframes.json": "keyframes.json", "results.json": "results.json"}.get(name, "input.yaml")
     path = tmp_path / fname
-    if kind == "folder" and name == "transforms.json":
-        pytest.skip("a folder is a nerfstudio dataset: its transforms.json is read")
+    if kind == "folder" and name in ("transforms.json", "keyframes.json", "results.json"):
+        pytest.skip("a folder is read as the folder that holds the file")
     if kind == "pipe":
         os.mkfifo(path)
     elif kind == "folder":
@@ -165,3 +170,13 @@ def test_the_streamed_joint_log_equals_its_rows_at_any_piece_size(chunk: int, tm
         assert np.array_equal(log.joints(arm), [[float(f"{v:.9f}") for v in r[2:]] for r in mine])
         numbers = [n + 2 + (n >= 100) for n in range(j, 300, 2)]
         assert log.lines(arm).tolist() == numbers
+
+
+def test_a_marker_that_is_a_pipe_still_marks_and_does_not_hang(tmp_path: Path) -> None:
+    from darp.formats.survey import partial_survey_reason
+    from darp.processing.runner import unfinished_reason
+
+    os.mkfifo(tmp_path / "PARTIAL.txt")
+    os.mkfifo(tmp_path / "UNFINISHED.txt")
+    assert partial_survey_reason(tmp_path) == "PARTIAL.txt present"
+    assert unfinished_reason(tmp_path) == "unfinished"

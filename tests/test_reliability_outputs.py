@@ -226,3 +226,24 @@ def test_resume_with_a_misshapen_stages_file_says_so_and_reruns(tmp_path: Path) 
     with pytest.warns(DarpWarning, match="'stages' must map each stage name"):
         process_survey(job, _stages(), resume=True)
     assert job.ran == ["kf", "mesh"]
+
+
+def test_a_run_holding_an_output_in_another_process_refuses_this_one(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    import os
+    import subprocess
+    import sys
+
+    out = tmp_path / "w.yaml"
+    code = ("import sys, time\nfrom darp.formats.io_output import output_lock\n"
+            f"with output_lock({str(out)!r}):\n    print('held', flush=True)\n    time.sleep(30)\n")
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")})
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        assert run(["twin", "waypoints", "--object", "cube", "-o", str(out)]) == 2
+        _one_error_line(capsys, f"pid {holder.pid}", "another darp run is writing it")
+    finally:
+        holder.kill()
+        holder.wait()
+    assert run(["twin", "waypoints", "--object", "cube", "-o", str(out)]) == 0  # the kernel freed the lock

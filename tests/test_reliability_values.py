@@ -148,3 +148,34 @@ def test_a_dead_ray_address_fails_in_seconds() -> None:
     with pytest.raises(ConfigError):
         parse_executor("ray:not an address")
     assert parse_executor("ray:auto").address == "auto"
+
+
+def _real_seq(tmp_path: Path) -> tuple[Path, Any]:
+    import shutil
+
+    from helpers.realdata import realdata
+
+    real = realdata("3dmatch-frames")
+    if not (real / "seq-01").is_dir():
+        pytest.skip("needs the 3dmatch-frames real data")
+    seq = tmp_path / "seq"
+    shutil.copytree(real / "seq-01", seq)
+    return seq, np.loadtxt(real / "camera-intrinsics.txt")
+
+
+@pytest.mark.parametrize("damage", ["text", "size"])
+def test_import_refuses_a_colour_image_it_cannot_use_instead_of_a_black_one(damage: str, tmp_path: Path) -> None:
+    import cv2
+
+    from darp.formats.trajectories import read_pose_txt
+    from darp.processing.imported import ImportSpec, import_sequence
+
+    seq, K = _real_seq(tmp_path)
+    bad = seq / "frame-000116.color.png"  # not the first frame (the first is checked for registration already)
+    if damage == "text":
+        bad.write_bytes(b"root:x:0:0:root:/root:/bin/bash\n")
+    else:
+        cv2.imwrite(str(bad), np.zeros((240, 320, 3), np.uint8))
+    with pytest.raises(FormatError, match="colour image") as caught:
+        import_sequence(ImportSpec(seq, tmp_path / "imp", K, poses=read_pose_txt(seq), pose_source="x"))
+    assert str(bad) in str(caught.value)

@@ -41,7 +41,9 @@ from darp.dataset import ProcessedSurvey, find_processed, keyframe_object_points
 from darp.errors import ConfigError, DarpError, DarpWarning, FormatError
 from darp.formats.atomic import atomic_path
 from darp.formats.calibration import Calibration, read_calibration
+from darp.formats.io_input import LIMITS
 from darp.formats.survey import Survey, open_survey
+from darp.formats.text import read_utf8_text
 from darp.kinematics import z1
 from darp.kinematics.camera_poses import interpolate_joints
 from darp.kinematics.collision import arm_primitives
@@ -262,7 +264,7 @@ def _envelope(processed: ProcessedSurvey | None, survey_path: Path | None) -> tu
         sources.append((survey_path / "manip_envelope.json", None))
     for file, key in sources:
         try:
-            record = json.loads(file.read_text(encoding="utf-8"))
+            record = json.loads(read_utf8_text(file, "a JSON file", limit=LIMITS["json"]))
             record = record[key] if key else record
             return (np.asarray(record["center_m"], np.float64).reshape(3), float(record["radius_m"]),
                     float(record["height_m"]))
@@ -376,7 +378,8 @@ def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewSta
             stats.heldout_points = len(points)
     results = processed.folder / "results.json"
     if results.is_file():
-        summary = json.loads(results.read_text(encoding="utf-8")).get("heldout", {}).get("aggregate", {})
+        summary = json.loads(read_utf8_text(results, "a JSON file", limit=LIMITS["json"])).get("heldout", {}).get(
+            "aggregate", {})
         rec.log("summary", rr.TextDocument(json.dumps(summary, indent=1)), static=True)
     return times
 

@@ -152,7 +152,13 @@ def os_error_message(err: OSError, argv: list[str] | None = None) -> str:
 def run(argv: list[str] | None = None) -> int:
     """Run the app, mapping every error to one line and exit code 2 (130 on SIGINT, 143 on SIGTERM, 129 on
     SIGHUP: each runs the same cleanup as Ctrl-C), and each DarpWarning to one ``darp: warning:`` line."""
+    import logging
+
     import darp.cli  # noqa: F401  (registers the command modules)
+
+    # matplotlib's notes about its cache folder (an unwritable HOME) are not the user's business: darp draws
+    # into files it names itself
+    logging.getLogger("matplotlib").setLevel(logging.ERROR)
 
     in_main = threading.current_thread() is threading.main_thread()
     _received.clear()

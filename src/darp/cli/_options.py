@@ -281,6 +281,16 @@ SettingsFile = Annotated[Path | None, typer.Option(
     exists=True, dir_okay=False, show_default=False)]
 
 
+def progress_bar(*columns: Any, quiet: bool = False, **kwargs: Any) -> Any:
+    """A rich ``Progress`` on stderr, drawn only when stderr is a terminal and ``--quiet`` is not given: never into
+    a log file or a pipe, never on stdout (which carries results)."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    console = Console(stderr=True)
+    return Progress(*columns, console=console, disable=quiet or not console.is_terminal, **kwargs)
+
+
 def seed_given(name: str = "seed") -> bool:
     """Whether the running command's ``--seed`` (parameter ``name``) was given on the command line."""
     import click
@@ -306,7 +316,7 @@ __all__ = [
     "RIG_HELP", "ArmConfig", "CameraArm", "CaptureStream", "Dictionary", "ExportStream", "ImageStream", "Joints",
     "Paper", "Placement", "Profile", "ProfileOption", "Quiet", "Resolution", "RigFile", "SettingsFile", "TwinObject",
     "calibration_option", "input_argument", "out_option", "parse_camera_arm", "parse_joints", "parse_placement",
-    "parse_resolution", "seed_given", "twin_settings",
+    "parse_resolution", "progress_bar", "seed_given", "twin_settings",
 ]
 
 

@@ -37,6 +37,7 @@ from darp.cli._options import (
     calibration_option,
     input_argument,
     out_option,
+    progress_bar,
     refuse_output_over_inputs,
     twin_settings,
 )
@@ -70,11 +71,10 @@ def _board(squares_x: int, squares_y: int, square_mm: float, marker_mm: float, d
 
 
 def _progress(quiet: bool) -> Any:
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    console=Console(stderr=True), disable=quiet, transient=True)
+    return progress_bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TimeElapsedColumn(), quiet=quiet, transient=True)
 
 
 @calib_app.command("board")

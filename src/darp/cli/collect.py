@@ -33,6 +33,7 @@ from darp.cli._options import (
     out_option,
     parse_placement,
     parse_resolution,
+    progress_bar,
     twin_settings,
 )
 from darp.cli.twin import PLACEMENT_HELP
@@ -51,10 +52,10 @@ PHASES = {"localise": "localising", "confirm": "confirming", "plan": "planning",
 
 def _run_with_progress(quiet: bool, title: str, run: Any) -> Any:
     """Call ``run(progress)`` under a rich progress bar showing the survey's phase."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
 
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[note]}"),
-                  TimeElapsedColumn(), disable=quiet, transient=False) as bar:
+    with progress_bar(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[note]}"),
+                      TimeElapsedColumn(), quiet=quiet, transient=False) as bar:
         task = bar.add_task(title, total=1.0, note="")
 
         def progress(phase: str, fraction: float, message: str) -> None:

@@ -182,7 +182,12 @@ def process(
     failed = [o for o in outcomes if o.status == FAILED]
     for o in failed:  # after the progress display is gone: one clean line each
         error(o.message)
-    summary_path = write_summary(out, done, [o.to_dict() for o in failed])
+    try:
+        summary_path = write_summary(out, done, [o.to_dict() for o in failed])
+    except OSError:
+        if failed:  # a full disk already failed the survey(s), in their own lines: one cause, said once
+            raise typer.Exit(2) from None
+        raise
     _print_table(done, failed)
     for o in outcomes:
         for warning in o.warnings:

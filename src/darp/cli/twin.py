@@ -29,6 +29,7 @@ from darp.cli._options import (
     out_option,
     parse_placement,
     parse_resolution,
+    progress_bar,
     refuse_output_over_inputs,
 )
 from darp.formats.limits import DWELL_MAX_S
@@ -102,7 +103,7 @@ def record_command(
     """Record a twin survey: arms through the waypoints, both cameras, joint log, envelope and truth/."""
     import dataclasses
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
 
     from darp.kinematics.rig import load_rig
     from darp.twin.record import record_survey
@@ -124,9 +125,9 @@ def record_command(
     folder = out if out is not None else Path(obj.name)
     sources = [p for p in (waypoints, settings_file, rig_file, Path(obj_name)) if p is not None and p.exists()]
     refuse_output_over_inputs(folder, sources, "--out", folder_output=True)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
-                  TextColumn("{task.completed:.1f}/{task.total:.1f} s simulated"), TimeElapsedColumn(),
-                  disable=quiet, transient=False) as bar:
+    with progress_bar(TextColumn("[bold]{task.description}"), BarColumn(),
+                      TextColumn("{task.completed:.1f}/{task.total:.1f} s simulated"), TimeElapsedColumn(),
+                      quiet=quiet, transient=False) as bar:
         task = bar.add_task(f"twin {obj.name}", total=1.0)
 
         def progress(done_s: float, total_s: float) -> None:

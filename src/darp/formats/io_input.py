@@ -28,7 +28,9 @@ LIMITS: dict[str, int] = {
     "yaml": 16 * MiB,  # rig, settings, waypoints, capture metadata
     "text": 256 * MiB,  # trajectories (TUM, trajectory.log), pose and intrinsics text files
     "image": 512 * MiB,  # one colour, depth or board image (PNG, JPEG, TIFF, ...)
-    "npz": 256 * MiB,  # intrinsics.npz, pose .npy/.npz
+    "npz": 1024 * MiB,  # intrinsics.npz, pose .npy/.npz, keyframes, observations, evaluation distances
+    "cloud": 16 * 1024 * MiB,  # a PLY point cloud or mesh (read whole)
+    "marker": MiB,  # PARTIAL.txt, UNFINISHED.txt (their first line is shown)
     "csv": 1 << 40,  # arm_poses.csv is streamed: memory does not grow with it
 }
 MAX_IMAGE_PIXELS = 1 << 28  # 268 Mpx (16384 x 16384): far above any RGB-D camera
@@ -153,6 +155,22 @@ def load_numpy(path: str | Path, what: str = "a NumPy file", error: type[DarpErr
         raise error(f"truncated or damaged {what} ({detail})", path) from None
 
 
+@contextlib.contextmanager
+def npz_input(path: str | Path, what: str = "an .npz file", error: type[DarpError] = FormatError) -> Iterator[Any]:
+    """``np.load`` of an ``.npz`` (no pickle) opened through the checked path; the arrays are read lazily."""
+    with open_input(path, what, error, limit=LIMITS["npz"]) as handle, np.load(handle, allow_pickle=False) as data:
+        yield data
+
+
+def marker_text(path: str | Path) -> str:
+    """The text of a marker file (``PARTIAL.txt``, ``UNFINISHED.txt``), undecodable bytes replaced; "" when it
+    cannot be read (a marker that is there says enough)."""
+    try:
+        return read_input_bytes(path, "a marker file", limit=LIMITS["marker"]).decode("utf-8", errors="replace")
+    except DarpError:
+        return ""
+
+
 def image_too_large(width: int, height: int) -> bool:
     """True when a ``width`` x ``height`` image is beyond :data:`MAX_IMAGE_PIXELS` (or not positive)."""
     return width <= 0 or height <= 0 or width * height > MAX_IMAGE_PIXELS
@@ -203,4 +221,4 @@ def decode_image(path: str | Path, flags: int, what: str = "an image", error: ty
 
 
 __all__ = ["LIMITS", "MAX_IMAGE_PIXELS", "check_input", "decode_image", "image_too_large", "input_chunks",
-           "load_numpy", "open_input", "png_size", "read_input_bytes"]
+           "load_numpy", "marker_text", "npz_input", "open_input", "png_size", "read_input_bytes"]

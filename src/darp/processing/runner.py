@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -33,6 +34,7 @@ from typing import Any, Generic, Protocol, TypeVar
 
 from darp.errors import DarpError, DarpWarning, FormatError, ProcessingError
 from darp.formats.atomic import UNFINISHED_FILE, atomic_path, write_json_atomic, write_text_atomic
+from darp.formats.io_input import marker_text
 from darp.formats.schema import load_json_object
 
 STAGES_FILE = "stages.json"
@@ -125,12 +127,9 @@ def read_stage_state(out: Path, *, strict: bool = False) -> dict[str, Any]:
 def unfinished_reason(out: str | Path) -> str | None:
     """The first line of ``UNFINISHED.txt`` in an output folder, or None when the run completed."""
     marker = Path(out) / UNFINISHED_FILE
-    if not marker.is_file():
+    if not marker.exists():
         return None
-    try:
-        text = marker.read_text(encoding="utf-8", errors="replace").strip()
-    except OSError:
-        return "unfinished (UNFINISHED.txt unreadable)"
+    text = marker_text(marker).strip()  # a marker that cannot be read (a pipe, a folder) still marks
     return text.splitlines()[0] if text else "unfinished"
 
 
@@ -201,6 +200,10 @@ def _run_stages(job: J, stages: Sequence[Stage[J]], resume: bool, fingerprints: 
             summary = stage.run(job)
         except DarpError as err:
             _fail(job, stages, stage, stages_state, str(err), err.path)
+        except OSError as err:  # a full or read-only disk while the stage writes: this stage's failure, named
+            where = f"{os.fsdecode(err.filename)}: " if err.filename is not None else ""
+            _fail(job, stages, stage, stages_state, f"{where}{(err.strerror or str(err)).lower()}",
+                  None if err.filename is None else Path(os.fsdecode(err.filename)))
         except (ValueError, RuntimeError, ArithmeticError, IndexError, KeyError, MemoryError) as err:
             # a library failing inside a stage (Open3D, numpy, ...): still this survey's, named and contained
             _fail(job, stages, stage, stages_state, f"{type(err).__name__}: {err}".splitlines()[0], None)
@@ -224,9 +227,10 @@ def _fail(job: J, stages: Sequence[Stage[J]], stage: Stage[J], stages_state: dic
             target = job.out / output
             if target.is_file():
                 target.unlink()
-    write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state,
-                                              "failed": {"stage": stage.name, "reason": reason}})
-    _mark_unfinished(job.out, f"failed: {stage.name}: {reason}")
+    with contextlib.suppress(OSError):  # on a full disk these may fail too: the marker of the run start stays
+        write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state,
+                                                  "failed": {"stage": stage.name, "reason": reason}})
+        _mark_unfinished(job.out, f"failed: {stage.name}: {reason}")
     raise StageFailure(job.name, stage.name, reason, path)
 
 
