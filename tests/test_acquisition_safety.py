@@ -28,9 +28,10 @@ FAST = ["--fps", "6", "--resolution", "424x240", "--quiet"]
     ("-0.62,0.02,0", "mm from arm110's shoulder_motor"),
     ("1.5,0,0", "is not on the table"),
     ("0,0.44,0", "is not on the table"),  # centre on the table, footprint over its edge
-    ("inf,0,0", "placement must be finite numbers, got x=inf"),
-    ("0,nan,0", "placement must be finite numbers, got y=nan"),
-    ("0,0,inf", "got yaw=inf"),
+    # non-finite values are refused where the option enters (issue 32), before any placement check
+    ("inf,0,0", "'--placement': expected finite x,y within +-10 m and yaw_deg within +-360, got 'inf,0,0'"),
+    ("0,nan,0", "'--placement': expected finite x,y within +-10 m and yaw_deg within +-360, got '0,nan,0'"),
+    ("0,0,inf", "'--placement': expected finite x,y within +-10 m and yaw_deg within +-360, got '0,0,inf'"),
     ("0,0.37,0", "outside the reachable workspace"),
 ])
 def test_invalid_placements_are_refused_before_anything_moves(tmp_path: Path, capsys: pytest.CaptureFixture[str],
