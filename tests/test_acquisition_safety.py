@@ -197,3 +197,11 @@ def test_a_controller_fault_on_hardware_stops_both_arms_and_raises(fake_z1, fake
             checked_move(rig, ArmCollisionModel(RIG, "arm111"), park)
     finally:
         rig.close()
+
+
+@pytest.mark.parametrize(("values", "named"), [((float("inf"), 0.0, 0.0), "x=inf"), ((0.0, float("nan"), 0.0), "y=nan"),
+                                                ((0.0, 0.0, float("inf")), "yaw=inf")])
+def test_the_library_refuses_non_finite_placements_too(values: tuple[float, float, float], named: str) -> None:
+    """Callers that bypass the CLI (batches, scripts) get the same refusal, naming the value."""
+    with pytest.raises(TwinError, match=f"placement must be finite numbers, got {named}"):
+        validate_placement(RIG, 0.04, 0.1, ObjectPlacement(*values))
