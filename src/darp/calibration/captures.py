@@ -279,13 +279,15 @@ def record_from_dict(data: dict[str, Any], path: Path | None) -> CaptureRecord:
     )
 
 
-def read_captures(folder: str | Path) -> CaptureSet:
-    """Read and validate a capture folder (index and every record; images are read on demand)."""
+def read_captures(folder: str | Path, *, unfinished_ok: bool = False) -> CaptureSet:
+    """Read and validate a capture folder (index and every record; images are read on demand). A folder still
+    marked unfinished is refused unless ``unfinished_ok`` (the writer checking what it has just written, before
+    its run removes the mark)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FormatError("not a capture folder (no such directory)", folder)
     index_path = folder / INDEX_FILE
-    if (folder / UNFINISHED_FILE).is_file():
+    if not unfinished_ok and (folder / UNFINISHED_FILE).is_file():
         raise FormatError(f"unfinished capture folder ({UNFINISHED_FILE}: its capture run did not complete)", folder)
     index = load_json_object(index_path)
     if index.get("schema") != INDEX_SCHEMA:
@@ -403,7 +405,7 @@ class CaptureWriter:
     def close(self) -> CaptureSet:
         """Final index; returns the folder as read back."""
         self._write_index()
-        return read_captures(self.folder)
+        return read_captures(self.folder, unfinished_ok=True)
 
 
 __all__ = [
