@@ -51,7 +51,7 @@ SquaresY = Annotated[int, typer.Option("--squares-y", help="Squares along the bo
 SquareMm = Annotated[float, typer.Option("--square-mm", help="Square side, millimetres.")]
 MarkerMm = Annotated[float, typer.Option("--marker-mm", help="ArUco marker side, millimetres.")]
 DictionaryOption = Annotated[Dictionary, typer.Option("--dictionary", help="OpenCV ArUco dictionary.")]
-Captures = Annotated[int, typer.Option("--captures", min=1, help="Captures per arm (when planning).")]
+Captures = Annotated[int, typer.Option("--captures", min=1, max=10000, help="Captures per arm (when planning).")]
 def _folds(value: int) -> int:
     if value != 0 and value < 2:  # one fold holds everything out; a negative count is no count
         raise typer.BadParameter(f"expected 0 (no held-out evaluation) or at least 2 folds, got {value}")
@@ -162,8 +162,10 @@ def capture_command(
     """Take calibration captures (one arm moving at a time) on the twin or the real rig."""
     if twin == hardware:
         raise typer.BadParameter("choose exactly one", param_hint="'--twin' / '--hardware'")
+    from darp.calibration.captures import check_capture_output
     from darp.calibration.plan import CapturePlan
 
+    check_capture_output(out, overwrite)  # before any work: a survey or a user's folder is refused at once
     plan = CapturePlan.load(plan_file) if plan_file is not None else None
     total = sum(len(p) for p in plan.poses.values()) if plan is not None else 2 * captures
     from darp.formats.io_output import unfinished_folder
