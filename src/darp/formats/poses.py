@@ -5,7 +5,8 @@
 - a folder of 4x4 (or 3x4) matrices, one ``.txt`` (whitespace or commas, ``#`` comments) or ``.npy`` per capture;
 - ``board_poses/``: camera-from-board per capture, 4x4 ``.txt``/``.npy`` or ``.npz`` with OpenCV's ``rvec``/``tvec``.
 
-Each file is keyed by its capture id (:func:`capture_key`: the last number in its name). Every matrix must be a
+Each file is keyed by its capture id (:func:`capture_key`: :mod:`darp.formats.pairing`'s rule). More table
+forms (``.npz``, ``.json``, 4x4 rows) are read by :mod:`darp.formats.pose_tables`. Every matrix must be a
 rigid transform by :mod:`darp.geometry.rigid`'s rule; rotations a little off orthonormal (up to
 ``NEAR_RIGID_LIMIT``) are replaced by the nearest rotation with one warning per file or folder.
 """
@@ -13,7 +14,6 @@ rigid transform by :mod:`darp.geometry.rigid`'s rule; rotations a little off ort
 from __future__ import annotations
 
 import csv
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,9 +51,11 @@ def pose_conventions(data: dict[str, Any], path: Path, base: PoseConventions | N
 
 
 def capture_key(stem: str) -> str:
-    """The capture id of a file: its last number (``pose_003`` and ``calib_3`` -> ``3``), else its stem."""
-    runs = re.findall(r"\d+", stem)
-    return (runs[-1].lstrip("0") or "0") if runs else stem
+    """The capture id of a file or CSV id: :func:`darp.formats.pairing.frame_id` (the stem without role words;
+    ``pose_003``, ``calib_3`` and ``003`` -> ``3``; ``img_14-05-41`` -> ``14-05-41``)."""
+    from darp.formats.pairing import frame_id
+
+    return frame_id(stem)
 
 
 def quat_pose(values: Sequence[float], conv: PoseConventions) -> np.ndarray:
