@@ -126,7 +126,7 @@ def twin_path_equivalence(caps: object, generic: Path) -> None:
     arms = caps.arms  # type: ignore[attr-defined]
     obs = build_observations(detect_captures(caps), caps.board, arms)  # type: ignore[arg-type, attr-defined]
     native = calibrate_observations(obs, RefineSettings(estimate_offsets=False), {a: np.zeros(6, bool) for a in arms})
-    gen = solve_folder(generic, folds=0, compare=False)
+    gen = solve_folder(generic, folds=0, compare=False, refinement="pixels")
     diffs = [float(np.abs(native.params.T_wrist_cam[a] @ np.asarray(caps.for_arm(a)[0].T_depth_stream)  # type: ignore[attr-defined]
                           - gen.params.T_wrist_cam[a]).max()) for a in arms]
     b2b = float(np.abs(native.params.T_ref_base[arms[-1]] - gen.params.T_ref_base[arms[-1]]).max())

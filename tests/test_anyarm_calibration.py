@@ -296,7 +296,7 @@ def test_exported_darp_captures_give_darp_solvers_calibration(tmp_path: Path) ->
     obs = build_observations(detect_captures(caps), caps.board, arms)
     native = calibrate_observations(obs, RefineSettings(estimate_offsets=False), {a: np.zeros(6, bool) for a in arms})
     assert export_captures(caps, tmp_path / "generic") == 16
-    generic = solve_folder(tmp_path / "generic", folds=0, compare=False)
+    generic = solve_folder(tmp_path / "generic", folds=0, compare=False, refinement="pixels")
     assert generic.observations.arms == arms and generic.observations.n_captures == 16
     # Two solvers of the same problem stop within their convergence tolerance of each other (about 1e-5 rad
     # and 0.01 mm with numpy 2.4 / scipy 1.17); a convention slip would be millimetres to centimetres off.
