@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +45,7 @@ from darp.errors import CalibrationError, FormatError
 from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.captures import CaptureFolder, PairingOptions, read_capture_folder
 from darp.formats.intrinsics import CameraModel
-from darp.formats.pairing import natural_key
+from darp.formats.pairing import describe_pairs, natural_key
 from darp.kinematics.transforms import invert_transform
 
 OPENCV_METHODS = tuple(f"calibrateHandEye/{m}" for m in handeye.HAND_EYE_METHODS)
@@ -318,6 +318,7 @@ class HandEyeOutcome:
     consistency: dict[str, Any]
     comparison: dict[str, dict[str, Any]]
     warnings: list[str]
+    pairing_lines: list[str] = field(default_factory=list)  # how captures were paired, and the check's numbers
 
 
 def check_capture_pairing(folder: CaptureFolder[Board], obs: Observations, arm: str, force: bool = False
@@ -441,7 +442,15 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
              f"the base frame of {obs.arms[0]} (any-arm calibration, no joint offsets)")
     cal = Calibration(epoch=folder.root.name, date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                       arms=arms_out, board=folder.board.spec(), world_frame=world, report=_jsonable(report))
-    return HandEyeOutcome(cal, params, obs, dets, cameras, {"per_arm": held}, cons, comparison, warns)
+    lines = []
+    for a in folder.arms:
+        if a.pairing is not None:
+            lines.append(f"{a.arm}: {describe_pairs(a.pairing)}")
+        c = pairing_checks.get(a.arm)
+        if c:
+            lines.append(f"{a.arm}: pairing check: boards agree to {c['as given']:.2f} mm median as paired, "
+                         f"{c['shift+1']:.1f} / {c['shift-1']:.1f} mm with the poses shifted by +1 / -1")
+    return HandEyeOutcome(cal, params, obs, dets, cameras, {"per_arm": held}, cons, comparison, warns, lines)
 
 
 def _jsonable(v: Any) -> Any:
