@@ -229,5 +229,70 @@ def judge_alternatives(scores: Mapping[str, float], source: Path | str, what: st
     return None
 
 
+COLOUR_WORDS = ("color", "colour", "rgb", "image", "img")
+DEPTH_WORDS = ("depth",)
+RGBD_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+def rgbd_frames(folder: Path) -> tuple[dict[str, Path], dict[str, Path]]:
+    """(colour, depth) image files by frame id in an RGB-D folder.
+
+    A file whose path (name or sub-folder) contains ``depth`` is a depth image, one with ``color``/``colour``/
+    ``rgb``/``image``/``img`` a colour image; files with neither, side by side in one folder, pair by id:
+    the ``.jpg``/``.jpeg`` is the colour, the ``.png``/``.tif`` the depth (``12.jpg`` + ``12.png``).
+    """
+    files = [f for f in sorted(folder.rglob("*")) if f.is_file() and f.suffix.lower() in RGBD_SUFFIXES]
+    colour: list[tuple[str, Path]] = []
+    depth: list[tuple[str, Path]] = []
+    plain: dict[str, list[Path]] = {}
+    for f in files:
+        rel = str(f.relative_to(folder)).lower()
+        if any(w in rel for w in DEPTH_WORDS):
+            depth.append((str(f.relative_to(folder)), f))
+        elif any(w in rel for w in COLOUR_WORDS):
+            colour.append((str(f.relative_to(folder)), f))
+        else:
+            plain.setdefault(frame_id(f.name), []).append(f)
+    for group in plain.values():
+        for f in group:
+            jpeg = f.suffix.lower() in (".jpg", ".jpeg")
+            if jpeg or any(g.suffix.lower() in (".jpg", ".jpeg") for g in group):
+                (colour if jpeg else depth).append((str(f.relative_to(folder)), f))
+    if not depth:
+        raise FormatError("no depth images (names or folders containing 'depth', or a .png beside each .jpg)",
+                          folder)
+    return keyed(colour, folder, "colour image"), keyed(depth, folder, "depth image")
+
+
+def backprojected(depth: np.ndarray, scale: float, K: np.ndarray, T: np.ndarray, max_points: int = 20000
+                  ) -> np.ndarray:
+    """World points (N, 3) of a depth image's valid pixels (every ``step``-th, at most about ``max_points``)."""
+    step = max(1, int(np.ceil(np.sqrt(depth.size / max_points))))
+    d = depth[::step, ::step].astype(np.float64) * scale
+    v, u = np.nonzero(d)
+    z = d[v, u]
+    P = np.stack([(u * step - K[0, 2]) / K[0, 0] * z, (v * step - K[1, 2]) / K[1, 1] * z, z], 1)
+    return np.asarray(P @ T[:3, :3].T + T[:3, 3])
+
+
+def neighbour_agreement(depths: Sequence[np.ndarray], K: np.ndarray, scale: float,
+                        poses: Sequence[np.ndarray | None]) -> list[float]:
+    """Per consecutive pair of frames: the median distance (mm) from the second's back-projected points to the
+    first's nearest (NaN where a pose is missing)."""
+    from scipy.spatial import cKDTree
+
+    out = []
+    for i in range(0, len(depths) - 1, 2):
+        T0, T1 = poses[i], poses[i + 1]
+        if T0 is None or T1 is None:
+            out.append(float("nan"))
+            continue
+        A = backprojected(depths[i], scale, K, T0)
+        B = backprojected(depths[i + 1], scale, K, T1)
+        out.append(1e3 * float(np.median(cKDTree(A).query(B)[0])) if len(A) and len(B) else float("nan"))
+    return out
+
+
 __all__ = ["ALTERNATIVE_FIX", "ROLE_WORDS", "Pairing", "describe_pairs", "file_stem", "frame_id", "judge_alternatives",
-           "keyed", "last_number", "natural_key", "pair_names", "read_order_file", "shift_poses"]
+           "backprojected", "keyed", "last_number", "natural_key", "neighbour_agreement", "pair_names",
+           "read_order_file", "rgbd_frames", "shift_poses"]
