@@ -142,6 +142,8 @@ def _flat(d: Any) -> dict[str, Any]:
 
 
 def _is_named_form(d: Any) -> bool:
+    if isinstance(d, dict) and "intrinsic_matrix" in d:  # Open3D's PinholeCameraIntrinsic (column-major)
+        return False
     f = _flat(d)
     return any(k in f for k in _NAMED_KEYS) or isinstance(f.get("cameramatrix"), dict) or (
         isinstance(d, dict) and "k" in d)
@@ -183,7 +185,7 @@ def read_named_intrinsics(path: str | Path) -> CameraModel:
             K = np.array([[fx, 0, float(d.get("ppx", d.get("cx")))], [0, float(d.get("fy", fx)),
                          float(d.get("ppy", d.get("cy")))], [0, 0, 1]], np.float64)
         else:
-            key = next(k for k in ("k", "cameramatrix", "intrinsicmatrix") if k in d)
+            key = next(k for k in ("k", "cameramatrix") if k in d)
             K = np.asarray(_values(d[key]), np.float64).reshape(3, 3)
         dist = np.array([float(d.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")], np.float64)
         for k in ("distortioncoefficients", "coeffs", "d", "dist", "distcoeffs", "distortion"):
