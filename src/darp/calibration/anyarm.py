@@ -443,12 +443,12 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
     cal = Calibration(epoch=folder.root.name, date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                       arms=arms_out, board=folder.board.spec(), world_frame=world, report=_jsonable(report))
     lines = []
-    for a in folder.arms:
-        if a.pairing is not None:
-            lines.append(f"{a.arm}: {describe_pairs(a.pairing)}")
-        c = pairing_checks.get(a.arm)
+    for ac in folder.arms:
+        if ac.pairing is not None:
+            lines.append(f"{ac.arm}: {describe_pairs(ac.pairing)}")
+        c = pairing_checks.get(ac.arm)
         if c:
-            lines.append(f"{a.arm}: pairing check: boards agree to {c['as given']:.2f} mm median as paired, "
+            lines.append(f"{ac.arm}: pairing check: boards agree to {c['as given']:.2f} mm median as paired, "
                          f"{c['shift+1']:.1f} / {c['shift-1']:.1f} mm with the poses shifted by +1 / -1")
     return HandEyeOutcome(cal, params, obs, dets, cameras, {"per_arm": held}, cons, comparison, warns, lines)
 

@@ -154,8 +154,8 @@ def read_hand_eye(path: str | Path, unit: str = "m", arm: str = "") -> HandEye:
                 he = _from_mapping(d, unit, p, arm)
     except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as err:
         raise FormatError(f"cannot read the hand-eye ({type(err).__name__}: {err})", p) from None
-    T, err = orthonormalised(he.T_wrist_cam, "hand-eye", p, error=FormatError)
-    warn_orthonormalised([err], p, "hand-eye")
+    T, off = orthonormalised(he.T_wrist_cam, "hand-eye", p, error=FormatError)
+    warn_orthonormalised([off], p, "hand-eye")
     he.T_wrist_cam = T
     dist = float(np.linalg.norm(T[:3, 3]))
     if dist > MAX_HAND_EYE_M:

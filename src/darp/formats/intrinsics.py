@@ -182,8 +182,8 @@ def read_named_intrinsics(path: str | Path) -> CameraModel:
             K = np.array([[fx, 0, c[0]], [0, fy, c[1]], [0, 0, 1]], np.float64)
         elif "fx" in d and ("ppx" in d or "cx" in d):
             fx = float(d["fx"])
-            K = np.array([[fx, 0, float(d.get("ppx", d.get("cx")))], [0, float(d.get("fy", fx)),
-                         float(d.get("ppy", d.get("cy")))], [0, 0, 1]], np.float64)
+            K = np.array([[fx, 0, float(d.get("ppx", d.get("cx", 0.0)))], [0, float(d.get("fy", fx)),
+                         float(d.get("ppy", d.get("cy", 0.0)))], [0, 0, 1]], np.float64)
         else:
             key = next(k for k in ("k", "cameramatrix") if k in d)
             K = np.asarray(_values(d[key]), np.float64).reshape(3, 3)
@@ -196,7 +196,7 @@ def read_named_intrinsics(path: str | Path) -> CameraModel:
             d.get("distortion"), str) else "plumb_bob")))
         size = None
         if "width" in d or "imagewidth" in d:
-            size = (int(d.get("width", d.get("imagewidth"))), int(d.get("height", d.get("imageheight"))))
+            size = (int(d.get("width", d.get("imagewidth", 0))), int(d.get("height", d.get("imageheight", 0))))
         elif "imagesize" in d:
             w, h = _values(d["imagesize"])[:2]
             size = (int(w), int(h))
