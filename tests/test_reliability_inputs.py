@@ -157,7 +157,7 @@ BAD_VALUES: dict[str, tuple[str, Callable[[], bytes], str]] = {
                                 "also on arms.arm110"),
     "calibration deeply nested": ("calibration", lambda: b'{"schema_version": 1, "report": ' + b"[" * 50000
                                   + b"]" * 50000 + b"}", "nested too deeply"),
-    "rig unknown key": ("rig", lambda: default_rig_path().read_bytes() + b"colour: red\n", "unknown field"),
+    "rig unknown key": ("rig", lambda: default_rig_path().read_bytes() + b"colour: red\n", "unknown key"),
     "rig rpy 1e300": ("rig", lambda: default_rig_path().read_bytes().replace(b"rpy_deg: [0.0, 0.0, 178.4]",
                                                                            b"rpy_deg: [0.0, 0.0, 1e300]"),
                       "rpy_deg"),

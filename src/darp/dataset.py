@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import DarpError, DarpWarning, FormatError
+from darp.errors import DarpError, DarpWarning, DecodeError, FormatError
 from darp.formats.atomic import UNFINISHED_FILE
 from darp.formats.truth import OBJECT_JSON_FILE, OBJECT_MESH_FILE, TRUTH_DIR
 from darp.geometry.transforms import transform_points
@@ -148,7 +148,7 @@ def read_object_truth(truth_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
         mesh = trimesh.load(mesh_path, process=False, force="mesh")
         if not isinstance(mesh, trimesh.Trimesh):
-            raise ValueError(f"not a triangle mesh (trimesh read a {type(mesh).__name__})")
+            raise DecodeError(f"not a triangle mesh (trimesh read a {type(mesh).__name__})")
         points, triangles = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     except (OSError, ValueError) as err:
         raise FormatError(f"cannot read the object mesh: {err}", mesh_path) from err

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from darp.colours import arm_rgb
 from darp.dataset import ProcessedSurvey, find_processed, keyframe_object_points
 from darp.errors import ConfigError, DarpError, FormatError
 from darp.formats.calibration import Calibration, read_calibration
@@ -50,7 +51,7 @@ from darp.reconstruction.keyframe_io import read_keyframe, read_keyframe_index
 ARM_RATE_HZ = 10.0  # joint states logged per second of the timeline (plus one at every image's time)
 HELDOUT_RANGE_M = 0.010  # the colour map's top (10 mm: the paper's coarser threshold)
 ENTITY = {"cylinder": "cylinders", "capsule": "capsules", "box": "boxes"}
-ARM_COLOURS = {"arm110": (230, 120, 40), "arm111": (40, 140, 230)}
+ARM_COLOURS = {arm: arm_rgb(arm) for arm in ("arm110", "arm111")}
 
 
 @dataclass

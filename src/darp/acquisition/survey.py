@@ -45,15 +45,15 @@ from typing import Any
 import numpy as np
 
 from darp.acquisition.confirm import ConfirmSettings, Decision, decide, settings_from_calibration
-from darp.acquisition.coverage import (
+from darp.acquisition.coverage import CoverageSettings
+from darp.acquisition.coverage_plan import (
     CoveragePlan,
-    CoverageSettings,
-    CoverageTracker,
     coverage_of_plans,
     feasible_pool,
     feasible_poses_record,
     plan_coverage,
 )
+from darp.acquisition.coverage_track import CoverageTracker
 from darp.acquisition.episode import Episode
 from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSettings, ObjectEstimate
 from darp.acquisition.motion_check import (

@@ -17,10 +17,11 @@ import numpy as np
 from darp import paper
 from darp.calibration.model import per_capture, reprojection_errors
 from darp.calibration.solve import METHOD_LABELS, SolveOutcome
+from darp.colours import ARM_COLOURS
 from darp.formats.atomic import atomic_path, write_text_atomic
 from darp.formats.schema import write_json_checked
 
-COLOURS = {0: "tab:red", 1: "tab:blue"}
+COLOURS = {0: ARM_COLOURS["arm110"], 1: ARM_COLOURS["arm111"]}  # by the rig's arm index
 
 
 def save_png(fig: Any, path: Path) -> None:

@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import FormatError, ReconstructionError
+from darp.errors import DecodeError, FormatError, ReconstructionError
 from darp.formats.atomic import atomic_open, write_json_atomic
 from darp.formats.realsense.recording import Recording
 from darp.formats.realsense.types import FrameSet, Intrinsics
@@ -199,7 +199,7 @@ def read_keyframe(path: str | Path, skip: Iterable[str] = ()) -> Keyframe:
     skipped = set(skip)
     unknown = skipped - set(SKIPPABLE)
     if unknown:
-        raise ValueError(f"cannot skip {', '.join(sorted(unknown))} (skippable: {', '.join(SKIPPABLE)})")
+        raise ReconstructionError(f"cannot skip {', '.join(sorted(unknown))} (skippable: {', '.join(SKIPPABLE)})")
     try:
         with np.load(path, allow_pickle=False) as data:
             missing = [name for name in KEYFRAME_ARRAYS if name not in data.files]
@@ -251,7 +251,7 @@ def read_keyframe_index(folder: str | Path) -> KeyframeIndex:
         try:
             T = np.array(entry["T_world_cam"], np.float64)
             if T.shape != (4, 4) or entry["split"] not in (FUSE, HELDOUT):
-                raise ValueError("bad pose or split")
+                raise DecodeError("bad pose or split")
             entries.append(KeyframeInfo(file=str(entry["file"]), arm=str(entry["arm"]), serial=str(entry["serial"]),
                                         frame_number=int(entry["frame_number"]),
                                         timestamp_ms=float(entry["timestamp_ms"]), t_s=float(entry["t_s"]),

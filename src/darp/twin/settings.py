@@ -35,6 +35,7 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.schema import dataclass_from_mapping, refuse_unknown_keys
 from darp.formats.text import read_yaml_mapping
 
 SCHEMA = "darp-twin-settings/1"
@@ -388,22 +389,14 @@ class TwinSettings:
         profile = data.pop("profile", "realistic")
         seed = data.pop("seed", 0)
         base = cls.from_profile(str(profile), seed=seed) if isinstance(seed, int) else cls(seed=seed)
-        groups = {f.name: f.type for f in dataclasses.fields(cls) if f.name not in ("profile", "seed")}
+        groups = [f.name for f in dataclasses.fields(cls) if f.name not in ("profile", "seed")]
+        refuse_unknown_keys(data, groups, error=ConfigError)
         changes: dict[str, Any] = {}
         for key, value in data.items():
-            if key not in groups:
-                raise ConfigError(f"unknown settings group {key!r} (groups: {', '.join(groups)})")
-            if not isinstance(value, dict):
-                raise ConfigError(f"{key}: expected a mapping of settings")
+            if value is None:
+                raise ConfigError(f"{key}: expected a mapping of settings, got nothing")
             current = getattr(base, key)
-            names = {f.name for f in dataclasses.fields(current)}
-            unknown = sorted(map(str, set(value) - names))
-            if unknown:
-                raise ConfigError(f"{key}: unknown setting(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
-            try:
-                changes[key] = dataclasses.replace(current, **value)
-            except TypeError as err:
-                raise ConfigError(f"{key}: {err}") from None
+            changes[key] = dataclass_from_mapping(type(current), value, key, base=current, error=ConfigError)
         return dataclasses.replace(base, **changes)
 
     @classmethod
