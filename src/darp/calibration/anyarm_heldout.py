@@ -53,8 +53,8 @@ def read_folds_file(path: str | Path) -> dict[str, int]:
                 s = line.split("#")[0].replace(",", " ").split()
                 if not s or (n == 0 and not s[-1].lstrip("-").isdigit()):
                     continue
-                if len(s) != 2:
-                    raise ValueError(f"line {n + 1}: expected 'capture_id fold'")
+                if len(s) != 2 or not s[1].lstrip("-").isdigit():
+                    raise FormatError(f"line {n + 1}: expected 'capture_id fold'", p)
                 items.append((s[0], int(s[1])))
     except (ValueError, json.JSONDecodeError) as err:
         raise FormatError(f"not a folds file ({err})", p) from None
