@@ -228,3 +228,21 @@ def test_near_orthonormal_poses_warn_with_file_and_error_and_process_accepts_the
                                         "  depth:\n    max_depth_m: 5.0\n")
     assert run(["process", str(tmp_path / "imp"), "-o", str(tmp_path / "out"), "--settings",
                 str(tmp_path / "room.yaml")]) == 0
+
+
+@needs(DOOSAN)
+def test_other_quaternion_order_in_a_json_table_is_named(tmp_path: Path) -> None:
+    root = doosan_caps(tmp_path / "c")
+    (root / "poses.csv").unlink()
+    poses = [read_matrix_file(f) for f in sorted((DOOSAN / "poses").glob("pose_*.txt"))]
+    records = []
+    for i, T in enumerate(poses):
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()  # SciPy: x y z w
+        records.append({"image": f"img_{i:03d}.png", "position": T[:3, 3].tolist(),
+                        "orientation": [float(q[3]), *map(float, q[:3])]})  # written w x y z
+    (root / "poses.json").write_text(json.dumps(records))
+    with pytest.raises(FormatError, match=r"poses\.json: the quaternions look like the other order.*--quaternion"):
+        solve_folder(root, folds=0, compare=False)  # handeye.yaml declares no order: xyzw
+    (root / "handeye.yaml").write_text(SIDECAR + "quaternion: wxyz\n")
+    good = solve_folder(root, folds=0, compare=False)
+    assert good.observations.n_captures == 31

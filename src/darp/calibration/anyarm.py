@@ -327,8 +327,9 @@ def check_capture_pairing(folder: CaptureFolder[Board], obs: Observations, arm: 
     paired and with every image paired with its neighbour's pose (shifted by one either way).
 
     Raise :func:`darp.formats.pairing.judge_alternatives`' one-line error when a shift agrees much better
-    (with ``force``: return its text as a warning). Inversions and the quaternion order are
-    :func:`darp.calibration.diagnose.check_pose_conventions`' part."""
+    (with ``force``: return its text as a warning); also with the other quaternion order when the poses were
+    quaternions (any table form; a CSV's is also :func:`darp.calibration.diagnose.check_pose_conventions`'
+    part, which checks the inversions)."""
     from darp.calibration.diagnose import consistency_mm
     from darp.formats.pairing import judge_alternatives
 
@@ -338,7 +339,11 @@ def check_capture_pairing(folder: CaptureFolder[Board], obs: Observations, arm: 
     F, B = np.asarray(obs.T_base_flange)[order], obs.T_depth_board_pnp[order]
     scores = {"as given": consistency_mm(F, B), "shift+1": consistency_mm(F[1:], B[:-1]),
               "shift-1": consistency_mm(F[:-1], B[1:])}
-    source = next((a.pose_source for a in folder.arms if a.arm == arm), folder.root)
+    caps = next(a for a in folder.arms if a.arm == arm)
+    if caps.swapped is not None and all(i in caps.swapped for i in ids):  # quaternions, any table form
+        Fq = np.array([caps.swapped[ids[j]] for j in sorted(range(len(sel)), key=lambda j: natural_key(ids[j]))])
+        scores["quaternion order"] = consistency_mm(invert_transform(Fq) if folder.eye_to_hand else Fq, B)
+    source = caps.pose_source
     return scores, judge_alternatives(scores, source or folder.root, "back-projected boards", force=force)
 
 

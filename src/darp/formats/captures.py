@@ -30,7 +30,7 @@ import numpy as np
 from darp.errors import FormatError
 from darp.formats.intrinsics import CameraModel, load_intrinsics
 from darp.formats.pairing import Pairing, pair_names, read_order_file, shift_poses
-from darp.formats.pose_tables import PoseTable, read_pose_table
+from darp.formats.pose_tables import PoseTable, read_pose_table, swapped_quaternion_table
 from darp.formats.poses import PoseConventions, pose_conventions
 from darp.formats.text import read_yaml_mapping
 
@@ -55,7 +55,8 @@ class ArmCaptures:
     pose_source: Path | None = None
     camera: CameraModel | None = None  # this arm's own intrinsics (an arm sub-folder's intrinsics.*)
     pairing: Pairing | None = None  # how images / board poses were paired with the flange poses
-    table: PoseTable | None = None  # the flange poses as read (for the quaternion-order check)
+    table: PoseTable | None = None  # the flange poses as read
+    swapped: dict[str, np.ndarray] | None = None  # the same poses read with the other quaternion order (by id)
 
 
 @dataclass
@@ -131,9 +132,15 @@ def _load_arm(folder: Path, arm: str, conv: PoseConventions, how: PairingOptions
         boards is not None and not images) else {}
     if images and boards is not None:  # images win; board poses keyed by the same rule for captures without one
         bp = {omap.get(n, k): boards.poses[k] for k, n in boards.names.items()}
+    other = swapped_quaternion_table(table, how.id_column)
+    swapped = None
+    if other is not None:
+        swapped = {pmap[table.names[k]]: T for k, T in other.poses.items() if table.names.get(k) in pmap}
     if how.shift:
-        flange = shift_poses(flange, sorted(set(img) | set(bp)), how.shift)
-    return ArmCaptures(arm, folder, flange, img, bp, source, pairing=pairing, table=table)
+        ids = sorted(set(img) | set(bp))
+        flange = shift_poses(flange, ids, how.shift)
+        swapped = shift_poses(swapped, ids, how.shift) if swapped is not None else None
+    return ArmCaptures(arm, folder, flange, img, bp, source, pairing=pairing, table=table, swapped=swapped)
 
 
 def _arm_camera(folder: Path) -> CameraModel | None:

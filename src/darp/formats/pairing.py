@@ -199,7 +199,8 @@ ALTERNATIVE_FIX = {
     "inverted hand-eye": "the hand-eye looks inverted (camera-from-flange given as flange-from-camera): invert it",
     "inverted poses": "the poses look inverted (camera-from-world or flange-from-base given as world-from-camera / "
                       "base-from-flange): invert them",
-    "quaternion order": "the quaternions look like the other order (wxyz vs xyzw): give --quaternion",
+    "quaternion order": "the quaternions look like the other order (wxyz vs xyzw): declare it (handeye.yaml's "
+                        "quaternion:, or darp import --quaternion)",
     "ROS body camera frame": "the hand-eye's camera frame looks like a ROS body frame (x forward), not the optical "
                              "frame (x right, y down, z forward): give the optical frame's transform",
 }
