@@ -13,7 +13,8 @@ Two data sets, both solved through ``darp calib handeye``'s code (:mod:`darp.cal
 - any generic captures folder (``--captures DIR``), e.g. another real set.
 
 ``darp`` is ``darp calib handeye``'s default refinement (:mod:`darp.calibration.anyarm_refine`: boards placed
-together, PnP-weighted rotation, flange sag), ``darp-pixels`` its ``--refinement pixels``. Printed side by
+together, PnP-weighted rotation, flange sag), ``darp-no-sag`` its ``--refinement poses-no-sag``,
+``darp-pixels`` its ``--refinement pixels``. Printed side by
 side: held-out board consistency (each withheld capture's board placed in the base vs the calibration made
 without it: board-centre and board-corner distance in mm, rotation in degrees; mean / max over the withheld
 captures), averaged over k-fold seeds 0..S-1 (:func:`darp.calibration.anyarm_heldout.fold_split`) or on a
@@ -97,6 +98,7 @@ def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray
     pose_only = all(d.source == "board_poses" for d in dets if d.ok)
     centre = f.board.corners_m().mean(axis=0)
     solvers = {"darp": choose_solver("poses", pose_only, f.eye_to_hand),
+               "darp-no-sag": choose_solver("poses-no-sag", pose_only, f.eye_to_hand),
                "darp-pixels": metric_solver if pose_only else darp_solver}
     solvers.update({m.split("/")[1]: opencv_solver(m) for m in OPENCV_METHODS})
     splits = [fold_split(obs, folds, 0, folds_file)] if folds_file else [fold_split(obs, folds, s)

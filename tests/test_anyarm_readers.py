@@ -194,3 +194,10 @@ def test_folds_file_reproduces_the_seeded_split_and_scores_corner_and_centre(tmp
     (tmp_path / "short.txt").write_text("pose_000.txt 0\n")
     with pytest.raises(FormatError, match=r"short\.txt.*has no fold"):
         solve_folder(root, folds_file=tmp_path / "short.txt", compare=False)
+
+
+def test_refinement_choices_mirror_the_library() -> None:
+    from darp.calibration.anyarm import REFINEMENTS
+    from darp.cli.calib import Refinement
+
+    assert [r.value for r in Refinement] == list(REFINEMENTS)

@@ -347,17 +347,18 @@ def check_capture_pairing(folder: CaptureFolder[Board], obs: Observations, arm: 
     return scores, judge_alternatives(scores, source or folder.root, "back-projected boards", force=force)
 
 
-REFINEMENTS = ("poses", "pixels")
+REFINEMENTS = ("poses", "poses-no-sag", "pixels")
 
 
 def choose_solver(refinement: str, pose_only: bool, eye_to_hand: bool) -> Callable[[Observations], ChainParams]:
-    """``poses``: :mod:`darp.calibration.anyarm_refine` (sag term for eye-in-hand); ``pixels``: darp's corner
-    reprojection refinement (board poses without images: the unweighted board-pose refinement)."""
+    """``poses``: :mod:`darp.calibration.anyarm_refine` (sag term for eye-in-hand); ``poses-no-sag``: the same
+    without it; ``pixels``: darp's corner reprojection refinement (board poses without images: the unweighted
+    board-pose refinement)."""
     if refinement == "pixels":
         return metric_solver if pose_only else darp_solver
-    if refinement != "poses":
-        raise CalibrationError(f"unknown refinement {refinement!r} (poses, pixels)")
-    return anyarm_solver_no_sag if eye_to_hand else anyarm_solver
+    if refinement not in REFINEMENTS:
+        raise CalibrationError(f"unknown refinement {refinement!r} ({', '.join(REFINEMENTS)})")
+    return anyarm_solver_no_sag if eye_to_hand or refinement == "poses-no-sag" else anyarm_solver
 
 
 def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_to_hand: bool | None = None,
@@ -399,9 +400,9 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
     report: dict[str, Any] = {
         "kind": "any-arm hand-eye",
         "mode": "eye_to_hand" if folder.eye_to_hand else "eye_in_hand",
-        "refinement": REFINEMENT_TEXT[refinement if refinement == "poses" else
+        "refinement": REFINEMENT_TEXT[refinement if refinement.startswith("poses") else
                                       ("pixels" if not pose_only else "board poses")]
-        + (" (no sag: eye-to-hand)" if refinement == "poses" and folder.eye_to_hand else ""),
+        + (" (no sag)" if refinement == "poses-no-sag" or (refinement == "poses" and folder.eye_to_hand) else ""),
         "sag": {a: v.tolist() for a, v in getattr(params, "sag", {}).items()},
         "pairing": {a.arm: {"rule": a.pairing.rule, "pairs": len(a.pairing.pairs),
                             "first": a.pairing.pairs[:3], "last": a.pairing.pairs[-3:],

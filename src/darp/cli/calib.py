@@ -338,6 +338,7 @@ class Refinement(StrEnum):
     """darp.calibration.anyarm.REFINEMENTS."""
 
     poses = "poses"
+    poses_no_sag = "poses-no-sag"
     pixels = "pixels"
 
 
@@ -363,8 +364,9 @@ def handeye_command(
                                                     "lines (or JSON {id: fold}); replaces --folds/--seed.",
                                                     exists=True, dir_okay=False, show_default=False)] = None,
     refinement: Annotated[Refinement, typer.Option("--refinement", help="poses: boards placed together, "
-                                                   "PnP-weighted, flange sag; pixels: corner reprojection "
-                                                   "(darp's Z1 solver without joint offsets).")] = Refinement.poses,
+                                                   "PnP-weighted, flange sag; poses-no-sag: without the sag "
+                                                   "term; pixels: corner reprojection (darp's Z1 solver "
+                                                   "without joint offsets).")] = Refinement.poses,
     id_column: IdColumn = None,
     order: OrderFile = None,
     pair_shift: PairShift = 0,
