@@ -6,6 +6,7 @@ Prose may quote a figure (a docstring saying what the paper reported); code must
 from __future__ import annotations
 
 import ast
+import builtins
 from pathlib import Path
 
 import pytest
@@ -161,6 +162,25 @@ def test_no_bare_value_error_in_src(path: Path) -> None:
     assert not found, f"{path.relative_to(SRC)}: raise a darp.errors class (DecodeError deep in a reader): {found}"
 
 
+# Internal control flow, caught inside the module that raises it (never reaching a caller).
+INTERNAL_EXCEPTIONS = {("acquisition/survey.py", "_Terminated"), ("formats/realsense/rosbag1/records.py", "Incomplete")}
+BUILTIN_EXCEPTIONS = {name for name in dir(builtins) if name.endswith(("Error", "Exception"))}
+
+
+def error_classes_outside_the_hierarchy(path: Path, where: str) -> list[str]:
+    """Exception classes deriving from a builtin exception directly: darp's derive from darp.errors."""
+    return [f"line {node.lineno}: class {node.name}" for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+            if isinstance(node, ast.ClassDef) and (where, node.name) not in INTERNAL_EXCEPTIONS
+            and any(isinstance(b, ast.Name) and b.id in BUILTIN_EXCEPTIONS for b in node.bases)]
+
+
+@pytest.mark.parametrize("path", [p for p in sorted(SRC.rglob("*.py")) if p != SRC / "errors.py"],
+                         ids=lambda p: str(p.relative_to(SRC)))
+def test_every_error_class_is_in_the_hierarchy(path: Path) -> None:
+    found = error_classes_outside_the_hierarchy(path, path.relative_to(SRC).as_posix())
+    assert not found, f"{path.relative_to(SRC)}: derive from a darp.errors class (one per layer): {found}"
+
+
 def test_the_checkers_find_a_colour_and_a_bare_error(tmp_path: Path) -> None:
     copy = tmp_path / "copy.py"
     copy.write_text('"""#D62728 in prose is a string too"""\nRED = "#D62728"\n\n\n'
@@ -169,3 +189,4 @@ def test_the_checkers_find_a_colour_and_a_bare_error(tmp_path: Path) -> None:
     assert colour_copies(copy) == ["line 1: '#D62728 in prose is a string too'", "line 2: '#D62728'"]
     assert bare_errors(copy) == ["line 5: class Bad(ValueError)", "line 10: raise ValueError",
                                  "line 14: raise ValueError"]
+    assert error_classes_outside_the_hierarchy(copy, "x.py") == ["line 5: class Bad"]

@@ -83,3 +83,10 @@ LOADED_BEFORE = {"darp.dataset": ["cv2"], "darp.export": ["cv2"], "darp.view": [
 @pytest.mark.parametrize("module", [*(f"darp.{p}" for p in LAYER_PACKAGES if p != "cli"), *LOADED_BEFORE])
 def test_importing_a_package_loads_no_heavy_library(module: str) -> None:
     assert heavy_after_import(module) == LOADED_BEFORE.get(module, [])
+
+
+def test_the_cli_export_choices_are_the_export_registry() -> None:
+    from darp.cli._options import ExportFormat
+    from darp.export import FORMATS
+
+    assert sorted(f.value for f in ExportFormat) == sorted(FORMATS)

@@ -33,7 +33,8 @@ from darp.acquisition.coverage import (
     predict,
     visibility,
 )
-from darp.acquisition.viewpoints import SHOULDER_BASE_M, Candidate, OrbitShape, ViewPlan, ViewpointPlanner, tour_cost
+from darp.acquisition.tour import tour_cost
+from darp.acquisition.viewpoints import SHOULDER_BASE_M, Candidate, OrbitShape, ViewPlan, ViewpointPlanner
 
 
 @dataclass
@@ -312,5 +313,22 @@ def _counts(cands: list[Candidate]) -> dict[str, int]:
     return out
 
 
+def survey_feasible_poses(planners: dict[str, ViewpointPlanner], plans: dict[str, ViewPlan], plan: CoveragePlan | None,
+                          settings: CoverageSettings, coverage_strategy: bool) -> dict[str, list[list[float]]]:
+    """A survey's feasible camera poses, the same whatever the strategy: the coverage grid's feasible candidates,
+    the orbit's views and the views planned (checked after planning: no planner state the plans use moves)."""
+    coverage = coverage_strategy and plan is not None
+    grid = dict(plan.pools) if coverage and plan else feasible_pool(planners, settings)
+    orbit = {a: p.plan().views for a, p in planners.items()} if coverage else {}
+    pools: dict[str, list[Candidate]] = {}
+    for a, arm_plan in plans.items():
+        pool = list(grid.get(a, []))
+        for v in [*orbit.get(a, []), *arm_plan.views]:
+            if all(v is not c for c in pool):
+                pool.append(v)
+        pools[a] = pool
+    return feasible_poses_record(planners, pools)
+
+
 __all__ = ["CoveragePlan", "candidate_grid", "coverage_of_plans", "feasible_pool", "feasible_poses_record",
-           "plan_coverage"]
+           "plan_coverage", "survey_feasible_poses"]

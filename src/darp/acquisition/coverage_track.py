@@ -18,6 +18,7 @@ the surface each, at most ``nbv_max_views`` per arm) and visits them before park
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -29,13 +30,16 @@ from darp.acquisition.coverage import (
     Array,
     BoolArray,
     CoveragePrediction,
+    CoverageSettings,
     SurfaceSamples,
     predict,
     visibility,
 )
 from darp.acquisition.coverage_plan import CoveragePlan
 from darp.acquisition.estimate import fit_table_plane
-from darp.acquisition.viewpoints import Candidate
+from darp.acquisition.motion_check import ArmCollisionModel, MotionSettings, UnsafeMoveError, checked_move
+from darp.acquisition.viewpoints import Candidate, ViewPlan
+from darp.backend import RigBackend
 from darp.formats.realsense.types import Intrinsics
 
 
@@ -226,4 +230,63 @@ class CoverageTracker:
                        by="the recorded depth", counts_by_arm=self.observed_count, seen_through=self.seen_through)
 
 
-__all__ = ["CoverageTracker", "envelope_cut", "observed_samples", "ray_outcomes"]
+def observe_live(backend: RigBackend, tracker: CoverageTracker, arm_id: str, model: ArmCollisionModel) -> None:
+    """Add the arm's live depth at its present pose to the achieved coverage."""
+    frames = backend.cameras[arm_id].latest_frameset()
+    q = np.asarray(backend.arms[arm_id].read_state().q_rad, dtype=float)
+    tracker.observe(arm_id, frames.depth_m, frames.depth_intrinsics, model.T_world_cam(q))
+
+
+def visit_next_best_views(backend: RigBackend, tracker: CoverageTracker, arm_id: str, plan: ViewPlan,
+                          model: ArmCollisionModel, later: list[str], tour_s: float, coverage: CoverageSettings,
+                          motion: MotionSettings, events: Callable[..., None]) -> None:
+    """Visit the next best views of ``arm_id`` (see :class:`CoverageTracker`), appending them to its plan,
+    within ``coverage.nbv_time_fraction`` of ``tour_s`` (the time its planned views took)."""
+    if arm_id not in tracker.plan.pools:
+        return
+    clock = backend.clock
+    budget_s = coverage.nbv_time_fraction * tour_s
+    per_view_s = tour_s / max(1, len(plan.views))  # a view's expected time: the planned views' mean
+    tracker.budget_s[arm_id] = budget_s
+    t0 = clock.now()
+    for cand in tracker.next_views(arm_id, plan.views, later):
+        spent = clock.now() - t0
+        if spent + per_view_s > budget_s:
+            events("next_best_view_budget", arm=arm_id, spent_s=round(spent, 3), budget_s=round(budget_s, 3),
+                   per_view_s=round(per_view_s, 3))
+            break
+        q_now = np.asarray(backend.arms[arm_id].read_state().q_rad, dtype=float)
+        if float(np.max(np.abs(cand.joints_rad - q_now))) > coverage.max_joint_step_rad:
+            continue
+        try:
+            took = checked_move(backend, model, cand.joints_rad, motion)
+        except UnsafeMoveError as err:
+            events("next_best_view_refused", arm=arm_id, candidate=cand.index, reason=str(err))
+            continue
+        plan.views.append(cand)
+        tracker.extra[arm_id].append(cand)
+        observe_live(backend, tracker, arm_id, model)
+        tracker.extra_s[arm_id] = clock.now() - t0
+        events("next_best_view", arm=arm_id, candidate=cand.to_record(), move_s=round(took, 3),
+               achieved=round(float(np.mean(tracker.union())), 4))
+
+
+def coverage_record(strategy: str, plan: CoveragePlan | None, tracker: CoverageTracker | None
+                    ) -> dict[str, Any] | None:
+    """A survey's predicted and achieved coverage of the envelope's surface, for ``manip_envelope.json`` and
+    ``verification.json`` (None without a coverage plan)."""
+    if plan is None:
+        return None
+    record: dict[str, Any] = {"strategy": strategy, "samples": len(plan.samples),
+                              "predicted": plan.prediction.to_record()}
+    if tracker is not None and any(m.any() for m in tracker.observed.values()):
+        record["achieved"] = tracker.achieved().to_record()
+        record["next_best_views"] = {a: len(v) for a, v in tracker.extra.items()}
+        record["next_best_views_s"] = {a: round(t, 3) for a, t in tracker.extra_s.items()}
+        record["next_best_views_budget_s"] = {a: round(t, 3) for a, t in tracker.budget_s.items()}
+        record["envelope_check"], record["envelope_warning"] = tracker.envelope_check()
+    return record
+
+
+__all__ = ["CoverageTracker", "coverage_record", "envelope_cut", "observe_live", "observed_samples", "ray_outcomes",
+           "visit_next_best_views"]

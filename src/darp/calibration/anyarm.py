@@ -26,6 +26,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from darp.calibration import handeye
 from darp.calibration.anyarm_heldout import (
@@ -39,12 +40,13 @@ from darp.calibration.anyarm_refine import anyarm_solver, anyarm_solver_no_sag, 
 from darp.calibration.board import Board, parse_board
 from darp.calibration.detect import board_pose_pnp, detect_corners, ideal_pixels
 from darp.calibration.evaluate import summarise
-from darp.calibration.model import ChainParams, Observations, reprojection_errors
+from darp.calibration.model import ChainParams, Observations, flange_poses, reprojection_errors
 from darp.calibration.refine import RefineSettings, refine
 from darp.errors import CalibrationError, FormatError
 from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.captures import CaptureFolder, PairingOptions, read_capture_folder
 from darp.formats.intrinsics import CameraModel
+from darp.formats.io_input import decode_image
 from darp.formats.pairing import describe_pairs, natural_key
 from darp.kinematics.transforms import invert_transform
 
@@ -97,7 +99,7 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
     size: tuple[int, int] | None = None
     for arm in folder.arms:
         for key, img_path in sorted(arm.images.items(), key=lambda kv: natural_key(kv[0])):
-            grey = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE)
+            grey = decode_image(img_path, cv2.IMREAD_GRAYSCALE, "a board image")
             if grey is None:
                 raise FormatError("cannot read the image", img_path)
             if size is None:
@@ -152,7 +154,7 @@ def marker_diagnosis(board: Board, image: str) -> str:
     """Why OpenCV's ChArUco detection kept no corner although markers are visible: ``""`` when no marker of the
     board's dictionary is seen, else the markers found and the real reason (a duplicated marker id, markers of
     ids the board does not have), as a suffix for the rejection reason."""
-    grey = cv2.imread(image, cv2.IMREAD_GRAYSCALE)
+    grey = decode_image(image, cv2.IMREAD_GRAYSCALE, "a board image")
     if grey is None:
         return ""
     params = cv2.aruco.DetectorParameters()
@@ -361,6 +363,24 @@ def choose_solver(refinement: str, pose_only: bool, eye_to_hand: bool) -> Callab
     return anyarm_solver_no_sag if eye_to_hand or refinement == "poses-no-sag" else anyarm_solver
 
 
+MIN_ROTATION_DEG = 2.0  # the smallest flange rotation between captures, about each of two axes, hand-eye needs
+
+
+def check_flange_motion(obs: Observations, arm: str, root: Path) -> None:
+    """Hand-eye is determined only when the flange rotates about at least two different axes between captures
+    (Tsai-Lenz); identical or one-axis poses are refused instead of "solved" to an arbitrary answer."""
+    T = flange_poses(obs, obs.for_arm(arm), np.zeros(6))
+    R0 = T[0, :3, :3]
+    vecs = np.array([Rotation.from_matrix(R0.T @ Ti[:3, :3]).as_rotvec() for Ti in T[1:]]).reshape(-1, 3)
+    spread = np.linalg.svd(vecs, compute_uv=False) if len(vecs) else np.zeros(1)
+    second = float(np.degrees(spread[1] / np.sqrt(len(vecs)))) if spread.size > 1 else 0.0
+    if second < MIN_ROTATION_DEG:
+        most = float(np.degrees(np.max(np.linalg.norm(vecs, axis=1)))) if len(vecs) else 0.0
+        raise CalibrationError(f"{arm}: the flange poses do not rotate about two different axes (largest rotation "
+                               f"from the first capture {most:.2f} deg): hand-eye is undetermined; capture poses "
+                               "that tilt the flange in different directions", root)
+
+
 def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_to_hand: bool | None = None,
                  folds: int = 5, seed: int = 0, compare: bool = True, folds_file: str | Path | None = None,
                  refinement: str = "poses", how: PairingOptions | None = None, force: bool = False
@@ -377,6 +397,7 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
             raise CalibrationError(f"{arm}: {int(np.sum(obs.for_arm(arm)))} usable captures; hand-eye needs at "
                                    "least 4", folder.root)
         check_pose_conventions(folder, obs, arm)
+        check_flange_motion(obs, arm, folder.root)
         pairing_checks[arm], kept = check_capture_pairing(folder, obs, arm, force)
         if kept:
             warns.append(kept)

@@ -39,10 +39,9 @@ def read_folds_file(path: str | Path) -> dict[str, int]:
     from darp.formats.pairing import frame_id
 
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise FormatError(f"cannot read the folds file ({err})", p) from None
+    from darp.formats.text import read_utf8_text
+
+    text = read_utf8_text(p, "a folds file")
     out: dict[str, int] = {}
     try:
         if text.lstrip().startswith("{"):

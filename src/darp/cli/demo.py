@@ -41,7 +41,8 @@ def demo_command(
     objects: Annotated[list[TwinObject] | None, typer.Option(
         "--object", help="Twin object to survey; repeat per object (default: mug, ketchup, dumbbell).",
         show_default=False)] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the twin (true rig errors, placements, noise).")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0,
+                                      help="Seed of the twin (true rig errors, placements, noise).")] = 0,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Camera frame rate of the demo surveys: 6, 15 or 30 "
                                      "(the real rig records 30).")] = 6,
     captures: Annotated[int, typer.Option("--captures", min=1, help="Calibration captures per arm.")] = 20,

@@ -27,6 +27,7 @@ import typer
 from darp.cli._app import app
 from darp.cli._options import calibration_option, input_argument, out_option
 from darp.cli.calib import Force, IdColumn, OrderFile, PairShift
+from darp.formats.limits import DEPTH_SCALE_MAX_M
 from darp.formats.trajectories import TUM_MAX_DT_S
 
 CHECK_PAIRS = 6  # neighbouring frame pairs the pairing check back-projects per reading
@@ -82,13 +83,14 @@ def parse_heldout(value: str | HeldoutEvery) -> HeldoutEvery:
 def import_command(
     sequence: Annotated[Path, input_argument("Folder of colour and 16-bit depth images (names or sub-folders "
                                              "with 'color'/'rgb' and 'depth'; frames matched by their number).")],
-    out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).")],
+    out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).", folder=True)],
     intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Depth/colour intrinsics (registered "
                                                     "streams): 3x3 .txt/.npy, .npz or .json; a nerfstudio "
                                                     "transforms.json gives its own; a RealSense .bag/.db3 its "
                                                     "colour stream's.", exists=True,
                                                     dir_okay=False, show_default=False)] = None,
-    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", help="Metres per depth unit (0.001: mm); "
+    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", min=0.0, max=DEPTH_SCALE_MAX_M,
+                                                        help="Metres per depth unit (0.001: mm); "
                                                         "default: the folder format's (TUM 1/5000, nerfstudio's "
                                                         "depth_unit_scale_factor), else 0.001.",
                                                         show_default=False)] = None,
@@ -132,6 +134,8 @@ def import_command(
                                                       dir_okay=False, show_default=False)] = None,
 ) -> None:
     """Import an RGB-D sequence with poses as a survey that darp process fuses, meshes and evaluates."""
+    if depth_scale_m == 0.0:  # 0 is not "the default": a depth image at 0 m per unit has no depth
+        raise typer.BadParameter("must be > 0 metres per depth unit, got 0", param_hint="'--depth-scale-m'")
     from darp.formats.intrinsics import load_intrinsics
     from darp.formats.trajectories import (
         detect_posed_folder,
@@ -204,7 +208,10 @@ def import_command(
     spec.colour_files, spec.depth_files, spec.stamps = colour_files, depth_files, stamps
     for line in lines:
         typer.echo(line)
-    record = import_sequence(spec)
+    from darp.formats.io_output import unfinished_folder
+
+    with unfinished_folder(out, "darp import"):
+        record = import_sequence(spec)
     typer.echo(f"wrote {out} ({record['frames']} frames, {record['heldout']} held out; median depth "
                f"{record['median_depth_m']:.2f} m; neighbouring frames agree to "
                f"{record['pose_check']['neighbour_median_mm']:.1f} mm median)")
@@ -345,6 +352,7 @@ def _check(sequence: Path, depth: dict[str, Path], given: dict[str, np.ndarray],
     mistake; raise (or with ``force`` warn) when a mistake fits much better; name frames that disagree."""
     import cv2
 
+    from darp.formats.io_input import decode_image
     from darp.formats.pairing import judge_alternatives, natural_key, neighbour_agreement
 
     order = sorted(given, key=natural_key)
@@ -354,7 +362,7 @@ def _check(sequence: Path, depth: dict[str, Path], given: dict[str, np.ndarray],
 
     def img(k: str) -> np.ndarray:
         if k not in cache:
-            d = cv2.imread(str(depth[k]), cv2.IMREAD_UNCHANGED)
+            d = decode_image(depth[k], cv2.IMREAD_UNCHANGED, "a depth image")
             cache[k] = d if d is not None and d.ndim == 2 else np.zeros((2, 2), np.uint16)
         return cache[k]
 

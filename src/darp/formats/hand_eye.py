@@ -30,6 +30,7 @@ import numpy as np
 
 from darp.errors import FormatError
 from darp.formats.poses import PoseConventions, quat_pose, read_matrix_file
+from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 
 MAX_HAND_EYE_M = 1.0  # a camera further than this from the flange: the unit is wrong
@@ -136,14 +137,15 @@ def read_hand_eye(path: str | Path, unit: str = "m", arm: str = "") -> HandEye:
     p = Path(path)
     if not p.is_file():
         raise FormatError("hand-eye file not found", p)
+    text = "" if p.suffix == ".npy" else read_utf8_text(p, "a hand-eye file")
     try:
-        if p.suffix == ".npy" or (p.suffix == ".txt" and not p.read_text(encoding="utf-8").lstrip().startswith("{")):
+        if p.suffix == ".npy" or (p.suffix == ".txt" and not text.lstrip().startswith("{")):
             he = HandEye(_scaled(read_matrix_file(p), unit), p, "4x4 matrix")
         elif p.suffix in (".launch", ".xml"):
-            he = _from_launch(p.read_text(encoding="utf-8"), p)
+            he = _from_launch(text, p)
         else:
             if p.suffix == ".json":
-                d = json.loads(p.read_text(encoding="utf-8"))
+                d = json.loads(text)
             else:
                 from darp.formats.text import read_yaml_mapping
 
@@ -152,7 +154,7 @@ def read_hand_eye(path: str | Path, unit: str = "m", arm: str = "") -> HandEye:
                 he = HandEye(_scaled(np.asarray(d, np.float64), unit), p, "4x4 matrix")
             else:
                 he = _from_mapping(d, unit, p, arm)
-    except (OSError, UnicodeDecodeError, ValueError, KeyError, TypeError) as err:
+    except (ValueError, KeyError, TypeError) as err:
         raise FormatError(f"cannot read the hand-eye ({type(err).__name__}: {err})", p) from None
     T, off = orthonormalised(he.T_wrist_cam, "hand-eye", p, error=FormatError)
     warn_orthonormalised([off], p, "hand-eye")

@@ -170,10 +170,9 @@ def describe_pairs(pairing: Pairing, head: int = 3) -> str:
 def read_order_file(path: str | Path) -> list[str]:
     """An order file: one image/frame name per line (``#`` comments, blank lines skipped)."""
     p = Path(path)
-    try:
-        lines = p.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as err:
-        raise FormatError(f"cannot read the order file ({err})", p) from None
+    from darp.formats.text import read_utf8_text
+
+    lines = read_utf8_text(p, "an order file").splitlines()
     names = [s.split(",")[0].strip() for s in (line.strip() for line in lines) if s and not s.startswith("#")]
     if not names:
         raise FormatError("the order file names no image", p)

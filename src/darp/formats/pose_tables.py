@@ -30,8 +30,10 @@ from typing import Any
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.io_input import LIMITS, load_numpy
 from darp.formats.pairing import frame_id, keyed
 from darp.formats.poses import PoseConventions, pose_conventions, quat_pose, read_matrix_file
+from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 
 ID_KEYS = ("id", "ids", "name", "names", "frame", "frames", "frame_id", "image", "file", "filename", "stamp",
@@ -103,11 +105,7 @@ def _declared(lines: list[str]) -> dict[str, str]:
 
 
 def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> PoseTable:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise FormatError(f"cannot read ({err})", path) from None
-    lines = text.splitlines()
+    lines = read_utf8_text(path, "a pose table").splitlines()
     conv = pose_conventions(_declared(lines), path, conv)
     body = [s for s in (line.strip() for line in lines) if s and not s.startswith("#")]
     if not body:
@@ -169,11 +167,8 @@ def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> Pos
 
 
 def _npz_table(path: Path, conv: PoseConventions) -> PoseTable:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError) as err:
-        raise FormatError(f"cannot read the .npz ({err})", path) from None
+    loaded = load_numpy(path, "a pose .npz")
+    arrays = {k: np.asarray(v) for k, v in loaded.items()} if isinstance(loaded, dict) else {"poses": loaded}
     ids_key = next((k for k in arrays if k.lower() in ID_KEYS), None)
     ids = [str(v) for v in arrays.pop(ids_key).reshape(-1)] if ids_key else None
     stacks = {k: a for k, a in arrays.items() if a.ndim == 3 and a.shape[1:] in ((4, 4), (3, 4))}
@@ -218,8 +213,8 @@ def _record_pose(rec: Any, conv: PoseConventions) -> tuple[np.ndarray, bool]:
 
 def _json_table(path: Path, conv: PoseConventions) -> PoseTable:
     try:
-        d = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        d = json.loads(read_utf8_text(path, "a JSON file", limit=LIMITS["json"]))
+    except json.JSONDecodeError as err:
         raise FormatError(f"cannot read the JSON ({err})", path) from None
     if isinstance(d, dict):
         d = next((d[k] for k in ("poses", "frames", "captures", "transforms") if k in d), d)
@@ -254,19 +249,23 @@ def _folder_table(folder: Path, conv: PoseConventions) -> PoseTable:
         if f.suffix in (".txt", ".npy"):
             raw.append((f.name, read_matrix_file(f)))
         elif f.suffix == ".json":
-            T, _ = _record_pose(json.loads(f.read_text(encoding="utf-8")), conv)
+            try:
+                T, _ = _record_pose(json.loads(read_utf8_text(f, "a JSON file", limit=LIMITS["json"])), conv)
+            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
+                raise FormatError(f"cannot read a pose ({err})", f) from None
             raw.append((f.name, T))
         elif f.suffix == ".npz":
-            with np.load(f) as z:
-                if "rvec" in z and "tvec" in z:
-                    T = np.eye(4)
-                    T[:3, :3] = cv2.Rodrigues(np.asarray(z["rvec"], np.float64).reshape(3))[0]
-                    T[:3, 3] = np.asarray(z["tvec"], np.float64).reshape(3)
-                else:
-                    key = next((k for k in z.files if z[k].shape in ((4, 4), (3, 4))), None)
-                    if key is None:
-                        raise FormatError(f"expected a 4x4 array or rvec and tvec (has {', '.join(z.files)})", f)
-                    T = np.asarray(z[key], np.float64)
+            z = load_numpy(f, "a pose .npz")
+            z = z if isinstance(z, dict) else {"T": z}
+            if "rvec" in z and "tvec" in z:
+                T = np.eye(4)
+                T[:3, :3] = cv2.Rodrigues(np.asarray(z["rvec"], np.float64).reshape(3))[0]
+                T[:3, 3] = np.asarray(z["tvec"], np.float64).reshape(3)
+            else:
+                key = next((k for k in z if np.shape(z[k]) in ((4, 4), (3, 4))), None)
+                if key is None:
+                    raise FormatError(f"expected a 4x4 array or rvec and tvec (has {', '.join(z)})", f)
+                T = np.asarray(z[key], np.float64)
             raw.append((f.name, T))
     if not raw:
         raise FormatError("no pose files (.txt, .npy, .npz, .json)", folder)
@@ -287,7 +286,7 @@ def read_pose_table(path: str | Path, conv: PoseConventions | None = None, id_co
     if p.suffix == ".json":
         return _json_table(p, conv)
     if p.suffix == ".npy":
-        A = np.load(p)
+        A = np.asarray(load_numpy(p, "a pose .npy"))
         if A.ndim == 3:
             return _finish(p, [(str(i), a) for i, a in enumerate(A)], conv, False)
         return _finish(p, [(p.name, A)], conv, False)

@@ -30,13 +30,7 @@ def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -
     """Read a JSON file whose top level is an object; syntax errors name the line and column. A file over
     ``MAX_JSON_BYTES`` is refused before it is read (none of darp's JSON files comes near it)."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError:  # missing or unreadable: the read below says which
-        size = 0
-    if size > MAX_JSON_BYTES:
-        raise error(f"{size} bytes, larger than any darp JSON file (limit {MAX_JSON_BYTES // 2**20} MiB)", path)
-    text = read_utf8_text(path, "a JSON file", error)
+    text = read_utf8_text(path, "a JSON file", error, limit=MAX_JSON_BYTES)
     if not text.strip():
         raise error("empty file: expected a JSON object", path)
     try:

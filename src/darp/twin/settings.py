@@ -35,6 +35,7 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.limits import CAMERA_FPS_MAX, IMAGE_SIDE_MAX_PX, JOINT_LOG_RATE_MAX_HZ, TIME_MAX_S
 from darp.formats.schema import dataclass_from_mapping, refuse_unknown_keys
 from darp.formats.text import read_yaml_mapping
 
@@ -94,6 +95,12 @@ class TimingSettings:
 
     def __post_init__(self) -> None:
         _check_pos(self, "timing", ("start_time_s", "joint_log_rate_hz"))
+        if self.start_time_s > TIME_MAX_S:  # past year 5100: a time in milliseconds, or a corrupt value
+            raise ConfigError(f"timing.start_time_s: at most {TIME_MAX_S:.0e} s (Unix seconds), "
+                              f"got {self.start_time_s!r}")
+        if self.joint_log_rate_hz > JOINT_LOG_RATE_MAX_HZ:  # a simulated logger faster than any arm's
+            raise ConfigError(f"timing.joint_log_rate_hz: at most {JOINT_LOG_RATE_MAX_HZ:.0f} Hz, "
+                              f"got {self.joint_log_rate_hz!r}")
         _check_nonneg(self, "timing", ("joint_log_jitter_ms", "camera_stagger_ms"))
         if not np.isfinite(self.camera_clock_offset_ms):
             raise ConfigError("timing.camera_clock_offset_ms: must be finite")
@@ -122,6 +129,10 @@ class CameraSettings:
 
     def __post_init__(self) -> None:
         _check_pos(self, "camera", ("width", "height", "fps", "accel_hz", "gyro_hz"))
+        for name, high in (("width", IMAGE_SIDE_MAX_PX), ("height", IMAGE_SIDE_MAX_PX), ("fps", CAMERA_FPS_MAX),
+                           ("accel_hz", JOINT_LOG_RATE_MAX_HZ), ("gyro_hz", JOINT_LOG_RATE_MAX_HZ)):
+            if getattr(self, name) > high:
+                raise ConfigError(f"camera.{name}: at most {high:g}, got {getattr(self, name)!r}")
         if self.depth_noise not in DEPTH_NOISE_PROFILES:
             raise ConfigError(f"camera.depth_noise: must be one of {', '.join(DEPTH_NOISE_PROFILES)}, "
                               f"got {self.depth_noise!r}")

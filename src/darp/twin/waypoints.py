@@ -35,6 +35,7 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.io_input import LIMITS
 from darp.formats.limits import DWELL_MAX_S
 from darp.formats.schema import refuse_unknown_keys
 from darp.formats.text import load_yaml, read_utf8_text
@@ -176,7 +177,7 @@ def _plan_from_csv(text: str) -> WaypointPlan:
 def load_waypoints(path: str | Path, arm_ids: Sequence[str] | None = None) -> WaypointPlan:
     """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) waypoints file; errors name the file."""
     path = Path(path)
-    text = read_utf8_text(path, "a waypoints file", ConfigError)
+    text = read_utf8_text(path, "a waypoints file", ConfigError, limit=LIMITS["yaml"])
     try:
         if path.suffix.lower() == ".csv":
             plan = _plan_from_csv(text)

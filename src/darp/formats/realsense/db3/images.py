@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 
 from darp.errors import DecodeError
+from darp.formats.io_input import native_stderr_silenced
 from darp.formats.realsense.types import PIXEL_FORMATS, StreamProfile
-from darp.formats.text import native_stderr_silenced
 
 # ROS image encodings librealsense writes -> (numpy dtype, channels).
 ENCODINGS = {"mono16": ("<u2", 1), "16UC1": ("<u2", 1), "mono8": ("u1", 1), "8UC1": ("u1", 1),
