@@ -95,7 +95,7 @@ def table(folder: Path, folds: int, fold_seeds: int, truth: dict[str, np.ndarray
     f = load_capture_folder(folder)
     dets, cams, _ = detect_folder(f)
     obs, _ = build_generic_observations(f, dets, cams)
-    pose_only = all(d.source == "board_poses" for d in dets if d.ok)
+    pose_only = all(d.source.startswith("board_poses") for d in dets if d.ok)
     centre = f.board.corners_m().mean(axis=0)
     solvers = {"darp": choose_solver("poses", pose_only, f.eye_to_hand),
                "darp-no-sag": choose_solver("poses-no-sag", pose_only, f.eye_to_hand),

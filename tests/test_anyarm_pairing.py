@@ -246,3 +246,16 @@ def test_other_quaternion_order_in_a_json_table_is_named(tmp_path: Path) -> None
     (root / "handeye.yaml").write_text(SIDECAR + "quaternion: wxyz\n")
     good = solve_folder(root, folds=0, compare=False)
     assert good.observations.n_captures == 31
+
+
+@needs(DOOSAN)
+def test_a_capture_with_a_wrong_pose_is_named(tmp_path: Path) -> None:
+    root = doosan_caps(tmp_path / "c")
+    lines = (root / "poses.csv").read_text().splitlines()
+    cells = lines[2 + 7].split(",")  # capture 7: its flange 60 mm off in x
+    cells[1] = repr(float(cells[1]) + 60.0)
+    lines[2 + 7] = ",".join(cells)
+    (root / "poses.csv").write_text("\n".join(lines) + "\n")
+    out = solve_folder(root, folds=0, compare=False)
+    named = [w for w in out.warnings if "place the board far from the others" in w]
+    assert named and named[0].split(": ", 1)[1].startswith("board_007.npz")

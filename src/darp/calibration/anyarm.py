@@ -50,6 +50,7 @@ from darp.formats.io_input import decode_image
 from darp.formats.pairing import describe_pairs, natural_key
 from darp.kinematics.transforms import invert_transform
 
+BOARD_POSES = "board_poses"  # a detection's source prefix when the capture is a board pose, not an image
 OPENCV_METHODS = tuple(f"calibrateHandEye/{m}" for m in handeye.HAND_EYE_METHODS)
 
 
@@ -139,6 +140,7 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
         dets.append(d)
     for arm in folder.arms:  # board poses given instead of images: their corners, seen through K
         camera = cameras[arm.arm]
+        names = {k: o for k, o, _ in arm.pairing.pairs} if arm.pairing is not None else {}
         for key, T in sorted(arm.board_poses.items(), key=lambda kv: natural_key(kv[0])):
             if key in arm.images:
                 continue
@@ -146,7 +148,7 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
             uv = (Pc[:, :2] / Pc[:, 2:3]) * np.diag(camera.K)[:2] + camera.K[:2, 2]
             dets.append(GenericDetection(arm.arm, key, np.arange(len(P)), uv, bool(np.all(Pc[:, 2] > 0)),
                                          "" if np.all(Pc[:, 2] > 0) else "board behind the camera", T, 0.0,
-                                         "board_poses"))
+                                         f"{BOARD_POSES}/{names.get(key, key)}"))
     return dets, cameras, info
 
 
@@ -349,6 +351,21 @@ def check_capture_pairing(folder: CaptureFolder[Board], obs: Observations, arm: 
     return scores, judge_alternatives(scores, source or folder.root, "back-projected boards", force=force)
 
 
+def disagreeing_captures(obs: Observations, dets: list[GenericDetection], centre_mm: np.ndarray,
+                         factor: float = 5.0, floor_mm: float = 10.0) -> list[str]:
+    """A warning naming the captures whose board, placed in the base, lies far from the others' (more than
+    ``factor`` x the median and ``floor_mm``): a bad pose, a wrong pairing or a bad detection there."""
+    med = float(np.median(centre_mm))
+    bad = [i for i in np.argsort(-centre_mm) if centre_mm[i] > max(factor * med, floor_mm)]
+    if not bad:
+        return []
+    src = {(f"{d.arm}/{d.capture_id}" if len(obs.arms) > 1 else d.capture_id): d.source for d in dets if d.ok}
+    names = ", ".join(f"{Path(src.get(obs.capture_ids[i], obs.capture_ids[i])).name} ({centre_mm[i]:.1f} mm)"
+                      for i in bad[:5])
+    return [f"{len(bad)} capture(s) place the board far from the others (median {med:.2f} mm): {names}; check "
+            "those captures' poses, pairing and detection"]
+
+
 REFINEMENTS = ("poses", "poses-no-sag", "pixels")
 
 
@@ -401,7 +418,7 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
         pairing_checks[arm], kept = check_capture_pairing(folder, obs, arm, force)
         if kept:
             warns.append(kept)
-    pose_only = all(d.source == "board_poses" for d in dets if d.ok)
+    pose_only = all(d.source.startswith(BOARD_POSES) for d in dets if d.ok)
     solver = choose_solver(refinement, pose_only, folder.eye_to_hand)
     params = solver(obs)
     centre = folder.board.corners_m().mean(axis=0)
@@ -418,6 +435,7 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
                 comparison[m] = {"error": str(err)}
     fit = reprojection_errors(params, corrected_observations(params, obs))
     fit_cons = board_consistency(params, obs, centre)
+    warns += disagreeing_captures(obs, dets, fit_cons[0])
     report: dict[str, Any] = {
         "kind": "any-arm hand-eye",
         "mode": "eye_to_hand" if folder.eye_to_hand else "eye_in_hand",
