@@ -201,3 +201,26 @@ def test_refinement_choices_mirror_the_library() -> None:
     from darp.cli.calib import Refinement
 
     assert [r.value for r in Refinement] == list(REFINEMENTS)
+
+
+@needs_doosan
+def test_six_value_poses_read_with_a_declared_rotation_form(tmp_path: Path) -> None:
+    real = doosan_poses()
+    M = np.array(list(real.values()))
+    R = Rotation.from_matrix(M[:, :3, :3])
+    forms = {"rotvec": R.as_rotvec(), "euler-xyz-deg": R.as_euler("xyz", degrees=True),
+             "euler-ZYX-rad": R.as_euler("ZYX")}
+    for form, rot in forms.items():
+        path = tmp_path / f"{form}.csv"
+        path.write_text(f"# unit: mm, rotation: {form}\n" + "".join(
+            n + "," + ",".join(repr(float(v)) for v in [*T[:3, 3], *r]) + "\n"
+            for (n, T), r in zip(real.items(), rot, strict=True)))
+        table = read_pose_table(path)
+        for i, T in enumerate(M):
+            assert np.allclose(table.poses[str(i)][:3, :3], T[:3, :3], atol=3e-6), form
+            assert np.allclose(table.poses[str(i)][:3, 3], T[:3, 3] * 1e-3, atol=1e-9), form
+    path = tmp_path / "undeclared.csv"
+    path.write_text("".join(n + "," + ",".join(repr(float(v)) for v in [*T[:3, 3], *r]) + "\n"
+                            for (n, T), r in zip(real.items(), forms["rotvec"], strict=True)))
+    with pytest.raises(FormatError, match=r"undeclared\.csv: 6 values per pose.*declare rotation: rotvec"):
+        read_pose_table(path, PoseConventions("mm"))

@@ -121,6 +121,9 @@ def import_command(
                                                   dir_okay=False, show_default=False)] = None,
     hand_eye_unit: Annotated[Unit | None, typer.Option("--hand-eye-unit", help="Translation unit of a bare 4x4 "
                                                        "--hand-eye (default: --unit).", show_default=False)] = None,
+    rotation: Annotated[str, typer.Option("--rotation", help="What 3 rotation values after x y z mean in a pose "
+                                          "table: rotvec (UR style) or euler-<axes>-<deg|rad> (e.g. "
+                                          "euler-xyz-deg; SciPy's axes: lower case extrinsic).")] = "",
     id_column: IdColumn = None,
     order: OrderFile = None,
     pair_shift: PairShift = 0,
@@ -189,8 +192,11 @@ def import_command(
         poses, source, name = posed.poses, posed.source, arm or "arm"
         colour_files, depth_files, stamps = posed.colour, posed.depth, posed.stamps
     else:
+        from darp.formats.poses import PoseConventions
+
+        conv = PoseConventions(unit.value, quaternion.value, rotation)
         readings, source, name = _readings(trajectory, kind, flange_poses, calibration, hand_eye,
-                                           hand_eye_unit or unit, unit, quaternion, arm, id_column)
+                                           hand_eye_unit or unit, conv, arm, id_column)
         colour_files, depth_files, poses, lines = _pair_and_check(sequence, readings, source, K, scale, order,
                                                                   pair_shift, force)
         stamps = {}
@@ -228,19 +234,19 @@ class Readings:
 
 
 def _readings(trajectory: Path | None, kind: str, flange_poses: Path | None, calibration: Path | None,
-              hand_eye: Path | None, hand_eye_unit: Unit, unit: Unit, quaternion: QuaternionOrder, arm: str,
-              id_column: str | None) -> tuple[Readings, str, str]:
+              hand_eye: Path | None, hand_eye_unit: Unit, conv: Any, arm: str, id_column: str | None
+              ) -> tuple[Readings, str, str]:
     """World-from-camera poses from a trajectory or flange poses + hand-eye, with their likely misreadings."""
     from darp.formats.pose_tables import read_pose_table, swapped_quaternion_table
     from darp.formats.poses import PoseConventions
     from darp.formats.trajectories import read_trajectory
     from darp.kinematics.transforms import invert_transform
 
-    conv = PoseConventions(unit.value, quaternion.value)
+    unit = conv.unit
     if flange_poses is None:
         assert trajectory is not None
         if kind in ("pose-txt", "table"):
-            table = read_pose_table(trajectory, PoseConventions("m", quaternion.value), id_column)
+            table = read_pose_table(trajectory, PoseConventions("m", conv.quaternion, conv.rotation), id_column)
             given, names, has_ids = table.poses, table.names, table.has_ids
             swapped = swapped_quaternion_table(table, id_column)
         else:
@@ -254,7 +260,7 @@ def _readings(trajectory: Path | None, kind: str, flange_poses: Path | None, cal
     from darp.formats.hand_eye import T_BODY_OPTICAL, read_hand_eye
 
     table = read_pose_table(flange_poses, conv, id_column)
-    check_translation_unit(np.array(list(table.poses.values())), unit.value, flange_poses)
+    check_translation_unit(np.array(list(table.poses.values())), unit, flange_poses)
     if hand_eye is not None:
         he = read_hand_eye(hand_eye, hand_eye_unit.value, arm)
         T_wb, X, name = np.eye(4), he.T_wrist_cam, arm or "arm"

@@ -3,12 +3,14 @@
 :func:`read_pose_table` reads (translations in the declared unit, returned in metres):
 
 - ``.csv`` / ``.txt`` rows: ``id, x, y, z, q1, q2, q3, q4`` (the quaternion order declared, or read from a
-  header naming ``qw`` first / last), ``id`` + 16 (or 12) values of a row-major 4x4 (3x4), or the same
-  without an id column (then the rows pair by order); a header is optional, ``--id-column NAME`` picks the id
-  column by its header name; whitespace or commas; ``#`` comments (``# unit: mm, quaternion: wxyz`` declares
-  the conventions). A ``.txt`` of stacked 4x4 blocks (4 rows of 4 numbers per pose) is read in order;
+  header naming ``qw`` first / last); ``id, x, y, z, r1, r2, r3`` with the rotation form declared
+  (``rotation: rotvec`` as UR controllers write, or ``euler-xyz-deg`` ...); ``id`` + 16 (or 12) values of a
+  row-major 4x4 (3x4); or the same without an id column (then the rows pair by order); a header is optional,
+  ``--id-column NAME`` picks the id column by its header name; whitespace or commas; ``#`` comments
+  (``# unit: mm, quaternion: wxyz, rotation: rotvec`` declares the conventions). A ``.txt`` of stacked 4x4
+  blocks (4 rows of 4 numbers per pose) is read in order;
 - ``.npz``: one ``(N, 4, 4)`` array (with an ``ids``/``names``/``frames``/``stamps`` array or without: then in
-  order), ``(N, 7)`` ``x y z q..`` rows, or one 4x4 array per id (``pose_000``, ...);
+  order), ``(N, 7)`` ``x y z q..`` rows (``(N, 6)`` with a declared rotation form), or one 4x4 array per id;
 - ``.json``: a list of 4x4s, ``{id: 4x4}``, or a list of records ``{"id"|"name"|"frame"|"image"|"file": ..,
   "pose"|"matrix"|"T"|"transform": 4x4}`` or with ``x y z qx qy qz qw`` / ``position`` + ``orientation``;
   ``{"poses": ...}`` / ``{"frames": ...}`` around any of these;
@@ -32,7 +34,7 @@ import numpy as np
 from darp.errors import FormatError
 from darp.formats.io_input import LIMITS, load_numpy
 from darp.formats.pairing import frame_id, keyed
-from darp.formats.poses import PoseConventions, pose_conventions, quat_pose, read_matrix_file
+from darp.formats.poses import PoseConventions, pose_conventions, quat_pose, read_matrix_file, six_value_pose
 from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 
@@ -158,8 +160,7 @@ def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> Pos
         mats = [quat_pose(v, PoseConventions("m", conv.quaternion)) for v in V]
         quats = True
     elif n == 6:
-        raise FormatError("6 values per pose: x y z and a rotation vector or Euler angles are ambiguous; write "
-                          "x y z qx qy qz qw (or the 4x4 row-major)", path)
+        mats = [six_value_pose(v, conv, path) for v in V]
     else:
         raise FormatError(f"{n} values per pose: expected x y z + a quaternion (7) or a row-major 4x4 (16) / 3x4 (12)"
                           + (" after the id" if idc is not None else ""), path)
@@ -172,7 +173,7 @@ def _npz_table(path: Path, conv: PoseConventions) -> PoseTable:
     ids_key = next((k for k in arrays if k.lower() in ID_KEYS), None)
     ids = [str(v) for v in arrays.pop(ids_key).reshape(-1)] if ids_key else None
     stacks = {k: a for k, a in arrays.items() if a.ndim == 3 and a.shape[1:] in ((4, 4), (3, 4))}
-    rows7 = {k: a for k, a in arrays.items() if a.ndim == 2 and a.shape[1] == 7}
+    rows7 = {k: a for k, a in arrays.items() if a.ndim == 2 and a.shape[1] in (6, 7)}
     if len(stacks) == 1 or (not stacks and len(rows7) == 1):
         A = next(iter(stacks.values())) if stacks else next(iter(rows7.values()))
         if ids is not None and len(ids) != len(A):
@@ -180,8 +181,11 @@ def _npz_table(path: Path, conv: PoseConventions) -> PoseTable:
         names = ids or [str(i) for i in range(len(A))]
         if A.ndim == 3:
             return _finish(path, list(zip(names, A, strict=True)), conv, ids is not None)
-        mats = [quat_pose(v, PoseConventions("m", conv.quaternion)) for v in A.astype(np.float64)]
-        return _finish(path, list(zip(names, mats, strict=True)), conv, ids is not None, True)
+        if A.shape[1] == 6:
+            mats = [six_value_pose(v, conv, path) for v in A.astype(np.float64)]
+        else:
+            mats = [quat_pose(v, PoseConventions("m", conv.quaternion)) for v in A.astype(np.float64)]
+        return _finish(path, list(zip(names, mats, strict=True)), conv, ids is not None, A.shape[1] == 7)
     per = [(k, a) for k, a in arrays.items() if a.shape in ((4, 4), (3, 4))]
     if per and len(per) == len(arrays):
         return _finish(path, per, conv, True)
