@@ -82,6 +82,8 @@ class ImportSpec:
     arm: str = "arm"
     every: int = 1
     heldout_every: int = 5
+    heldout_offset: int = 2  # frame i (in import order) is held out when i % heldout_every == heldout_offset
+    heldout_keys: frozenset[str] | None = None  # instead: exactly these frame keys are held out (--heldout-list)
     distortion_model: str = "Brown Conrady"  # librealsense's name of the model of ``dist``
     envelope: Path | None = None  # manip_envelope.json in the world frame of the poses (copied into the survey)
     # a posed folder's own pairing (darp.formats.trajectories.PosedFrames); else find_frames(sequence)
@@ -243,7 +245,14 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
                           spec.distortion_model, tuple(float(v) for v in (list(dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
 
     folder = spec.out / "keyframes"
-    held = heldout_mask(len(keys), spec.heldout_every)
+    if spec.heldout_keys is not None:
+        unknown = sorted(spec.heldout_keys - set(keys))
+        if unknown:
+            raise FormatError(f"{len(unknown)} held-out frame(s) are not imported frames (e.g. {unknown[0]!r})",
+                              spec.sequence)
+        held = np.array([k in spec.heldout_keys for k in keys])
+    else:
+        held = heldout_mask(len(keys), spec.heldout_every, spec.heldout_offset)
     entries, files = [], []
     for i, k in enumerate(keys):
         d = _read_depth(depth[k])
@@ -268,7 +277,9 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
         files.append({"key": k, "frame_number": kf.frame_number, "keyframe": rel, "depth": str(depth[k]),
                       "colour": str(colour[k]) if k in colour else None})
     index = KeyframeIndex(folder=folder, survey=spec.sequence.name, object_name=spec.sequence.name,
-                          pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every},
+                          pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every,
+                                    "heldout_offset": spec.heldout_offset,
+                                    "heldout": "list" if spec.heldout_keys is not None else "every"},
                           arms={spec.arm: {"serial": "imported", "keyframes": len(keys), "heldout": int(held.sum())}},
                           keyframes=entries, extra={"import": str(spec.out / IMPORT_FILE)})
     write_keyframe_index(index)
