@@ -5,6 +5,7 @@ A settings file (YAML or JSON) gives any subset; everything not given keeps its 
     keyframes: {per_view: 3, min_separation_deg: 6, heldout_every: 5}
     fusion: {voxel_size_m: 0.0015, min_frames: 3, depth: {max_depth_m: 1.0}}
     mesh: {radius_factors: [2, 4, 8]}
+    surface: {method: auto}    # auto | paper | measured (auto: measured for imported surveys, paper for DARP ones)
     evaluation: {truth_sample_spacing_m: 0.001, figures: true}
     corrections: {kinematics: true, depth: true, time: true, refine: true, table: true, fusion: true, mesh: true}
     refinement: {max_sigma: 2.0, per_view: true}   # parameters of corrections.refine
@@ -32,6 +33,7 @@ from darp.reconstruction.fusion import FusionSettings
 from darp.reconstruction.keyframes import KeyframeSettings
 from darp.reconstruction.mesh import MeshSettings
 from darp.reconstruction.refine import RefineSettings
+from darp.reconstruction.tsdf_surface import SurfaceSettings
 
 
 @dataclass(frozen=True)
@@ -145,6 +147,9 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("keyframes", "heldout_unit"),
 )
 
+# Whole groups added later: left out of ``to_dict`` while every setting in them holds its default.
+ADDED_LATER_GROUPS: tuple[str, ...] = ("surface",)
+
 
 @dataclass(frozen=True)
 class ProcessSettings:
@@ -156,6 +161,7 @@ class ProcessSettings:
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
     corrections: CorrectionSettings = field(default_factory=CorrectionSettings)
     refinement: RefineSettings = field(default_factory=RefineSettings)  # parameters of corrections.refine
+    surface: SurfaceSettings = field(default_factory=SurfaceSettings)  # which surface (auto: measured if imported)
 
     @property
     def mesh_used(self) -> MeshSettings:
@@ -179,12 +185,15 @@ class ProcessSettings:
         for group, name in ADDED_LATER:
             if plain[group][name] == defaults[group][name]:
                 del plain[group][name]
+        for group in ADDED_LATER_GROUPS:
+            if plain[group] == defaults[group]:
+                del plain[group]
         return plain
 
     def fingerprint(self, *groups: str) -> str:
         """Short hash of the given groups' values (all when none): changes when any of them changes."""
         values = self.to_dict()
-        chosen = {g: values[g] for g in (groups or tuple(values))}
+        chosen = {g: values[g] for g in (groups or tuple(values)) if g in values}
         return hashlib.sha256(json.dumps(chosen, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -215,7 +224,7 @@ def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None
 
 def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
     """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
-    groups = {"keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement"}
+    groups = {"keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement", "surface"}
     unknown = sorted(map(str, set(values) - groups))
     if unknown:
         raise ConfigError(f"unknown settings group(s) {', '.join(unknown)} (groups: {', '.join(sorted(groups))})")
@@ -226,6 +235,7 @@ def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
         evaluation=_build(EvaluationSettings, values.get("evaluation"), "evaluation"),
         corrections=_build(CorrectionSettings, values.get("corrections"), "corrections"),
         refinement=_build(RefineSettings, values.get("refinement"), "refinement"),
+        surface=_build(SurfaceSettings, values.get("surface"), "surface"),
     )
 
 
