@@ -9,9 +9,9 @@ cleaned depth is integrated into a truncated signed distance (Open3D's ``VoxelBl
 noise sigmas at the far end of the range), where each voxel's weight counts the frames that measured it.
 
 Marching cubes then extracts the zero level only where every corner voxel was measured by at least
-``min_weight`` frames: the support. Nothing is closed that no frame saw (a TSDF fills no hole; it only joins
-measurements), and a surface seen by one frame alone is not kept. ``min_weight`` comes from the survey's visit
-counts: 2 frames, or 3 when the median near-surface voxel was seen by at least 10 (:func:`support_weight`).
+``min_frames`` frames: the support. Nothing is closed that no frame saw (a TSDF fills no hole; it only joins
+measurements), and a surface seen by one frame alone is not kept. ``min_frames`` comes from the survey's visit
+counts (:func:`support_frames`).
 
 :func:`open_share` reports how much of the envelope's top and side the mesh leaves open.
 """
@@ -42,7 +42,7 @@ class SurfaceSettings:
     voxel_size_m: float | None = None  # None: from the survey's depth (depth_stats)
     min_depth_m: float | None = None  # None: from the survey's depth distribution
     max_depth_m: float | None = None  # None: from the survey's depth distribution (cut at an empty gap)
-    min_weight: float | None = None  # frames that must measure every corner of a voxel; None: visit counts
+    min_frames: int | None = None  # frames that must measure every corner of a cube; None: from the visit counts
     edge_margin_px: int = 1  # pixels dropped around a depth discontinuity (flying pixels)
     max_incidence_deg: float = 75.0  # steeper steps between neighbouring pixels are discontinuities
     block_resolution: int = 8  # voxels per block side of the hash grid
@@ -51,7 +51,7 @@ class SurfaceSettings:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ReconstructionError(f"surface.method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        for name in ("voxel_size_m", "min_depth_m", "max_depth_m", "min_weight"):
+        for name in ("voxel_size_m", "min_depth_m", "max_depth_m", "min_frames"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ReconstructionError(f"surface.{name} must be > 0 (or absent: from the data), got {value}")
@@ -96,11 +96,13 @@ def clean_depth(raw: np.ndarray, scale: float, focal_px: float, stats: DepthStat
     return z
 
 
-def support_weight(weights: np.ndarray) -> float:
-    """Frames that must measure a voxel: 2, or 3 where the median near-surface voxel was seen by 10 or more."""
+def support_frames(weights: np.ndarray) -> int:
+    """Frames that must measure every corner of a cube for it to be meshed: two (a second frame confirms every
+    surface), three in a dense survey whose median near-surface voxel was measured by 20 frames or more (there a
+    surface two frames saw while its neighbours were seen twenty times is more likely an artefact)."""
     if weights.size == 0:
-        return 2.0
-    return 3.0 if float(np.median(weights)) >= 10 else 2.0
+        return 2
+    return 3 if float(np.median(weights)) >= 20 else 2
 
 
 class MeasuredSurface:
@@ -191,15 +193,19 @@ class MeasuredSurface:
         """The supported zero level as a mesh, and what was done (counts, thresholds)."""
         if self._grid is None:
             raise ReconstructionError("nothing to mesh: no frame kept any depth pixel")
-        min_weight = self.settings.min_weight or support_weight(self.surface_weights())
-        mesh = self._grid.extract_triangle_mesh(weight_threshold=float(min_weight)).to_legacy()
+        weights = self.surface_weights()
+        min_frames = self.settings.min_frames or support_frames(weights)
+        # Open3D keeps a cube whose corners' weights all exceed the threshold
+        mesh = self._grid.extract_triangle_mesh(weight_threshold=min_frames - 0.5).to_legacy()
         if len(mesh.triangles) == 0:
-            raise ReconstructionError(f"no surface was measured by {min_weight:g} frames")
+            raise ReconstructionError(f"no surface was measured by {min_frames} frames")
         colours = self.vertex_colours(np.asarray(mesh.vertices))
         if colours is not None:
             mesh.vertex_colors = o3d.utility.Vector3dVector(colours.astype(np.float64) / 255.0)
         info = {"method": "measured", "voxel_size_m": self.voxel_size_m, "truncation_m": self.truncation_m,
-                "depth_range_m": [self.min_depth_m, self.max_depth_m], "min_weight": float(min_weight),
+                "depth_range_m": [self.min_depth_m, self.max_depth_m], "min_frames": int(min_frames),
+                "visits": {"median": float(np.median(weights)) if weights.size else 0.0,
+                           "seen_once_pct": float(100 * np.mean(weights < 1.5)) if weights.size else 0.0},
                 "frames": self.frames, "pixels_kept_pct": 100.0 * self.pixels_kept / max(self.pixels_in, 1),
                 "blocks": int(self._grid.hashmap().size())}
         return mesh, info
@@ -242,4 +248,4 @@ def open_share(vertices: np.ndarray, centre: np.ndarray, radius: float, height: 
     return float(100.0 * (open_side * side_area + open_top * top_area) / (side_area + top_area))
 
 
-__all__ = ["METHODS", "MeasuredSurface", "SurfaceSettings", "clean_depth", "open_share", "support_weight"]
+__all__ = ["METHODS", "MeasuredSurface", "SurfaceSettings", "clean_depth", "open_share", "support_frames"]
