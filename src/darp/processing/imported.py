@@ -411,7 +411,7 @@ def process_imported_measured(folder: Path, out: Path, index: KeyframeIndex, sur
     figures = draw_figures(out, {}, np.empty((0, 3)), None, held.distances, title=index.survey)
     pooled = np.concatenate(list(held.distances.values())) if held.distances else np.empty(0)
     _figure(mesh, shown, out / FIGURES_DIR / "imported_mesh.png", index.survey,
-            float(np.median(pooled)) * 1e3 if pooled.size else float("nan"), max_triangles=60_000)
+            float(np.median(pooled)) * 1e3 if pooled.size else float("nan"), max_triangles=20_000)
     figures["mesh"] = f"{FIGURES_DIR}/imported_mesh.png"
     cpu["figures"] = time.process_time() - t
     info["open_pct"] = envelope_open_pct(mesh, envelope_info, info["voxel_size_m"])

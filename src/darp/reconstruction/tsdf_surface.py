@@ -32,6 +32,7 @@ from darp.reconstruction.depth_stats import DepthStats, invalid_depth
 METHODS = ("auto", "paper", "measured")
 COLOUR_EVERY = 8  # every 8th fuse frame is kept (subsampled) to colour the mesh
 COLOUR_STEP_PX = 2  # ... at every 2nd pixel
+COLOUR_VIEWS = 4  # at most this many of them, spread over the survey, colour the vertices (first come, first served)
 
 
 @dataclass(frozen=True)
@@ -43,10 +44,10 @@ class SurfaceSettings:
     min_depth_m: float | None = None  # None: from the survey's depth distribution
     max_depth_m: float | None = None  # None: from the survey's depth distribution (cut at an empty gap)
     min_frames: int | None = None  # frames that must measure every corner of a cube; None: from the visit counts
-    edge_margin_px: int = 1  # pixels dropped around a depth discontinuity (flying pixels)
+    edge_margin_px: int = 0  # further pixels dropped around a discontinuity (its nearer pixel always goes)
     max_incidence_deg: float = 75.0  # steeper steps between neighbouring pixels are discontinuities
     block_resolution: int = 8  # voxels per block side of the hash grid
-    heldout_stride_px: int = 2  # held-out frames are scored at every n-th pixel of each row and column
+    heldout_stride_px: int = 3  # held-out frames are scored at every n-th pixel of each row and column
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -166,11 +167,14 @@ class MeasuredSurface:
             return None
         out = np.zeros((len(vertices), 3), np.uint8)
         todo = np.ones(len(vertices), bool)
-        for rgb, z, K, extrinsic, step in self._views:
+        vertices = np.asarray(vertices, np.float32)
+        pick = np.unique(np.linspace(0, len(self._views) - 1, min(COLOUR_VIEWS, len(self._views))).round().astype(int))
+        for i in pick:
+            rgb, z, K, extrinsic, step = self._views[i]
             idx = np.flatnonzero(todo)
             if idx.size == 0:
                 break
-            P = vertices[idx] @ extrinsic[:3, :3].T + extrinsic[:3, 3]
+            P = vertices[idx] @ extrinsic[:3, :3].T.astype(np.float32) + extrinsic[:3, 3].astype(np.float32)
             front = P[:, 2] > 1e-6
             u = np.rint((K[0, 0] * P[:, 0] / np.where(front, P[:, 2], 1) + K[0, 2]) / step).astype(np.int64)
             v = np.rint((K[1, 1] * P[:, 1] / np.where(front, P[:, 2], 1) + K[1, 2]) / step).astype(np.int64)
