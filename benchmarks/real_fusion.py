@@ -50,7 +50,7 @@ SKIP = ("ir_left", "ir_right", "support_mask")
 
 
 def _timed(args: list[str]) -> dict[str, Any]:
-    """Run ``args`` as a child: its output, wall and CPU seconds and peak RSS (MB) of that child alone (``os.wait4``)."""
+    """Run ``args`` as a child: its output, wall and CPU seconds and peak RSS (MB) of it alone (``os.wait4``)."""
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     with tempfile.TemporaryFile() as out, tempfile.TemporaryFile() as err:
         t0 = time.perf_counter()

@@ -46,7 +46,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
-from darp.acquisition.coverage import CoverageSettings, plan_coverage
+from darp.acquisition.coverage import CoverageSettings
+from darp.acquisition.coverage_plan import plan_coverage
 from darp.acquisition.motion_check import ArmCollisionModel, envelope_obstacle
 from darp.acquisition.viewpoints import RELAXATIONS, Candidate, ViewpointPlanner, orbit_shape
 from darp.errors import TwinError

@@ -52,7 +52,7 @@ PAPER_DURATION_S = {"red_bull": 118.6, "dumbbell": 110.6, "controller": 103.6, "
 def run_one(job: dict[str, Any]) -> dict[str, Any]:
     """One survey in a fresh twin (runs in a worker process)."""
     from darp.acquisition.survey import run_survey
-    from darp.acquisition.viewpoints import tour_cost
+    from darp.acquisition.tour import tour_cost
     from darp.geometry import min_enclosing_circle
     from darp.kinematics.rig import load_rig
     from darp.twin.objects.model import RectRegion, make_object, random_placement, to_world

@@ -39,7 +39,7 @@ def true_unit_errors(captures_dir: Path) -> dict[str, dict[str, Any]]:
     for arm_id, arm in load_rig().arms.items():
         unit = draw_unit(settings.rng(f"unit:{arm.camera_serial}")) if c.unit_variation else UnitCalibration()
         spec = make_camera_spec(unit, serial=arm.camera_serial, depth_resolution=(c.width, c.height),
-                                color_resolution=(c.width, c.height), fps=c.fps, color_fps=c.fps)
+                                colour_resolution=(c.width, c.height), fps=c.fps, colour_fps=c.fps)
         cam, factory = camera_unit_errors(settings, arm.camera_serial, spec,
                                           TwinCameraSettings.from_profile(c.depth_noise))
         e = cam.errors

@@ -10,15 +10,9 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from darp.acquisition.coverage import (
-    FACES,
-    CoverageSettings,
-    CoverageTracker,
-    envelope_surface,
-    observed_samples,
-    plan_coverage,
-    visibility,
-)
+from darp.acquisition.coverage import FACES, CoverageSettings, envelope_surface, visibility
+from darp.acquisition.coverage_plan import plan_coverage
+from darp.acquisition.coverage_track import CoverageTracker, observed_samples
 from darp.acquisition.motion_check import ArmCollisionModel, envelope_obstacle
 from darp.acquisition.viewpoints import ViewpointPlanner
 from darp.kinematics.rig import load_rig

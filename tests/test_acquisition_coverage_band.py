@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from darp.acquisition.coverage import CoverageSettings, _greedy
+from darp.acquisition.coverage import CoverageSettings
+from darp.acquisition.coverage_plan import _greedy
 
 
 def pools() -> tuple[dict[str, np.ndarray], np.ndarray]:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from darp.acquisition.motion_check import ArmCollisionModel, ClearanceMargins, envelope_obstacle
+from darp.acquisition.tour import order_views, tour_cost
 from darp.acquisition.viewpoints import (
     Candidate,
     ViewpointPlanner,
@@ -13,11 +14,9 @@ from darp.acquisition.viewpoints import (
     calibration_table_problem,
     feasibility_summary,
     orbit_shape,
-    order_views,
     reason_words,
     shoulder_offsets_m,
     standoff_for_radius,
-    tour_cost,
 )
 from darp.kinematics import collision
 from darp.kinematics.collision_shapes import Primitive

@@ -17,6 +17,7 @@ import pytest
 from darp.calibration.captures import read_captures
 from darp.calibration.check import check_calibration
 from darp.cli._app import run
+from darp.errors import FormatError
 from darp.formats.calibration import read_calibration
 from darp.kinematics.transforms import axis_angle_to_rotation, make_transform
 from helpers.calibration_synthetic import board_pose, random_poses, shared_once, true_rig, write_synthetic_captures
@@ -142,3 +143,15 @@ def test_plan_command_writes_a_plan(tmp_path: Path, capsys: pytest.CaptureFixtur
     data = json.loads((tmp_path / "plan.json").read_text())
     assert data["schema"] == "darp-calib-plan/1" and {len(v) for v in data["poses"].values()} == {4}
     assert "arm110: 4" in capsys.readouterr().out
+
+
+def test_twin_capture_run_completes_and_unmarks_its_folder(tmp_path: Path) -> None:
+    """`darp calib capture --twin` ends with a finished folder that `calib solve` can read (the writer reads its own
+    folder back while the run's UNFINISHED.txt is still there: that read must not refuse it)."""
+    out = tmp_path / "caps"
+    assert run(["calib", "capture", "--twin", "--seed", "0", "--captures", "2", "--out", str(out), "-q"]) == 0
+    assert not (out / "UNFINISHED.txt").exists()
+    assert len(read_captures(out).captures) == 4
+    (out / "UNFINISHED.txt").write_text("interrupted\n")
+    with pytest.raises(FormatError, match="unfinished capture folder"):
+        read_captures(out)

@@ -97,7 +97,9 @@ def test_identifiability_finds_joint1_and_joint6_degenerate_and_the_rest_identif
     assert any(n.startswith(f"handeye:{ARMS[0]}") for n in ident.degenerate_with[f"{ARMS[0]}.joint6"])
     assert any(n.startswith(f"base:{ARMS[1]}") for n in ident.degenerate_with[f"{ARMS[1]}.joint1"])
     sv = ident.singular_values
-    assert np.sum(sv < 1e-6 * sv[0]) == 4  # four exact null directions among the twelve offsets
+    # four null directions among the twelve offsets: numerically ~1e-6 of the largest (finite differences,
+    # BLAS-dependent), the next one five orders of magnitude above them
+    assert np.sum(sv < 1e-4 * sv[0]) == 4 and sv[-5] > 1e-2 * sv[0], sv
 
 
 @pytest.mark.parametrize("seed", [0, 1])

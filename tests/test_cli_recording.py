@@ -167,6 +167,8 @@ def test_interrupted_export_leaves_no_partial_files(tmp_path, monkeypatch, capsy
     assert run(["recording", "export", str(DB3), "--out", str(out)]) == 2
     assert "simulated failure" in capsys.readouterr().err
     names = sorted(p.name for p in out.iterdir())
+    assert "UNFINISHED.txt" in names  # the half folder is marked (issue 32)
+    names.remove("UNFINISHED.txt")
     assert len(names) == 2 and all(n.endswith(".png") for n in names)  # two whole images, no csv, no .partial
 
 

@@ -172,7 +172,7 @@ def _true_errors(settings, serial: str):  # type: ignore[no-untyped-def]
 
     c = settings.camera
     spec = make_camera_spec(draw_unit(settings.rng(f"unit:{serial}")), serial=serial,
-                            depth_resolution=(c.width, c.height), color_resolution=(c.width, c.height))
+                            depth_resolution=(c.width, c.height), colour_resolution=(c.width, c.height))
     cam, _ = camera_unit_errors(settings, serial, spec, TwinCameraSettings.from_profile(c.depth_noise))
     return cam.errors
 

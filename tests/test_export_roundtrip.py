@@ -125,7 +125,8 @@ def test_tum_import_without_intrinsics_or_matching_poses_is_a_one_line_error(
     assert run(["import", str(far), "-o", str(tmp_path / "out2")]) == 2
     err = capsys.readouterr().err
     assert "darp: error:" in err and "groundtruth.txt" in err and "no depth frame has a ground-truth pose" in err
-    assert run(["import", str(tmp_path), "-o", str(tmp_path / "out3")]) == 2  # darp export tum's per-arm parent
+    out3 = tmp_path.parent / f"{tmp_path.name}-out3"  # outside the input folder (inside it is refused, issue 32)
+    assert run(["import", str(tmp_path), "-o", str(out3)]) == 2  # darp export tum's per-arm parent
     assert "its sub-folders far, seq are: import each" in capsys.readouterr().err
 
 

@@ -19,12 +19,12 @@ def test_framesets_pair_depth_with_its_infrared_and_nearest_colour(path: Path) -
     with open_recording(path) as rec:
         sets = list(rec.framesets())
         assert len(sets) == rec.frame_count("depth")
-        color_stamps = rec.timestamps_ms("color")
+        colour_stamps = rec.timestamps_ms("color")
         for fs in sets:
             assert fs.ir1 is not None and fs.ir2 is not None, "infrared partner missing"
             assert fs.ir1.info.frame_number == fs.depth.info.frame_number
             assert fs.ir2.info.frame_number == fs.depth.info.frame_number
-            nearest = np.min(np.abs(color_stamps - fs.depth.info.timestamp_ms))
+            nearest = np.min(np.abs(colour_stamps - fs.depth.info.timestamp_ms))
             assert abs(fs.color.info.timestamp_ms - fs.depth.info.timestamp_ms) == pytest.approx(nearest)
 
 

@@ -38,8 +38,9 @@ def test_latest_frameset_gives_metric_depth_colour_and_calibration(fake_rs):
         k = fs.depth_intrinsics
         assert (k.width, k.height) == (424, 240) and k.fx == pytest.approx(383.5 * 424 / 640)
         assert k.model == "Brown Conrady"
-        assert fs.color_bgr.shape == (240, 424, 3) and fs.color_intrinsics.model == "Inverse Brown Conrady"
+        assert fs.colour_bgr.shape == (240, 424, 3) and fs.colour_intrinsics.model == "Inverse Brown Conrady"
         T_color_depth = fake_rs.WORLD.cameras[SERIAL].T_stream_depth("color")
+        assert np.allclose(fs.T_color_depth, T_color_depth, atol=1e-7)
         assert np.allclose(fs.T_depth_color, np.linalg.inv(T_color_depth), atol=1e-7)
         assert camera.depth_intrinsics == k
         numbers = [fs.extra["frame_number"]]

@@ -104,9 +104,9 @@ def test_a_full_hardware_section_is_read():
 
 
 @pytest.mark.parametrize("section, message", [
-    ({"arm": {}}, r"hardware: unknown field\(s\) arm"),
+    ({"arm": {}}, r"unknown key\(s\) hardware\.arm "),
     ({"arms": {"arm112": {}}}, r"hardware\.arms: no arm 'arm112' in the rig"),
-    ({"arms": {"arm110": {"port": 1}}}, r"hardware\.arms\.arm110: unknown field\(s\) port"),
+    ({"arms": {"arm110": {"port": 1}}}, r"unknown key\(s\) hardware\.arms\.arm110\.port "),
     ({"arms": {"arm110": {"controller_port": "8071"}}}, r"controller_port: expected an integer"),
     ({"arms": {"arm110": {"controller_port": 70000}}}, r"controller_port: must be a UDP port"),
     ({"arms": {"arm110": {"arm_ip": "192.168.123"}}}, r"arm_ip: not an IP address"),

@@ -174,7 +174,7 @@ _SHEAR = [[1.0, 0.2, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0
     ("field", "value", "message"),
     [
         ("table.height_m", _DELETE, "table.height_m: missing field"),
-        ("arms.arm110.T_wrist_cam", _DELETE, "arms.arm110.T_wrist_cam: missing field"),
+        ("arms.arm110.T_flange_cam", _DELETE, "arms.arm110.T_flange_cam: missing field"),
         ("arms.arm111.T_world_base", {"matrix": _SHEAR}, "arms.arm111.T_world_base: not a rigid transform"),
         ("arms.arm110.T_world_base.xyz_m", [0.0, 0.0], "xyz_m: expected a list of 3 numbers"),
         ("arms.arm110.T_world_base.rpy_deg", [0, 0, "ninety"], "rpy_deg: expected numbers"),

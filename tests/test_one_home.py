@@ -6,12 +6,14 @@ Prose may quote a figure (a docstring saying what the paper reported); code must
 from __future__ import annotations
 
 import ast
+import builtins
 from pathlib import Path
 
 import pytest
 
 import darp
 from darp import paper
+from darp.colours import ARM_COLOURS
 
 SRC = Path(darp.__file__).resolve().parent
 ROOT = SRC.parents[1]
@@ -118,3 +120,73 @@ def test_the_checker_finds_a_geometry_copy(tmp_path: Path) -> None:
         "line 15: transform_points (its home: geometry/transforms.py)",
         "line 2: RIGID_TOLERANCE (the rigidity rule is darp.geometry.rigid's)"]
     assert copies_outside_home(SRC / "geometry" / "transforms.py", "geometry/transforms.py") == []
+
+
+# -- arm colours and error classes --------------------------------------------------------------------------------
+ARM_HEX = {code.lower() for code in ARM_COLOURS.values()}
+
+
+def colour_copies(path: Path) -> list[str]:
+    """String constants in a module's code that spell an arm's colour (its home is darp/colours.py)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    return [f"line {node.lineno}: {node.value!r}" for node in ast.walk(tree)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str)
+            and any(code in node.value.lower() for code in ARM_HEX)]
+
+
+@pytest.mark.parametrize("path", [p for p in CODE if p != SRC / "colours.py"], ids=lambda p: str(p.relative_to(ROOT)))
+def test_the_arm_colours_live_only_in_darp_colours(path: Path) -> None:
+    copies = colour_copies(path)
+    assert not copies, f"{path.relative_to(ROOT)} spells an arm colour (import darp.colours): {copies}"
+
+
+def bare_errors(path: Path) -> list[str]:
+    """``raise ValueError`` (darp raises its own classes) and exception classes deriving from ValueError outside
+    darp/errors.py."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Raise) and node.exc is not None:
+            exc = node.exc.func if isinstance(node.exc, ast.Call) else node.exc
+            if isinstance(exc, ast.Name) and exc.id == "ValueError":
+                out.append(f"line {node.lineno}: raise ValueError")
+        elif isinstance(node, ast.ClassDef) and any(isinstance(b, ast.Name) and b.id == "ValueError"
+                                                    for b in node.bases):
+            out.append(f"line {node.lineno}: class {node.name}(ValueError)")
+    return out
+
+
+@pytest.mark.parametrize("path", [p for p in sorted(SRC.rglob("*.py")) if p != SRC / "errors.py"],
+                         ids=lambda p: str(p.relative_to(SRC)))
+def test_no_bare_value_error_in_src(path: Path) -> None:
+    found = bare_errors(path)
+    assert not found, f"{path.relative_to(SRC)}: raise a darp.errors class (DecodeError deep in a reader): {found}"
+
+
+# Internal control flow, caught inside the module that raises it (never reaching a caller).
+INTERNAL_EXCEPTIONS = {("acquisition/survey.py", "_Terminated"), ("formats/realsense/rosbag1/records.py", "Incomplete")}
+BUILTIN_EXCEPTIONS = {name for name in dir(builtins) if name.endswith(("Error", "Exception"))}
+
+
+def error_classes_outside_the_hierarchy(path: Path, where: str) -> list[str]:
+    """Exception classes deriving from a builtin exception directly: darp's derive from darp.errors."""
+    return [f"line {node.lineno}: class {node.name}" for node in ast.walk(ast.parse(path.read_text(encoding="utf-8")))
+            if isinstance(node, ast.ClassDef) and (where, node.name) not in INTERNAL_EXCEPTIONS
+            and any(isinstance(b, ast.Name) and b.id in BUILTIN_EXCEPTIONS for b in node.bases)]
+
+
+@pytest.mark.parametrize("path", [p for p in sorted(SRC.rglob("*.py")) if p != SRC / "errors.py"],
+                         ids=lambda p: str(p.relative_to(SRC)))
+def test_every_error_class_is_in_the_hierarchy(path: Path) -> None:
+    found = error_classes_outside_the_hierarchy(path, path.relative_to(SRC).as_posix())
+    assert not found, f"{path.relative_to(SRC)}: derive from a darp.errors class (one per layer): {found}"
+
+
+def test_the_checkers_find_a_colour_and_a_bare_error(tmp_path: Path) -> None:
+    copy = tmp_path / "copy.py"
+    copy.write_text('"""#D62728 in prose is a string too"""\nRED = "#D62728"\n\n\n'
+                    'class Bad(ValueError):\n    pass\n\n\n'
+                    'def f():\n    raise ValueError("x")\n\n\ndef g():\n    raise ValueError\n')
+    assert colour_copies(copy) == ["line 1: '#D62728 in prose is a string too'", "line 2: '#D62728'"]
+    assert bare_errors(copy) == ["line 5: class Bad(ValueError)", "line 10: raise ValueError",
+                                 "line 14: raise ValueError"]
+    assert error_classes_outside_the_hierarchy(copy, "x.py") == ["line 5: class Bad"]

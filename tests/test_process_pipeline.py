@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from darp.formats.envelope import read_envelope
 from darp.formats.survey import open_survey
 from darp.formats.truth import read_camera_poses
 from darp.processing.job import SurveyJob
@@ -20,6 +21,7 @@ from darp.processing.stages import PROCESS_STAGES
 from darp.reconstruction.backproject import world_points
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
 from darp.reconstruction.keyframe_io import iter_keyframes, read_keyframe_index
+from darp.reconstruction.keyframes import select_arm_keyframes
 from darp.twin.truth import read_truth
 
 pytestmark = pytest.mark.slow
@@ -113,6 +115,32 @@ def test_keyframes_match_the_recording_poses_and_envelope(processed, survey_path
     finally:
         for rec in recordings.values():
             rec.close()
+
+
+def test_keyframes_come_from_the_surveys_own_views_never_the_park_pose(processed, survey_path: Path) -> None:
+    """The tiny survey's cameras see the cube from park too (about 0.78 m, its views 0.33 m): the rule
+    without the park and distance tests takes keyframes there; darp's keyframes are all near views."""
+    job, _, _ = processed
+    index = read_keyframe_index(job.keyframes_dir)
+    envelope = read_envelope(survey_path / "manip_envelope.json")
+    centre = np.asarray(envelope.center_m)
+    settings = job.settings.keyframes
+    for arm, counts in index.arms.items():
+        p = np.load(job.out / "poses" / f"cam{counts['serial']}_{arm}.npz")
+        park = np.asarray(envelope.park_q_rad[arm])
+        at_park = np.all(np.abs(p["q_rad"] - park) <= settings.park_tolerance_rad, axis=1)
+        distance = np.linalg.norm(p["T_world_cam"][:, :3, 3] - centre, axis=1)
+        mine = [np.flatnonzero(p["frame_numbers"] == kf.frame_number)[0] for kf in index.keyframes if kf.arm == arm]
+        assert len(mine) >= 6 and counts["at_park"] > 0
+        assert not at_park[mine].any()
+        assert distance[mine].max() <= settings.max_view_distance_ratio * distance[mine].min()
+        assert distance[at_park].min() > 2 * distance[mine].max()  # park is far
+        # the same frames with the rule of before (no park or distance test) take keyframes at park
+        speed = np.abs(p["joint_velocity"]).max(axis=1)
+        old = select_arm_keyframes(arm, p["timestamps_ms"] / 1000.0, p["T_world_cam"], speed, centre,
+                                   dataclasses.replace(settings, max_view_distance_ratio=None),
+                                   job.recording(arm).stream("depth").intrinsics)
+        assert at_park[old.indices].any()
 
 
 def test_resume_skips_done_stages_and_reruns_changed_ones(processed, survey_path: Path) -> None:

@@ -98,8 +98,9 @@ def test_open_share_of_an_envelope() -> None:
     ang = np.linspace(-np.pi, np.pi, 4000, endpoint=False)
     zs = np.linspace(-0.049, 0.049, 50)
     side = np.array([[0.1 * np.cos(a), 0.1 * np.sin(a), z] for a in ang[ang < 0] for z in zs])  # half the side
-    assert open_share(side, np.zeros(3), 0.1, 0.1, 0.005) == pytest.approx(100 * (0.5 * 2 * math.pi * 0.01 + math.pi
-                                                                                  * 0.01) / (2 * math.pi * 0.01 + math.pi * 0.01), abs=3)
+    side_area, top_area = 2 * math.pi * 0.1 * 0.1, math.pi * 0.1**2
+    expected = 100 * (0.5 * side_area + top_area) / (side_area + top_area)  # half the side and all the top open
+    assert open_share(side, np.zeros(3), 0.1, 0.1, 0.005) == pytest.approx(expected, abs=3)
 
 
 def test_surface_settings_are_left_out_of_records_while_default_and_checked() -> None:

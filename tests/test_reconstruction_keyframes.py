@@ -4,6 +4,7 @@ against pyrealsense2's own projection functions."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -131,6 +132,38 @@ def test_keyframes_are_settled_in_view_and_from_distinct_views(survey_arrays) ->
             if sel.view_ids[a] != sel.view_ids[b]:
                 assert angle_deg(dirs[a], dirs[b]) >= settings.min_separation_deg
     assert sel.counts["views"] == 4 and sel.counts["keyframes"] == 12
+
+
+FAR_SCHEDULE = [("dwell", 120.0, 60.0, 0.80, 1.0),  # park: far, from a direction no near view has
+                ("move", 0.8), ("dwell", 180.0, 30.0, 0.35, 1.0),
+                ("move", 0.8), ("dwell", 160.0, 30.0, 0.50, 1.0),  # farther, but within 2x the nearest
+                ("move", 0.8), ("dwell", 200.0, 30.0, 0.35, 1.0)]
+
+
+def test_a_view_more_than_twice_as_far_as_the_nearest_is_dropped() -> None:
+    t, T, speed, dwell = build(FAR_SCHEDULE)
+    settings = KeyframeSettings(settle_s=0.3)
+    sel = select_arm_keyframes("arm110", t, T, speed, CENTRE, settings, INTR)
+    assert sorted(set(dwell[sel.indices].tolist())) == [1, 2, 3]
+    assert sel.counts["far_views"] == 1 and sel.counts["views_found"] == 4
+    off = select_arm_keyframes("arm110", t, T, speed, CENTRE,
+                               dataclasses.replace(settings, max_view_distance_ratio=None), INTR)
+    assert 0 in dwell[off.indices]  # the old rule: the far view is distinct in direction, so it was taken
+    with pytest.raises(ReconstructionError, match="max_view_distance_ratio"):
+        KeyframeSettings(max_view_distance_ratio=0.5)
+
+
+def test_frames_at_the_park_pose_are_never_keyframes() -> None:
+    t, T, speed, dwell = build(FAR_SCHEDULE)
+    park = np.array([0.0, 1.5, -1.0, -0.5, 0.0, 0.0])
+    q = np.where((dwell == 0)[:, None], park + 0.01, park + 0.3)  # the park dwell within 0.01 rad of park
+    settings = KeyframeSettings(settle_s=0.3, max_view_distance_ratio=None)
+    sel = select_arm_keyframes("arm110", t, T, speed, CENTRE, settings, INTR, q_rad=q, park_q_rad=park)
+    assert 0 not in dwell[sel.indices] and sorted(set(dwell[sel.indices].tolist())) == [1, 2, 3]
+    assert sel.counts["at_park"] == int(np.count_nonzero((dwell == 0) & settled_mask(t, speed, settings)))
+    strict = dataclasses.replace(settings, park_tolerance_rad=0.005)  # 0.01 rad off park is then not "at park"
+    assert 0 in dwell[select_arm_keyframes("arm110", t, T, speed, CENTRE, strict, INTR, q_rad=q,
+                                           park_q_rad=park).indices]
 
 
 def test_one_frame_per_view_gives_pairwise_minimum_angle(survey_arrays) -> None:
@@ -368,7 +401,7 @@ def test_keyframes_read_without_the_images_a_stage_does_not_use(tmp_path: Path, 
                 assert np.array_equal(got, getattr(kf, name)), name
         assert np.array_equal(part.posed_depth(colour=False).depth, kf.depth)
     assert part.posed_depth(colour=False).colour is None
-    with pytest.raises(ValueError, match="cannot skip depth"):
+    with pytest.raises(ReconstructionError, match="cannot skip depth"):
         read_keyframe(tmp_path / "arm110/000007.npz", skip=("depth",))
 
 

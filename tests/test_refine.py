@@ -16,13 +16,11 @@ import pytest
 
 from darp.reconstruction.backproject import PosedDepth
 from darp.reconstruction.crop import EnvelopeCrop
-from darp.reconstruction.refine import (
-    RefineSettings,
-    RefineView,
+from darp.reconstruction.refine import RefineSettings, RefineView, refine_poses
+from darp.reconstruction.registration import (
     displacement_m,
     information_ratios,
     mean_transform,
-    refine_poses,
     rigid_power,
     rotation_angle_deg,
     transform_twist,

@@ -157,7 +157,7 @@ BAD_VALUES: dict[str, tuple[str, Callable[[], bytes], str]] = {
                                 "also on arms.arm110"),
     "calibration deeply nested": ("calibration", lambda: b'{"schema_version": 1, "report": ' + b"[" * 50000
                                   + b"]" * 50000 + b"}", "nested too deeply"),
-    "rig unknown key": ("rig", lambda: default_rig_path().read_bytes() + b"colour: red\n", "unknown field"),
+    "rig unknown key": ("rig", lambda: default_rig_path().read_bytes() + b"colour: red\n", "unknown key"),
     "rig rpy 1e300": ("rig", lambda: default_rig_path().read_bytes().replace(b"rpy_deg: [0.0, 0.0, 178.4]",
                                                                            b"rpy_deg: [0.0, 0.0, 1e300]"),
                       "rpy_deg"),
@@ -193,7 +193,7 @@ def test_a_json_file_over_the_size_limit_is_refused_unread_in_one_line(kind: str
     with pytest.raises(FormatError) as caught:
         reader(path)
     message = str(caught.value)
-    assert message == f"{path}: {MAX_JSON_BYTES + 1} bytes, larger than any darp JSON file (limit 256 MiB)"
+    assert message == f"{path}: {MAX_JSON_BYTES + 1} bytes, over darp's limit for a JSON file (256 MiB)"
     path.write_bytes(valid())  # the same file at its real size is read
     reader(path)
 
@@ -229,3 +229,31 @@ def test_arm_poses_ranges_accept_a_real_log(tmp_path: Path) -> None:
     path.write_text(ARM_POSES)
     log = read_arm_poses(path)
     assert log.rows("arm110") == 6 and np.all(np.abs(log.joints("arm111")) < 2.0)
+
+
+@FUZZ
+@given(data=st.binary(min_size=0, max_size=40), at=st.integers(0, len(ARM_POSES)), cut=st.integers(0, 8),
+       chunk=st.integers(1, 97))
+def test_the_streamed_joint_log_does_not_depend_on_its_piece_size(data: bytes, at: int, cut: int, chunk: int,
+                                                                  tmp_path: Path,
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 32: arm_poses.csv is parsed piece by piece. Any splice of bytes into a valid log reads the same
+    (arrays, lines, a dropped tail) or fails with a FormatError, whether the pieces are 1 to 97 bytes or the file."""
+    import darp.formats.arm_poses as arm_poses
+
+    raw = ARM_POSES.encode()
+    path = tmp_path / "arm_poses.csv"
+    path.write_bytes(raw[:at] + data + raw[at + cut:])
+
+    def outcome() -> Any:
+        try:
+            log = arm_poses.read_arm_poses(path)
+        except FormatError as err:
+            assert str(err).startswith(str(path))
+            return "refused"
+        return (log.truncated_tail_line, {a: (log.times(a).tobytes(), log.joints(a).tobytes(), log.lines(a).tolist())
+                                          for a in log.arms})
+
+    whole = outcome()
+    monkeypatch.setattr(arm_poses, "CHUNK_BYTES", chunk)
+    assert outcome() == whole

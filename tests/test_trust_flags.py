@@ -36,8 +36,8 @@ def test_a_clean_document_raises_no_flag() -> None:
     (lambda r: r["heldout"]["arms"]["arm111"].update(p90_mm=27.0), "arm111's held-out p90"),
     (lambda r: r["heldout"]["aggregate"].update(median_mm=5.0), "held-out median 5.00"),
     (lambda r: r.update(truth={"cloud": {"accuracy": {"median_mm": 6.5}}}), "from the true surface"),
-    (lambda r: r.update(truth={"cloud": {"accuracy": {"median_mm": 4.5}}, "seeable": {"completeness_pct": {"5mm": 25.7}}}),
-     "surface its poses could see"),
+    (lambda r: r.update(truth={"cloud": {"accuracy": {"median_mm": 4.5}},
+                               "seeable": {"completeness_pct": {"5mm": 25.7}}}), "surface its poses could see"),
 ])
 def test_each_signal_flags_when_out_of_bounds(change: Any, words: str) -> None:
     r = copy.deepcopy(clean())

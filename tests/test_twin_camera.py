@@ -451,7 +451,7 @@ def test_camera_spec_scales_intrinsics_and_composes_extrinsics() -> None:
     base = make_camera_spec(unit)
     assert 382 <= base.depth.fx <= 385 and 319 <= base.depth.ppx <= 322 and 236 <= base.depth.ppy <= 246
     assert 606 <= base.color.fx <= 615 and 314 <= base.color.ppx <= 323
-    hd = make_camera_spec(unit, depth_resolution=(1280, 720), color_resolution=(1280, 720))
+    hd = make_camera_spec(unit, depth_resolution=(1280, 720), colour_resolution=(1280, 720))
     assert hd.depth.fx == pytest.approx(base.depth.fx / 0.6)  # 640x480 is the full sensor scaled by 0.6
     assert hd.color.fx == pytest.approx(base.color.fx * 1.5)  # colour 640x480 is 1920x1080 scaled by 4/9
     assert (hd.depth.ppx - 639.5) == pytest.approx((base.depth.ppx - 319.5) / 0.6)

@@ -499,7 +499,7 @@ VIEWS = {
 @pytest.mark.parametrize("render_ir", [True, False])
 def test_dropouts_without_segmentation_match_full_segmentation(dropout_scene, monkeypatch, render_ir: bool) -> None:
     model, data = dropout_scene
-    spec = make_camera_spec(depth_resolution=(424, 240), color_resolution=(424, 240))
+    spec = make_camera_spec(depth_resolution=(424, 240), colour_resolution=(424, 240))
     dark, glass = gid(model, "dark"), gid(model, "glass")
     dropouts = {"dark": 0.8, glass: 0.6}
     w, h = spec.depth.width, spec.depth.height

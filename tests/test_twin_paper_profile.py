@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from darp.cli._app import run
-from darp.errors import ConfigError
+from darp.errors import ConfigError, DarpError
 from darp.kinematics import z1
 from darp.kinematics.rig import load_rig
 from darp.twin.arm_errors import KinematicErrors, LinkDeflection, fk_batch_with_errors, gravity_torques
@@ -535,3 +535,21 @@ def test_the_demo_surveys_with_the_papers_orbit(tmp_path: Path, monkeypatch: pyt
     collect = calls[-1]
     assert collect[collect.index("--viewpoints") + 1] == "orbit"
     assert collect[collect.index("--profile") + 1] == "paper"
+
+
+@pytest.mark.parametrize(("extra", "expected"), [([], "paper"), (["--profile", "realistic"], "realistic")])
+def test_the_demo_runs_the_paper_profile_unless_told(extra: list[str], expected: str, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """``darp demo`` shows the real rig's error levels by default; ``--profile realistic`` is an option away."""
+    import darp.cli.demo as demo
+
+    calls: list[list[str]] = []
+
+    def record(args: list[object]) -> None:
+        calls.append([str(a) for a in args])
+        raise DarpError("stop here")
+
+    monkeypatch.setattr(demo, "_call", record)
+    assert run(["demo", "-o", str(tmp_path / "demo"), *extra]) == 2
+    capture = calls[0]
+    assert capture[:2] == ["calib", "capture"] and capture[capture.index("--profile") + 1] == expected

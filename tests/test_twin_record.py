@@ -68,8 +68,8 @@ def test_survey_folder_is_complete_and_readable(ideal: Path) -> None:
 
 def test_bags_play_back_in_pyrealsense2(ideal: Path) -> None:
     truth = read_truth(ideal)
-    spec = make_camera_spec(UnitCalibration(), depth_resolution=(424, 240), color_resolution=(424, 240), fps=6,
-                            color_fps=6)
+    spec = make_camera_spec(UnitCalibration(), depth_resolution=(424, 240), colour_resolution=(424, 240), fps=6,
+                            colour_fps=6)
     for arm, cal in truth.calibration.arms.items():
         path = ideal / f"cam{cal.serial}.bag"
         played = play_back(path)
@@ -340,8 +340,8 @@ def test_lighting_setting_changes_the_colour_images_and_stays_out_of_default_set
         assert TwinSettings.from_dict(lit.to_dict()).lighting == lit.lighting  # round trip through YAML
         with TwinRig(lit) as twin:
             frame = twin.cameras["arm110"].latest_frameset()
-            assert frame.color_bgr is not None
-            means.append(float(frame.color_bgr.mean()))
+            assert frame.colour_bgr is not None
+            means.append(float(frame.colour_bgr.mean()))
     assert means[1] > means[0] + 40  # brighter lights, brighter images
     with pytest.raises(ConfigError, match=r"lighting\.key"):
         LightingSettings(key=1.5)

@@ -51,7 +51,7 @@ def test_settings_errors_name_the_file_and_field(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"bad.yaml: joints.zero_bias_max_deg"):
         TwinSettings.load(bad)
     bad.write_text("camera: {exposure: 3}\n")
-    with pytest.raises(ConfigError, match=r"camera: unknown setting\(s\) exposure"):
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) camera\.exposure "):
         TwinSettings.load(bad)
 
 

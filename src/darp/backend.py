@@ -27,6 +27,7 @@ from typing import Self
 import numpy as np
 
 from darp.formats.realsense.types import Intrinsics
+from darp.kinematics.transforms import invert_transform
 
 
 @dataclass(frozen=True)
@@ -45,10 +46,15 @@ class LiveFrameSet:
     timestamp_s: float  # host clock
     depth_m: np.ndarray  # (H, W) float32 metres, 0 where invalid
     depth_intrinsics: Intrinsics
-    color_bgr: np.ndarray | None = None  # (H, W, 3) uint8, colour camera's own intrinsics
-    color_intrinsics: Intrinsics | None = None
-    T_depth_color: np.ndarray | None = None  # 4x4 extrinsic colour -> depth
+    colour_bgr: np.ndarray | None = None  # (H, W, 3) uint8, colour camera's own intrinsics
+    colour_intrinsics: Intrinsics | None = None
+    T_color_depth: np.ndarray | None = None  # 4x4 librealsense extrinsic depth -> colour (the one stored)
     extra: dict[str, object] = field(default_factory=dict)
+
+    @property
+    def T_depth_color(self) -> np.ndarray | None:
+        """The colour camera's pose in the depth frame (colour -> depth): the inverse of ``T_color_depth``."""
+        return None if self.T_color_depth is None else invert_transform(self.T_color_depth)
 
 
 @dataclass(frozen=True)

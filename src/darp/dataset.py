@@ -27,8 +27,10 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import DarpError, DarpWarning, FormatError
+from darp.errors import DarpError, DarpWarning, DecodeError, FormatError
 from darp.formats.atomic import UNFINISHED_FILE
+from darp.formats.io_input import LIMITS, marker_text
+from darp.formats.text import read_utf8_text
 from darp.formats.truth import OBJECT_JSON_FILE, OBJECT_MESH_FILE, TRUTH_DIR
 from darp.geometry.transforms import transform_points
 from darp.reconstruction.backproject import backproject
@@ -97,10 +99,7 @@ def find_processed(path: str | Path) -> list[ProcessedSurvey]:
 
 
 def _first_line(path: Path) -> str:
-    try:
-        lines = path.read_text(encoding="utf-8", errors="replace").strip().splitlines()
-    except OSError:
-        return "unreadable marker"
+    lines = marker_text(path).strip().splitlines()
     return lines[0] if lines else "no reason recorded"
 
 
@@ -123,7 +122,7 @@ def _processed(folder: Path) -> ProcessedSurvey:
     results = folder / RESULTS_FILE
     if results.is_file():
         try:
-            payload = json.loads(results.read_text(encoding="utf-8"))
+            payload = json.loads(read_utf8_text(results, "a JSON file", limit=LIMITS["json"]))
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise FormatError(f"invalid JSON: {err}", results) from err
     if not isinstance(payload, dict):
@@ -138,7 +137,7 @@ def read_object_truth(truth_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
     T_world_object, object.json)."""
     meta_path = truth_dir / OBJECT_JSON_FILE
     try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        meta = json.loads(read_utf8_text(meta_path, "a JSON file", limit=LIMITS["json"]))
         T_world_object = np.array(meta["T_world_object"], np.float64)
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
         raise FormatError(f"cannot read the object's pose: {err}", meta_path) from err
@@ -148,7 +147,7 @@ def read_object_truth(truth_dir: Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
         mesh = trimesh.load(mesh_path, process=False, force="mesh")
         if not isinstance(mesh, trimesh.Trimesh):
-            raise ValueError(f"not a triangle mesh (trimesh read a {type(mesh).__name__})")
+            raise DecodeError(f"not a triangle mesh (trimesh read a {type(mesh).__name__})")
         points, triangles = np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
     except (OSError, ValueError) as err:
         raise FormatError(f"cannot read the object mesh: {err}", mesh_path) from err

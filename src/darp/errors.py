@@ -70,6 +70,13 @@ class ProcessingError(DarpError):
     """A processing run (``darp process``) cannot go on: a survey failed in one of its stages."""
 
 
+class DecodeError(ValueError):
+    """Low level: bytes or values that do not decode, raised deep inside a reader that does not know the file's
+    name. The reader that does catches it (with the ``ValueError`` of :mod:`struct` and numpy) and raises its
+    layer's :class:`FormatError` naming the file, so it never reaches a user as it is. A ``ValueError`` for that
+    reason; darp raises no bare ``ValueError``."""
+
+
 class Interrupted(KeyboardInterrupt):
     """SIGTERM or SIGHUP, raised in the main thread by the command line's handler so that the same cleanup
     as for Ctrl-C runs; the command exits with 128 + ``signum``."""

@@ -26,18 +26,24 @@ IR images beside it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from darp.colours import arm_rgb
 from darp.dataset import ProcessedSurvey, find_processed, keyframe_object_points
-from darp.errors import ConfigError, DarpError, FormatError
+from darp.errors import ConfigError, DarpError, DarpWarning, FormatError
+from darp.formats.atomic import atomic_path
 from darp.formats.calibration import Calibration, read_calibration
+from darp.formats.io_input import LIMITS
 from darp.formats.survey import Survey, open_survey
+from darp.formats.text import read_utf8_text
 from darp.kinematics import z1
 from darp.kinematics.camera_poses import interpolate_joints
 from darp.kinematics.collision import arm_primitives
@@ -50,7 +56,7 @@ from darp.reconstruction.keyframe_io import read_keyframe, read_keyframe_index
 ARM_RATE_HZ = 10.0  # joint states logged per second of the timeline (plus one at every image's time)
 HELDOUT_RANGE_M = 0.010  # the colour map's top (10 mm: the paper's coarser threshold)
 ENTITY = {"cylinder": "cylinders", "capsule": "capsules", "box": "boxes"}
-ARM_COLOURS = {"arm110": (230, 120, 40), "arm111": (40, 140, 230)}
+ARM_COLOURS = {arm: arm_rgb(arm) for arm in ("arm110", "arm111")}
 
 
 @dataclass
@@ -200,16 +206,27 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
     if survey_path is not None and not survey_path.is_dir():
         survey_path = None
     calibration = _calibration(survey_path, calibration_path or (processed.calibration_path if processed else None))
+    with contextlib.ExitStack() as stack:  # --save: a temporary name beside the file, renamed when complete
+        target = stack.enter_context(atomic_path(save)) if save is not None else None
+        return _send(rr, path, target, url, spawn, processed, survey_path, calibration, every_s)
+
+
+def _send(rr: Any, path: Path, save: Path | None, url: str | None, spawn: bool, processed: ProcessedSurvey | None,
+          survey_path: Path | None, calibration: Calibration, every_s: float) -> ViewStats:
     rec = rr.RecordingStream("darp", recording_id=f"darp-{path.resolve().name}")
     arms = sorted(calibration.arms)
     blueprint = default_blueprint(*_envelope(processed, survey_path), arms=arms)
     if save is not None:
-        Path(save).parent.mkdir(parents=True, exist_ok=True)
         rec.save(str(save), default_blueprint=blueprint)
     elif url is not None or not spawn:
         rec.connect_grpc(url, default_blueprint=blueprint)
     else:
-        rec.spawn(default_blueprint=blueprint)
+        try:
+            rec.spawn(default_blueprint=blueprint)
+        except (OSError, RuntimeError) as err:  # rerun-sdk without its viewer executable
+            raise DarpError("no rerun viewer to open (install the viewer: pip install rerun-sdk; or give --save "
+                            f"FILE.rrd or --connect URL): {str(err).splitlines()[0] if str(err) else err}"
+                            ) from None
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     if url is not None:  # fail in seconds, before decoding anything, when no viewer listens there
         try:
@@ -222,6 +239,9 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
     survey = None
     if survey_path is not None:
         survey = open_survey(survey_path, serial_to_arm={a.serial: n for n, a in calibration.arms.items()})
+        if survey.partial is not None:  # PARTIAL.txt: shown, and said to be unfinished
+            warnings.warn(DarpWarning(f"unfinished survey ({survey.partial}): what is shown is partial",
+                                      survey.path), stacklevel=2)
     image_times: dict[str, list[float]] = {}
     if processed is not None:
         image_times = _log_processed(rec, rr, processed, stats, pose=survey is None)
@@ -244,7 +264,7 @@ def _envelope(processed: ProcessedSurvey | None, survey_path: Path | None) -> tu
         sources.append((survey_path / "manip_envelope.json", None))
     for file, key in sources:
         try:
-            record = json.loads(file.read_text(encoding="utf-8"))
+            record = json.loads(read_utf8_text(file, "a JSON file", limit=LIMITS["json"]))
             record = record[key] if key else record
             return (np.asarray(record["center_m"], np.float64).reshape(3), float(record["radius_m"]),
                     float(record["height_m"]))
@@ -358,7 +378,8 @@ def _log_processed(rec: Any, rr: Any, processed: ProcessedSurvey, stats: ViewSta
             stats.heldout_points = len(points)
     results = processed.folder / "results.json"
     if results.is_file():
-        summary = json.loads(results.read_text(encoding="utf-8")).get("heldout", {}).get("aggregate", {})
+        summary = json.loads(read_utf8_text(results, "a JSON file", limit=LIMITS["json"])).get("heldout", {}).get(
+            "aggregate", {})
         rec.log("summary", rr.TextDocument(json.dumps(summary, indent=1)), static=True)
     return times
 

@@ -30,7 +30,9 @@ import numpy as np
 from darp.backend import Clock
 from darp.errors import AcquisitionError
 from darp.formats.atomic import write_json_atomic, write_text_atomic
+from darp.formats.io_input import LIMITS
 from darp.formats.schema import to_jsonable
+from darp.formats.text import read_utf8_text
 
 EVENTS_FILE = "events.jsonl"
 OUTCOME_FILE = "outcome.json"
@@ -84,7 +86,7 @@ def read_events(path: str | Path) -> list[dict[str, Any]]:
     if path.is_dir():
         path = path / EVENTS_FILE
     out = []
-    lines = path.read_text(encoding="utf-8").splitlines()
+    lines = read_utf8_text(path, "an events file", limit=LIMITS["json"]).splitlines()
     for number, line in enumerate(lines, start=1):
         if not line.strip():
             continue

@@ -24,6 +24,7 @@ queries of :mod:`darp.kinematics.collision` run only where a bound falls below i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import cast
 
@@ -286,6 +287,45 @@ def stop_all_arms(backend: RigBackend) -> None:
             continue
 
 
+def wait_at_rest(backend: RigBackend, arm_id: str, timeout_s: float, poll_s: float) -> bool:
+    """Sleep until ``arm_id`` reports no motion (ignoring the latched fault); False on timeout or error."""
+    arm, clock = backend.arms[arm_id], backend.clock
+    deadline = clock.now() + timeout_s
+    try:
+        while arm.is_moving():
+            if clock.now() >= deadline:
+                return False
+            clock.sleep(poll_s)
+    except Exception:  # a faulted controller: its arm is left where it is
+        return False
+    return True
+
+
+def park_after_fault(backend: RigBackend, arm_id: str, model: Callable[[], ArmCollisionModel], park_q_rad: Array,
+                     settings: MotionSettings, events: Callable[..., None]) -> str:
+    """After a fault stopped the rig: park ``arm_id`` (not involved in the fault) if it is at rest and its path to
+    ``park_q_rad`` is clear in ``model()``'s world; says in words what happened to it."""
+    if not wait_at_rest(backend, arm_id, settings.timeout_s, settings.poll_s):
+        return f"{arm_id} left where it stopped (not at rest)"
+    arm = backend.arms[arm_id]
+    try:
+        q_now = np.asarray(arm.read_state().q_rad, dtype=float)
+        if np.max(np.abs(q_now - park_q_rad)) < settings.start_tolerance_rad:
+            return f"{arm_id} parked"
+        verdict = model().check_path(q_now, park_q_rad, settings.path_step_rad)
+        if not verdict.ok:
+            return f"{arm_id} left where it stopped (its path to park is not clear: {verdict.reason})"
+        arm.move_to(park_q_rad, settings.speed_rad_s)
+        wait_at_rest(backend, arm_id, settings.timeout_s, settings.poll_s)
+        q_end = np.asarray(arm.read_state().q_rad, dtype=float)
+    except Exception as err:  # the backend refused: leave the arm for the operator
+        return f"{arm_id} left where it stopped ({type(err).__name__}: {err})"
+    if np.max(np.abs(q_end - park_q_rad)) < settings.start_tolerance_rad:
+        events("parked", arm=arm_id, after_fault=True)
+        return f"{arm_id} parked"
+    return f"{arm_id} stopped short of park (stopped again on the way)"
+
+
 def _raise_on_fault(backend: RigBackend) -> None:
     fault = backend.fault()
     if fault is not None:
@@ -342,4 +382,5 @@ def checked_move(backend: RigBackend, model: ArmCollisionModel, q_target_rad: Ar
 
 
 __all__ = ["REASONS", "ArmCollisionModel", "ClearanceMargins", "MotionFault", "MotionSettings", "UnsafeMoveError",
-           "Verdict", "checked_move", "envelope_obstacle", "stop_all_arms", "workspace_obstacle"]
+           "Verdict", "checked_move", "envelope_obstacle", "park_after_fault", "stop_all_arms", "wait_at_rest",
+           "workspace_obstacle"]

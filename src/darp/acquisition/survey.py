@@ -45,15 +45,14 @@ from typing import Any
 import numpy as np
 
 from darp.acquisition.confirm import ConfirmSettings, Decision, decide, settings_from_calibration
-from darp.acquisition.coverage import (
+from darp.acquisition.coverage import CoverageSettings
+from darp.acquisition.coverage_plan import (
     CoveragePlan,
-    CoverageSettings,
-    CoverageTracker,
     coverage_of_plans,
-    feasible_pool,
-    feasible_poses_record,
     plan_coverage,
+    survey_feasible_poses,
 )
+from darp.acquisition.coverage_track import CoverageTracker, coverage_record, observe_live, visit_next_best_views
 from darp.acquisition.episode import Episode
 from darp.acquisition.localise import LocalisationResult, Localiser, LocaliseSettings, ObjectEstimate
 from darp.acquisition.motion_check import (
@@ -61,15 +60,14 @@ from darp.acquisition.motion_check import (
     ClearanceMargins,
     MotionFault,
     MotionSettings,
-    UnsafeMoveError,
     checked_move,
     envelope_obstacle,
+    park_after_fault,
     stop_all_arms,
     workspace_obstacle,
 )
 from darp.acquisition.verify import VerificationReport, VerifySettings, verify_survey
 from darp.acquisition.viewpoints import (
-    Candidate,
     ViewPlan,
     ViewpointPlanner,
     ViewpointSettings,
@@ -265,7 +263,8 @@ class SurveyRunner:
             self.coverage_plan = coverage_of_plans(planners, plans, self.s.coverage)  # achieved coverage only
             self.tracker = CoverageTracker(self.coverage_plan)
         if self.s.record_feasible_poses:
-            self.feasible_poses = self._feasible_poses(planners, plans)
+            self.feasible_poses = survey_feasible_poses(planners, plans, self.coverage_plan, self.s.coverage,
+                                                        self.s.viewpoint_strategy == "coverage")
         for plan in plans.values():
             self.events("view_plan", **plan.to_record(),
                         views=[c.to_record() for c in plan.views],
@@ -278,62 +277,6 @@ class SurveyRunner:
             raise _Terminated("too_few_views", f"too few feasible views (at least {self.s.min_required_views} "
                               f"needed) even after relaxing the orbit: {what}")
         return plans
-
-    def _feasible_poses(self, planners: dict[str, ViewpointPlanner], plans: dict[str, ViewPlan]
-                        ) -> dict[str, list[list[float]]]:
-        """The same feasible camera poses whatever the strategy: the coverage grid's feasible candidates, the
-        orbit's views and the views planned (checked after planning: no planner state the plans use moves)."""
-        coverage = self.s.viewpoint_strategy == "coverage" and self.coverage_plan is not None
-        grid = dict(self.coverage_plan.pools) if coverage and self.coverage_plan else feasible_pool(planners,
-                                                                                                    self.s.coverage)
-        orbit = {a: p.plan().views for a, p in planners.items()} if coverage else {}
-        pools: dict[str, list[Candidate]] = {}
-        for a, plan in plans.items():
-            pool = list(grid.get(a, []))
-            for v in [*orbit.get(a, []), *plan.views]:
-                if all(v is not c for c in pool):
-                    pool.append(v)
-            pools[a] = pool
-        return feasible_poses_record(planners, pools)
-
-    def _observe(self, arm_id: str, model: Any) -> None:
-        """Add the arm's live depth at its present pose to the achieved coverage."""
-        if self.tracker is None:
-            return
-        frames = self.backend.cameras[arm_id].latest_frameset()
-        q = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
-        self.tracker.observe(arm_id, frames.depth_m, frames.depth_intrinsics, model.T_world_cam(q))
-
-    def _next_best_views(self, arm_id: str, plan: ViewPlan, model: Any, later: list[str], tour_s: float) -> None:
-        """Visit the next best views of ``arm_id`` (see :class:`CoverageTracker`), appending them to its plan,
-        within ``coverage.nbv_time_fraction`` of ``tour_s`` (the time its planned views took)."""
-        if self.tracker is None or arm_id not in self.tracker.plan.pools:
-            return
-        clock = self.backend.clock
-        budget_s = self.s.coverage.nbv_time_fraction * tour_s
-        per_view_s = tour_s / max(1, len(plan.views))  # a view's expected time: the planned views' mean
-        self.tracker.budget_s[arm_id] = budget_s
-        t0 = clock.now()
-        for cand in self.tracker.next_views(arm_id, plan.views, later):
-            spent = clock.now() - t0
-            if spent + per_view_s > budget_s:
-                self.events("next_best_view_budget", arm=arm_id, spent_s=round(spent, 3), budget_s=round(budget_s, 3),
-                            per_view_s=round(per_view_s, 3))
-                break
-            q_now = np.asarray(self.backend.arms[arm_id].read_state().q_rad, dtype=float)
-            if float(np.max(np.abs(cand.joints_rad - q_now))) > self.s.coverage.max_joint_step_rad:
-                continue
-            try:
-                took = checked_move(self.backend, model, cand.joints_rad, self.s.motion)
-            except UnsafeMoveError as err:
-                self.events("next_best_view_refused", arm=arm_id, candidate=cand.index, reason=str(err))
-                continue
-            plan.views.append(cand)
-            self.tracker.extra[arm_id].append(cand)
-            self._observe(arm_id, model)
-            self.tracker.extra_s[arm_id] = clock.now() - t0
-            self.events("next_best_view", arm=arm_id, candidate=cand.to_record(), move_s=round(took, 3),
-                        achieved=round(float(np.mean(self.tracker.union())), 4))
 
     def record(self, plans: dict[str, ViewPlan], obstacle: Any) -> None:
         folder = self.episode.path
@@ -359,10 +302,13 @@ class SurveyRunner:
                 state = self.backend.arms[arm_id].read_state()
                 self.events("view_reached", arm=arm_id, view=k, move_s=round(took, 3),
                             q_rad=[round(float(v), 5) for v in state.q_rad])
-                self._observe(arm_id, model)
+                if self.tracker is not None:
+                    observe_live(self.backend, self.tracker, arm_id, model)
                 done += 1
-            self._next_best_views(arm_id, plans[arm_id], model, list(self.rig.arm_ids[n_arm + 1:]),
-                                  tour_s=clock.now() - t_arm)
+            if self.tracker is not None:
+                visit_next_best_views(self.backend, self.tracker, arm_id, plans[arm_id], model,
+                                      list(self.rig.arm_ids[n_arm + 1:]), clock.now() - t_arm, self.s.coverage,
+                                      self.s.motion, self.events)
             checked_move(self.backend, model, self.park[arm_id], self.s.motion, settle=False)
             self.events("parked", arm=arm_id)
         self.progress("record", 1.0, "stopping the cameras")
@@ -413,18 +359,7 @@ class SurveyRunner:
 
     def coverage_record(self) -> dict[str, Any] | None:
         """Predicted and achieved coverage of the envelope's surface (None for the orbit strategy)."""
-        if self.coverage_plan is None:
-            return None
-        record: dict[str, Any] = {"strategy": self.s.viewpoint_strategy,
-                                  "samples": len(self.coverage_plan.samples),
-                                  "predicted": self.coverage_plan.prediction.to_record()}
-        if self.tracker is not None and any(m.any() for m in self.tracker.observed.values()):
-            record["achieved"] = self.tracker.achieved().to_record()
-            record["next_best_views"] = {a: len(v) for a, v in self.tracker.extra.items()}
-            record["next_best_views_s"] = {a: round(t, 3) for a, t in self.tracker.extra_s.items()}
-            record["next_best_views_budget_s"] = {a: round(t, 3) for a, t in self.tracker.budget_s.items()}
-            record["envelope_check"], record["envelope_warning"] = self.tracker.envelope_check()
-        return record
+        return coverage_record(self.s.viewpoint_strategy, self.coverage_plan, self.tracker)
 
     # -- the procedure ----------------------------------------------------------------------------
     def _acquire(self) -> tuple[ObjectEstimate, dict[str, ViewPlan]]:
@@ -457,43 +392,16 @@ class SurveyRunner:
         self.progress("done", 1.0, f"rejected: {end.message}")
         return o
 
-    def _wait_at_rest(self, arm_id: str, timeout_s: float) -> bool:
-        """Sleep until ``arm_id`` reports no motion (ignoring the latched fault); False on timeout or error."""
-        arm, clock = self.backend.arms[arm_id], self.backend.clock
-        deadline = clock.now() + timeout_s
-        try:
-            while arm.is_moving():
-                if clock.now() >= deadline:
-                    return False
-                clock.sleep(self.s.motion.poll_s)
-        except Exception:  # a faulted controller: its arm is left where it is
-            return False
-        return True
-
     def _park_after_fault(self, arm_id: str) -> str:
         """Park one arm not involved in the fault if its path is clear; says what happened."""
-        if not self._wait_at_rest(arm_id, self.s.motion.timeout_s):
-            return f"{arm_id} left where it stopped (not at rest)"
         est = self.estimate
-        obstacle = (workspace_obstacle(self.rig) if est is None
-                    else envelope_obstacle(est.centre_m, est.radius_m, est.height_m, self.rig.table.height_m))
-        arm = self.backend.arms[arm_id]
-        try:
-            q_now = np.asarray(arm.read_state().q_rad, dtype=float)
-            if np.max(np.abs(q_now - self.park[arm_id])) < self.s.motion.start_tolerance_rad:
-                return f"{arm_id} parked"
-            verdict = self._model(arm_id, obstacle).check_path(q_now, self.park[arm_id], self.s.motion.path_step_rad)
-            if not verdict.ok:
-                return f"{arm_id} left where it stopped (its path to park is not clear: {verdict.reason})"
-            arm.move_to(self.park[arm_id], self.s.motion.speed_rad_s)
-            self._wait_at_rest(arm_id, self.s.motion.timeout_s)
-            q_end = np.asarray(arm.read_state().q_rad, dtype=float)
-        except Exception as err:  # the backend refused: leave the arm for the operator
-            return f"{arm_id} left where it stopped ({type(err).__name__}: {err})"
-        if np.max(np.abs(q_end - self.park[arm_id])) < self.s.motion.start_tolerance_rad:
-            self.events("parked", arm=arm_id, after_fault=True)
-            return f"{arm_id} parked"
-        return f"{arm_id} stopped short of park (stopped again on the way)"
+
+        def model() -> ArmCollisionModel:
+            obstacle = (workspace_obstacle(self.rig) if est is None
+                        else envelope_obstacle(est.centre_m, est.radius_m, est.height_m, self.rig.table.height_m))
+            return self._model(arm_id, obstacle)
+
+        return park_after_fault(self.backend, arm_id, model, self.park[arm_id], self.s.motion, self.events)
 
     def _faulted(self, err: MotionFault, before_finalise: Callable[[Path], None] | None) -> SurveyOutcome:
         """Both arms stopped, recordings closed, safe arms parked, the episode rejected with the fault."""

@@ -34,23 +34,24 @@ one with lower elevations, then the nominal rings 25 cm from the envelope's surf
 an arm's base puts the 4.5 r standoff's cameras behind that arm, out of its reach); every attempt is
 recorded. The first attempt with enough views wins, else the one with most.
 
-**Order.** Views are ordered to shorten joint travel: greedy nearest neighbour from the park
-configuration, then 2-opt, with the cost of a move being its largest joint change (a synchronised
-joint move's duration grows with it); the tour starts and ends at park. Moves whose costs differ by
-less than :data:`TIE_TOLERANCE_RAD` are ties, broken by the lower candidate index: the orbit is
-symmetric about the arm's side, so mirror-image views are often equally far from park, and the last
-bits of their costs (which change with the BLAS kernel) must not choose the tour's direction.
+**Order** (:mod:`darp.acquisition.tour`). Views are ordered to shorten joint travel: greedy nearest
+neighbour from the park configuration, then 2-opt, with the cost of a move being its largest joint change
+(a synchronised joint move's duration grows with it); the tour starts and ends at park. Moves whose costs
+differ by less than :data:`~darp.acquisition.tour.TIE_TOLERANCE_RAD` are ties, broken by the lower candidate
+index: the orbit is symmetric about the arm's side, so mirror-image views are often equally far from park,
+and the last bits of their costs (which change with the BLAS kernel) must not choose the tour's direction.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any, cast
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from darp.acquisition.motion_check import ArmCollisionModel
+from darp.acquisition.tour import order_views, tour_cost
 from darp.errors import AcquisitionError
 from darp.formats.calibration import Calibration
 from darp.formats.realsense.types import Intrinsics
@@ -64,7 +65,6 @@ CANDIDATE_REASONS = ("ik", "joint_limits", "workspace", "min_depth", "table", "s
                      "joint_motion")
 ROLL_HINTS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 135.0, -135.0, 180.0)
 SHOULDER_BASE_M = np.array([0.0, 0.0, z1.JOINT_ORIGINS_M[0, 2] + z1.JOINT_ORIGINS_M[1, 2]])
-TIE_TOLERANCE_RAD = 1e-9  # move costs closer than this are equal when ordering views (module docstring)
 
 
 def standoff_for_radius(radius_m: float) -> float:
@@ -463,60 +463,6 @@ def _fail(cand: Candidate, reason: str, detail: str) -> Candidate:
     return cand
 
 
-# -- ordering ------------------------------------------------------------------------------------
-def move_cost(qa: Array, qb: Array) -> Array:
-    """Cost of a joint move: its largest joint change (rad); broadcasts over leading dimensions."""
-    return cast(Array, np.max(np.abs(np.asarray(qb, float) - np.asarray(qa, float)), axis=-1))
-
-
-def tour_cost(q_start: Array, Q: Array, q_end: Array | None = None) -> float:
-    """Joint travel of ``q_start`` -> rows of Q in order -> ``q_end`` (if given)."""
-    pts = [np.asarray(q_start, float), *np.asarray(Q, float)]
-    if q_end is not None:
-        pts.append(np.asarray(q_end, float))
-    P = np.array(pts)
-    return float(np.sum(move_cost(P[:-1], P[1:]))) if len(P) > 1 else 0.0
-
-
-def order_views(q_start: Array, Q: Array, q_end: Array | None = None, two_opt_rounds: int = 50) -> list[int]:
-    """Order of the rows of Q (N, 6) for a short tour from ``q_start`` (to ``q_end``): greedy
-    nearest neighbour, then 2-opt segment reversals while they shorten the tour."""
-    Q = np.asarray(Q, dtype=float)
-    n = len(Q)
-    if n <= 1:
-        return list(range(n))
-    start = np.asarray(q_start, dtype=float)
-    P = np.vstack([start, Q] + ([np.asarray(q_end, float)] if q_end is not None else []))
-    D = move_cost(P[:, None, :], P[None, :, :])
-    remaining = set(range(1, n + 1))
-    path = [0]
-    while remaining:
-        last = path[-1]
-        best = min(D[last, j] for j in remaining)
-        nxt = min(j for j in remaining if D[last, j] <= best + TIE_TOLERANCE_RAD)  # ties: the lower index
-        path.append(nxt)
-        remaining.remove(nxt)
-    if q_end is not None:
-        path.append(n + 1)
-    fixed_end = q_end is not None
-    for _ in range(two_opt_rounds):
-        improved = False
-        last_view = len(path) - 2 if fixed_end else len(path) - 1
-        for i in range(1, last_view):
-            for k in range(i + 1, last_view + 1):
-                a, b = path[i - 1], path[i]
-                c = path[k]
-                d = path[k + 1] if k + 1 < len(path) else None
-                before = D[a, b] + (D[c, d] if d is not None else 0.0)
-                after = D[a, c] + (D[b, d] if d is not None else 0.0)
-                if after < before - TIE_TOLERANCE_RAD:
-                    path[i:k + 1] = path[i:k + 1][::-1]
-                    improved = True
-        if not improved:
-            break
-    return [p - 1 for p in path if 1 <= p <= n]
-
-
 __all__ = [
     "CANDIDATE_REASONS",
     "RELAXATIONS",
@@ -529,11 +475,8 @@ __all__ = [
     "envelope_points",
     "feasibility_summary",
     "min_depth_from_intrinsics",
-    "move_cost",
     "orbit_shape",
-    "order_views",
     "reason_words",
     "shoulder_offsets_m",
     "standoff_for_radius",
-    "tour_cost",
 ]

@@ -49,7 +49,38 @@ def parse_executor(value: str | Executor) -> Executor:
     kind, _, address = value.partition(":")
     if kind not in ("local", "ray") or (kind == "local" and address):
         raise ConfigError(f"executor {value!r}: expected local, ray or ray:ADDRESS")
+    if address and address != "auto" and _host_port(address) is None:
+        raise ConfigError(f"executor {value!r}: expected ray:auto, ray:HOST:PORT or ray:ray://HOST:PORT")
     return Executor(kind, address or None)
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of ``HOST:PORT`` or ``ray://HOST:PORT``, or None when it is not of that form."""
+    rest = address.removeprefix("ray://")
+    host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        return None
+    return host.strip("[]"), int(port)
+
+
+PROBE_TIMEOUT_S = 5.0  # a Ray head that does not accept a TCP connection in this long is not there
+
+
+def probe_ray_address(address: str) -> None:
+    """Fail in seconds, not minutes, when nothing listens at a Ray address (``ray.init`` retries a dead address
+    for a long time inside native code, where not even SIGTERM reaches darp)."""
+    import socket
+
+    where = _host_port(address)
+    if where is None:
+        return
+    try:
+        with socket.create_connection(where, timeout=PROBE_TIMEOUT_S):
+            pass
+    except OSError as err:
+        reason = "timed out" if isinstance(err, TimeoutError) else (err.strerror or str(err)).lower()
+        raise DarpError(f"no Ray cluster reachable at {address} ({reason}); start one there with 'ray start --head' "
+                        "or use --executor local") from None
 
 
 def ray_init_options(address: str | None = None, num_cpus: int | None = None) -> dict[str, Any]:
@@ -125,6 +156,7 @@ def _run_ray(fn: Callable[..., Any], calls: Sequence[tuple[Any, ...]], address: 
         options: dict[str, Any] = {**ray_init_options(address), **ray_init}
         if address is not None:
             options["runtime_env"] = {"env_vars": {k: os.environ[k] for k in WORKER_ENV if k in os.environ}}
+            probe_ray_address(address)
         ray.init(address=address, **options)
     try:
         from darp.batch.fresh import ChildCrashed, dumps_call, loads_answer, run_pickled, run_with_threads

@@ -26,6 +26,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from darp.calibration import handeye
 from darp.calibration.board import Board, parse_board
@@ -37,6 +38,7 @@ from darp.errors import CalibrationError, FormatError
 from darp.formats.calibration import ArmCalibration, Calibration
 from darp.formats.captures import CaptureFolder, read_capture_folder
 from darp.formats.intrinsics import CameraModel
+from darp.formats.io_input import decode_image
 from darp.kinematics.transforms import invert_transform, pose_error
 
 OPENCV_METHODS = tuple(f"calibrateHandEye/{m}" for m in handeye.HAND_EYE_METHODS)
@@ -88,7 +90,7 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
     size: tuple[int, int] | None = None
     for arm in folder.arms:
         for key, img_path in arm.images.items():
-            grey = cv2.imread(str(img_path), cv2.IMREAD_GRAYSCALE)
+            grey = decode_image(img_path, cv2.IMREAD_GRAYSCALE, "a board image")
             if grey is None:
                 raise FormatError("cannot read the image", img_path)
             if size is None:
@@ -316,6 +318,24 @@ class HandEyeOutcome:
     warnings: list[str]
 
 
+MIN_ROTATION_DEG = 2.0  # the smallest flange rotation between captures, about each of two axes, hand-eye needs
+
+
+def check_flange_motion(obs: Observations, arm: str, root: Path) -> None:
+    """Hand-eye is determined only when the flange rotates about at least two different axes between captures
+    (Tsai-Lenz); identical or one-axis poses are refused instead of "solved" to an arbitrary answer."""
+    T = flange_poses(obs, obs.for_arm(arm), np.zeros(6))
+    R0 = T[0, :3, :3]
+    vecs = np.array([Rotation.from_matrix(R0.T @ Ti[:3, :3]).as_rotvec() for Ti in T[1:]]).reshape(-1, 3)
+    spread = np.linalg.svd(vecs, compute_uv=False) if len(vecs) else np.zeros(1)
+    second = float(np.degrees(spread[1] / np.sqrt(len(vecs)))) if spread.size > 1 else 0.0
+    if second < MIN_ROTATION_DEG:
+        most = float(np.degrees(np.max(np.linalg.norm(vecs, axis=1)))) if len(vecs) else 0.0
+        raise CalibrationError(f"{arm}: the flange poses do not rotate about two different axes (largest rotation "
+                               f"from the first capture {most:.2f} deg): hand-eye is undetermined; capture poses "
+                               "that tilt the flange in different directions", root)
+
+
 def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_to_hand: bool | None = None,
                  folds: int = 5, seed: int = 0, compare: bool = True) -> HandEyeOutcome:
     """The whole any-arm calibration of a captures folder."""
@@ -329,6 +349,7 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
             raise CalibrationError(f"{arm}: {int(np.sum(obs.for_arm(arm)))} usable captures; hand-eye needs at "
                                    "least 4", folder.root)
         check_pose_conventions(folder, obs, arm)
+        check_flange_motion(obs, arm, folder.root)
     pose_only = all(d.source == "board_poses" for d in dets if d.ok)
     solver = metric_solver if pose_only else darp_solver
     params = solver(obs)

@@ -112,10 +112,17 @@ def parse_board(data: dict[str, Any], path: Path) -> Board:
         square = float(data["square_mm"]) / 1e3
     except (KeyError, TypeError, ValueError) as err:
         raise FormatError(f"board needs squares_x, squares_y and square_mm ({err})", path) from None
-    if kind == "chessboard":
-        if sx < 3 or sy < 3:
-            raise FormatError(f"a chessboard needs at least 3 x 3 squares, got {sx} x {sy}", path)
+    if not (np.isfinite(square) and 0 < square <= 1.0):
+        raise FormatError(f"board.square_mm: must be within (0, 1000] mm, got {square * 1e3:g}", path)
+    if max(sx, sy) > 200:
+        raise FormatError(f"board: {sx} x {sy} squares is not a printable board (at most 200 a side)", path)
+    if kind == "chessboard":  # OpenCV finds at least 3 x 3 inner corners: 4 x 4 squares
+        if sx < 4 or sy < 4:
+            raise FormatError(f"board: a chessboard needs at least 4 x 4 squares (3 x 3 inner corners), got "
+                              f"{sx} x {sy}", path)
         return Board("chessboard", sx, sy, square)
+    if sx < 3 or sy < 3:
+        raise FormatError(f"board: a ChArUco board needs at least 3 x 3 squares, got {sx} x {sy}", path)
     if kind != "charuco":
         raise FormatError(f"board type {kind!r} is not charuco or chessboard", path)
     dictionary = str(data.get("dictionary", "DICT_5X5_100")).upper()

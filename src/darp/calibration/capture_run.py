@@ -46,11 +46,11 @@ class CaptureRunSettings:
 def _grab_image(frameset: Any, stream: str) -> tuple[np.ndarray, Any, np.ndarray]:
     """(image, intrinsics, T_depth_stream) of ``stream`` from a live frame set."""
     if stream == "color":
-        if frameset.color_bgr is None or frameset.color_intrinsics is None:
+        if frameset.colour_bgr is None or frameset.colour_intrinsics is None:
             raise CalibrationError("the camera gave no colour image; capture with stream='ir1'")
-        if frameset.T_depth_color is None:
+        if frameset.T_color_depth is None:
             raise CalibrationError("the camera gave no depth-to-colour extrinsic; capture with stream='ir1'")
-        return frameset.color_bgr, frameset.color_intrinsics, np.asarray(frameset.T_depth_color, dtype=float)
+        return frameset.colour_bgr, frameset.colour_intrinsics, np.asarray(frameset.T_depth_color, dtype=float)
     if stream == "ir1":
         ir1 = frameset.extra.get("ir1") if isinstance(frameset.extra, dict) else None
         if ir1 is None:

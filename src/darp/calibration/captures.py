@@ -47,9 +47,10 @@ import cv2
 import numpy as np
 
 from darp.errors import CalibrationError, FormatError
-from darp.formats.atomic import atomic_path
+from darp.formats.atomic import UNFINISHED_FILE, atomic_path
 from darp.formats.calibration import CharucoBoardSpec
 from darp.formats.calibration import board_from_dict as parse_board
+from darp.formats.io_input import decode_image
 from darp.formats.limits import JOINT_ABS_MAX_RAD
 from darp.formats.realsense.types import Intrinsics
 from darp.formats.schema import (
@@ -63,7 +64,6 @@ from darp.formats.schema import (
     write_json_checked,
 )
 from darp.formats.survey import DEFAULT_SERIAL_TO_ARM
-from darp.formats.text import native_stderr_silenced
 
 INDEX_FILE = "captures.json"
 INDEX_SCHEMA = "darp-calib-captures/1"
@@ -127,8 +127,7 @@ class CaptureSet:
         path = self.image_path(record)
         if not path.is_file():
             raise FormatError(f"capture {record.capture_id}: image file is missing", path)
-        with native_stderr_silenced():  # libpng's own lines about a damaged file
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image = decode_image(path, cv2.IMREAD_UNCHANGED, "a capture image")  # libpng's lines silenced
         if image is None:
             raise FormatError(f"capture {record.capture_id}: not a readable image", path)
         if image.dtype != np.uint8:
@@ -149,8 +148,7 @@ class CaptureSet:
         path = self.folder / record.depth_file
         if not path.is_file():
             raise FormatError(f"capture {record.capture_id}: depth image file is missing", path)
-        with native_stderr_silenced():
-            depth = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        depth = decode_image(path, cv2.IMREAD_UNCHANGED, "a depth image")
         if depth is None or depth.dtype != np.uint16 or depth.ndim != 2:
             raise FormatError(f"capture {record.capture_id}: not a 16-bit single-channel depth PNG", path)
         h, w = depth.shape
@@ -281,12 +279,16 @@ def record_from_dict(data: dict[str, Any], path: Path | None) -> CaptureRecord:
     )
 
 
-def read_captures(folder: str | Path) -> CaptureSet:
-    """Read and validate a capture folder (index and every record; images are read on demand)."""
+def read_captures(folder: str | Path, *, unfinished_ok: bool = False) -> CaptureSet:
+    """Read and validate a capture folder (index and every record; images are read on demand). A folder still
+    marked unfinished is refused unless ``unfinished_ok`` (the writer checking what it has just written, before
+    its run removes the mark)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FormatError("not a capture folder (no such directory)", folder)
     index_path = folder / INDEX_FILE
+    if not unfinished_ok and (folder / UNFINISHED_FILE).is_file():
+        raise FormatError(f"unfinished capture folder ({UNFINISHED_FILE}: its capture run did not complete)", folder)
     index = load_json_object(index_path)
     if index.get("schema") != INDEX_SCHEMA:
         raise FormatError(f"schema: expected {INDEX_SCHEMA!r}, got {index.get('schema')!r}", index_path)
@@ -323,6 +325,10 @@ class CaptureWriter:
         if (self.folder / INDEX_FILE).exists() and not overwrite:
             raise CalibrationError("already holds captures (captures.json); choose another folder",
                                    self.folder)
+        if self.folder.is_dir() and not (self.folder / INDEX_FILE).exists() and any(
+                p.name != UNFINISHED_FILE for p in self.folder.iterdir()):  # a survey, a user's files: not ours
+            raise CalibrationError("is not empty and holds no captures (captures.json): choose a new or empty "
+                                   "folder", self.folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.board = board
         self.source = source
@@ -394,7 +400,7 @@ class CaptureWriter:
     def close(self) -> CaptureSet:
         """Final index; returns the folder as read back."""
         self._write_index()
-        return read_captures(self.folder)
+        return read_captures(self.folder, unfinished_ok=True)
 
 
 __all__ = [

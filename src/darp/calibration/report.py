@@ -17,10 +17,11 @@ import numpy as np
 from darp import paper
 from darp.calibration.model import per_capture, reprojection_errors
 from darp.calibration.solve import METHOD_LABELS, SolveOutcome
+from darp.colours import ARM_COLOURS
 from darp.formats.atomic import atomic_path, write_text_atomic
 from darp.formats.schema import write_json_checked
 
-COLOURS = {0: "tab:red", 1: "tab:blue"}
+COLOURS = {0: ARM_COLOURS["arm110"], 1: ARM_COLOURS["arm111"]}  # by the rig's arm index
 
 
 def save_png(fig: Any, path: Path) -> None:
@@ -64,7 +65,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
     # residual vectors
     res = (outcome.core.paper or outcome.core.refined).residual_px
     fig = Figure(figsize=(12, 4.8))
-    scale = 200.0
+    scale = arrow_scale(float(np.sqrt(np.mean(np.sum(res ** 2, axis=1)))) if len(res) else 0.0)
     for a, arm in enumerate(obs.arms):
         ax = fig.add_subplot(1, 2, a + 1)
         sel = obs.arm_index[obs.corner_capture] == a
@@ -78,7 +79,7 @@ def write_report(outcome: SolveOutcome, folder: str | Path) -> list[Path]:
         ax.set_ylim(h, 0)
         ax.set_aspect("equal")
         rms = float(np.sqrt(np.mean(np.sum(res[sel] ** 2, axis=1)))) if sel.any() else 0.0
-        ax.set_title(f"{arm}: residuals x{scale:.0f} (RMS {rms:.3f} px)")
+        ax.set_title(f"{arm}: residuals x{scale:g} (RMS {rms:.3f} px)")
     fig.tight_layout()
     save_png(fig, folder / "residual_vectors.png")
     written.append(folder / "residual_vectors.png")
@@ -200,3 +201,14 @@ def summary_markdown(outcome: SolveOutcome) -> str:
 
 
 __all__ = ["summary_markdown", "write_report"]
+
+
+def arrow_scale(rms_px: float, target_px: float = 10.0) -> float:
+    """The magnification that draws an RMS residual about ``target_px`` long, on a 1-2-5 scale (x200 for the
+    realistic profile's ~0.05 px, x2 for the paper profile's ~4 px), so the arrows stay readable at any size."""
+    if not np.isfinite(rms_px) or rms_px <= 0.0:
+        return 1.0
+    raw = target_px / rms_px
+    decade = 10.0 ** np.floor(np.log10(raw))
+    return float(max(step * decade for step in (1.0, 2.0, 5.0) if step * decade <= raw))
+

@@ -152,7 +152,13 @@ def os_error_message(err: OSError, argv: list[str] | None = None) -> str:
 def run(argv: list[str] | None = None) -> int:
     """Run the app, mapping every error to one line and exit code 2 (130 on SIGINT, 143 on SIGTERM, 129 on
     SIGHUP: each runs the same cleanup as Ctrl-C), and each DarpWarning to one ``darp: warning:`` line."""
+    import logging
+
     import darp.cli  # noqa: F401  (registers the command modules)
+
+    # matplotlib's notes about its cache folder (an unwritable HOME) are not the user's business: darp draws
+    # into files it names itself
+    logging.getLogger("matplotlib").setLevel(logging.ERROR)
 
     in_main = threading.current_thread() is threading.main_thread()
     _received.clear()
@@ -188,7 +194,10 @@ def _interrupted(err: BaseException) -> int:
 def _run_app(argv: list[str] | None) -> int:
     try:
         # With standalone_mode=False click returns the exit code of typer.Exit instead of raising it.
-        rc = app(args=argv, prog_name="darp", standalone_mode=False)
+        from darp.cli._outputs import guard_commands  # every command's outputs checked and locked
+
+        command = guard_commands(typer.main.get_command(app))
+        rc = command.main(args=argv, prog_name="darp", standalone_mode=False)
     except DarpError as err:
         error(str(err))
         return 2

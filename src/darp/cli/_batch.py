@@ -30,11 +30,12 @@ def batch_progress(label: str, total: int) -> tuple[Any, Any]:
 
     Redrawn twice a second (rich's default is 10: 0.6 % of a core in the driver, measured, for a bar whose
     count changes once per survey); the callback redraws it at once when a task ends."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                   console=Console(stderr=True), transient=False, refresh_per_second=2)
+    from darp.cli._options import progress_bar
+
+    bar = progress_bar(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                       transient=False, refresh_per_second=2)
     task = bar.add_task(label, total=total)
     return bar, lambda done, all_: bar.update(task, completed=done, total=all_, refresh=True)
 

@@ -170,6 +170,13 @@ def parse_placement(text: str | Placement) -> Placement:
         x, y, yaw = (float(p) for p in _numbers(text))
     except ValueError:
         raise typer.BadParameter(f"expected x,y,yaw_deg (metres, metres, degrees), got {text!r}") from None
+    from darp.formats.limits import ANGLE_ABS_MAX_DEG, POSITION_ABS_MAX_M, out_of_range
+
+    if out_of_range(x, -POSITION_ABS_MAX_M, POSITION_ABS_MAX_M) or out_of_range(y, -POSITION_ABS_MAX_M,
+                                                                                 POSITION_ABS_MAX_M) \
+            or out_of_range(yaw, -ANGLE_ABS_MAX_DEG, ANGLE_ABS_MAX_DEG):
+        raise typer.BadParameter(f"expected finite x,y within +-{POSITION_ABS_MAX_M:g} m and yaw_deg within "
+                                 f"+-{ANGLE_ABS_MAX_DEG:g}, got {text!r}")
     return Placement(x, y, yaw)
 
 
@@ -191,8 +198,10 @@ def parse_resolution(text: str | Resolution) -> Resolution:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise typer.BadParameter(f"expected WIDTHxHEIGHT, e.g. 640x480, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise typer.BadParameter(f"expected a positive WIDTHxHEIGHT, got {text!r}")
+    from darp.formats.limits import IMAGE_SIDE_MAX_PX
+
+    if not (0 < w <= IMAGE_SIDE_MAX_PX and 0 < h <= IMAGE_SIDE_MAX_PX):
+        raise typer.BadParameter(f"expected WIDTHxHEIGHT, each from 1 to {IMAGE_SIDE_MAX_PX} px, got {text!r}")
     return Resolution(w, h)
 
 
@@ -245,8 +254,11 @@ def parse_camera_arm(text: str | CameraArm) -> CameraArm:
 RIG_HELP = "Rig YAML file (default: the packaged rig)."
 
 
-def out_option(help: str, *, show_default: bool = False) -> Any:
-    """``-o/--out``: the output file or folder."""
+def out_option(help: str, *, show_default: bool = False, folder: bool = False) -> Any:
+    """``-o/--out``: the output file or folder. ``folder``: the command writes into this folder, so it may not
+    hold an input (checked for every command by :mod:`darp.cli._outputs`)."""
+    if folder:
+        return typer.Option("--out", "-o", help=help, show_default=show_default, file_okay=False)
     return typer.Option("--out", "-o", help=help, show_default=show_default)
 
 
@@ -267,6 +279,16 @@ ProfileOption = Annotated[Profile, typer.Option("--profile", help="Twin error pr
 SettingsFile = Annotated[Path | None, typer.Option(
     "--settings", help="Twin settings YAML (replaces --profile; its seed is used unless --seed is given).",
     exists=True, dir_okay=False, show_default=False)]
+
+
+def progress_bar(*columns: Any, quiet: bool = False, **kwargs: Any) -> Any:
+    """A rich ``Progress`` on stderr, drawn only when stderr is a terminal and ``--quiet`` is not given: never into
+    a log file or a pipe, never on stdout (which carries results)."""
+    from rich.console import Console
+    from rich.progress import Progress
+
+    console = Console(stderr=True)
+    return Progress(*columns, console=console, disable=quiet or not console.is_terminal, **kwargs)
 
 
 def seed_given(name: str = "seed") -> bool:
@@ -294,7 +316,7 @@ __all__ = [
     "RIG_HELP", "ArmConfig", "CameraArm", "CaptureStream", "Dictionary", "ExportStream", "ImageStream", "Joints",
     "Paper", "Placement", "Profile", "ProfileOption", "Quiet", "Resolution", "RigFile", "SettingsFile", "TwinObject",
     "calibration_option", "input_argument", "out_option", "parse_camera_arm", "parse_joints", "parse_placement",
-    "parse_resolution", "seed_given", "twin_settings",
+    "parse_resolution", "progress_bar", "seed_given", "twin_settings",
 ]
 
 

@@ -37,6 +37,7 @@ from darp.cli._options import (
     calibration_option,
     input_argument,
     out_option,
+    progress_bar,
     refuse_output_over_inputs,
     twin_settings,
 )
@@ -51,7 +52,15 @@ SquareMm = Annotated[float, typer.Option("--square-mm", help="Square side, milli
 MarkerMm = Annotated[float, typer.Option("--marker-mm", help="ArUco marker side, millimetres.")]
 DictionaryOption = Annotated[Dictionary, typer.Option("--dictionary", help="OpenCV ArUco dictionary.")]
 Captures = Annotated[int, typer.Option("--captures", min=1, help="Captures per arm (when planning).")]
-Seed = Annotated[int, typer.Option("--seed", help="Seed of the random candidates (and, on the twin, of its "
+def _folds(value: int) -> int:
+    if value != 0 and value < 2:  # one fold holds everything out; a negative count is no count
+        raise typer.BadParameter(f"expected 0 (no held-out evaluation) or at least 2 folds, got {value}")
+    return value
+
+
+Folds = Annotated[int, typer.Option("--folds", callback=_folds, help="k of the k-fold held-out evaluation "
+                                    "(0: none, else at least 2).")]
+Seed = Annotated[int, typer.Option("--seed", min=0, help="Seed of the random candidates (and, on the twin, of its "
                                    "true rig errors).")]
 
 
@@ -62,11 +71,10 @@ def _board(squares_x: int, squares_y: int, square_mm: float, marker_mm: float, d
 
 
 def _progress(quiet: bool) -> Any:
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeElapsedColumn
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    console=Console(stderr=True), disable=quiet, transient=True)
+    return progress_bar(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TimeElapsedColumn(), quiet=quiet, transient=True)
 
 
 @calib_app.command("board")
@@ -131,7 +139,7 @@ def plan_command(
 
 @calib_app.command("capture")
 def capture_command(
-    out: Annotated[Path, out_option("Capture folder to create.")],
+    out: Annotated[Path, out_option("Capture folder to create.", folder=True)],
     twin: Annotated[bool, typer.Option("--twin", help="Capture on the digital twin.")] = False,
     hardware: Annotated[bool, typer.Option("--hardware", help="Capture on the real rig (--rig, with its "
                                            "hardware: section).")] = False,
@@ -158,7 +166,9 @@ def capture_command(
 
     plan = CapturePlan.load(plan_file) if plan_file is not None else None
     total = sum(len(p) for p in plan.poses.values()) if plan is not None else 2 * captures
-    with _progress(quiet) as bar:
+    from darp.formats.io_output import unfinished_folder
+
+    with unfinished_folder(out, "darp calib capture"), _progress(quiet) as bar:
         task = bar.add_task("capturing", total=total)
 
         def tick(arm: str, k: int) -> None:
@@ -211,9 +221,10 @@ def _capture_hardware(rig_file: Path | None, out: Path, plan: Any, n: int, seed:
 def solve_command(
     captures: Annotated[Path, input_argument("Capture folder.")],
     out: Annotated[Path, out_option("Calibration JSON to write.")],
-    report: Annotated[Path | None, typer.Option("--report", help="Report folder to write (figures, summary.md).",
+    report: Annotated[Path | None, typer.Option(
+        "--report", help="Report folder to write (figures, summary.md).", file_okay=False,
                                                 show_default=False)] = None,
-    folds: Annotated[int, typer.Option("--folds", help="k of the k-fold held-out evaluation (0: none).")] = 5,
+    folds: Folds = 5,
     truth: Annotated[Path | None, typer.Option("--truth", help="True calibration to compare with (default: the "
                                                "captures' truth/calibration.json when present).", exists=True,
                                                dir_okay=False, show_default=False)] = None,
@@ -333,10 +344,11 @@ def handeye_command(
     eye_to_hand: Annotated[bool, typer.Option("--eye-to-hand", help="The camera is fixed and the board rides on "
                                               "the flange (default: handeye.yaml's mode, else eye-in-hand).")
                            ] = False,
-    report: Annotated[Path | None, typer.Option("--report", help="Report folder to write (figures, summary.md).",
+    report: Annotated[Path | None, typer.Option(
+        "--report", help="Report folder to write (figures, summary.md).", file_okay=False,
                                                 show_default=False)] = None,
-    folds: Annotated[int, typer.Option("--folds", help="k of the k-fold held-out evaluation (0: none).")] = 5,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the fold assignment.")] = 0,
+    folds: Folds = 5,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the fold assignment.")] = 0,
     compare: Annotated[bool, typer.Option("--compare/--no-compare", help="Also score each OpenCV calibrateHandEye "
                                           "method on the same held-out folds.")] = True,
 ) -> None:
@@ -352,9 +364,9 @@ def handeye_command(
                            folds=folds, seed=seed, compare=compare)
     for w in outcome.warnings:
         warnings.warn(w, DarpWarning, stacklevel=1)
-    write_calibration(out, outcome.calibration)
-    if report is not None:
+    if report is not None:  # the report first: the calibration, written last, is the sign of a complete run
         write_handeye_report(outcome, report)
+    write_calibration(out, outcome.calibration)
     r = outcome.calibration.report
     typer.echo(f"wrote {out} ({r['mode']}; captures used: "
                + ", ".join(f"{a} {n}" for a, n in r["n_captures"].items()) + ")")
@@ -378,7 +390,7 @@ def handeye_command(
 @calib_app.command("export")
 def export_command(
     captures: Annotated[Path, input_argument("darp capture folder (from `darp calib capture`).")],
-    out: Annotated[Path, out_option("Generic captures folder to write (one sub-folder per arm).")],
+    out: Annotated[Path, out_option("Generic captures folder to write (one sub-folder per arm).", folder=True)],
 ) -> None:
     """Write a darp capture folder as a generic any-arm captures folder (flange poses from the Z1 model)."""
     from darp.calibration.anyarm_export import export_captures

@@ -33,6 +33,7 @@ from darp.cli._options import (
     out_option,
     parse_placement,
     parse_resolution,
+    progress_bar,
     twin_settings,
 )
 from darp.cli.twin import PLACEMENT_HELP
@@ -51,10 +52,10 @@ PHASES = {"localise": "localising", "confirm": "confirming", "plan": "planning",
 
 def _run_with_progress(quiet: bool, title: str, run: Any) -> Any:
     """Call ``run(progress)`` under a rich progress bar showing the survey's phase."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
 
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[note]}"),
-                  TimeElapsedColumn(), disable=quiet, transient=False) as bar:
+    with progress_bar(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[note]}"),
+                      TimeElapsedColumn(), quiet=quiet, transient=False) as bar:
         task = bar.add_task(title, total=1.0, note="")
 
         def progress(phase: str, fraction: float, message: str) -> None:
@@ -96,7 +97,7 @@ def collect_command(
     placement: Annotated[Placement | None, typer.Option(
         "--placement", parser=parse_placement, metavar="X,Y,YAW_DEG",
         help=f"Twin: {PLACEMENT_HELP} (default: random, seeded).", show_default=False)] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Twin: seed of every random draw.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Twin: seed of every random draw.")] = 0,
     profile: ProfileOption = Profile.realistic,
     settings_file: SettingsFile = None,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Twin: camera frame rate.")] = 30,

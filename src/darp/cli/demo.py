@@ -17,7 +17,7 @@ from typing import Annotated, Any
 import typer
 
 from darp.cli._app import app, run
-from darp.cli._options import Profile, ProfileOption, SettingsFile, TwinObject, out_option, twin_settings
+from darp.cli._options import Profile, SettingsFile, TwinObject, out_option, twin_settings
 from darp.errors import DarpError
 
 DEFAULT_OBJECTS = (TwinObject.mug, TwinObject.ketchup, TwinObject.dumbbell)
@@ -41,14 +41,20 @@ def demo_command(
     objects: Annotated[list[TwinObject] | None, typer.Option(
         "--object", help="Twin object to survey; repeat per object (default: mug, ketchup, dumbbell).",
         show_default=False)] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the twin (true rig errors, placements, noise).")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0,
+                                      help="Seed of the twin (true rig errors, placements, noise).")] = 0,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Camera frame rate of the demo surveys: 6, 15 or 30 "
                                      "(the real rig records 30).")] = 6,
     captures: Annotated[int, typer.Option("--captures", min=1, help="Calibration captures per arm.")] = 20,
-    profile: ProfileOption = Profile.realistic,
+    profile: Annotated[Profile, typer.Option(
+        "--profile", help="Twin error profile: paper (the default) has the real rig's uncalibrated errors and "
+        "reproduces its error levels; realistic has only errors a calibration absorbs.")] = Profile.paper,
     settings_file: SettingsFile = None,
 ) -> None:
-    """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores)."""
+    """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores).
+
+    Default profile paper: the real rig's error levels. --profile realistic: only errors calibration absorbs.
+    """
     from darp.twin.placement import seeded_placements  # numpy and the kinematics load only when the demo runs
 
     started = time.monotonic()

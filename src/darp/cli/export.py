@@ -22,11 +22,13 @@ def export_command(
                                                 metavar="FORMAT")],
     processed: Annotated[Path, input_argument("Output folder of darp process (one survey's folder or the "
                                               "folder of several).")],
-    out: Annotated[Path, out_option("Folder to write the export into.")],
+    out: Annotated[Path, out_option("Folder to write the export into.", folder=True)],
 ) -> None:
     """Export processed surveys for nerfstudio, COLMAP, Open3D, TUM RGB-D, BOP or PCN/PoinTr completion."""
     from darp.export import export
+    from darp.formats.io_output import unfinished_folder
 
-    summary = export(fmt.value, processed, out)
+    with unfinished_folder(out, "darp export"):
+        summary = export(fmt.value, processed, out)
     typer.echo(json.dumps(summary))
     typer.echo(f"wrote {out}")

@@ -17,7 +17,7 @@ def generate_command(
     count: Annotated[int, typer.Option("--surveys", "-n", min=1, help="Number of surveys.",
                                        show_default=False)],
     out: Annotated[Path, out_option("Folder for the surveys (<out>/<NNNNNN_object>/) and generate.json.")],
-    seed: Annotated[int, typer.Option("--seed", help="Seed of every draw of the batch.")] = 0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of every draw of the batch.")] = 0,
     objects: Annotated[list[str] | None, typer.Option(
         "--object", help="Object to draw from: a twin object name or a mesh file; repeat (default: every paper "
         "object).", show_default=False)] = None,

@@ -2,8 +2,8 @@
 never moves. ``darp hardware vendor-sim [--rig RIG.yaml]``: Unitree's controller with simulated motors for every
 arm of the rig (docs/hardware.md, "Vendor in the loop").
 
-Prints a table of checks (ok / warning / FAIL with the reason), then one ``darp: error:`` line per
-failure on stderr. Exit codes: 0 when nothing required failed, 2 otherwise (a bad rig file, a missing
+Prints a table of checks (ok / warning / FAIL with the reason), then one ``darp: error:`` line naming the first
+failure and the others. Exit codes: 0 when nothing required failed, 2 otherwise (a bad rig file, a missing
 camera or stream profile, an unreachable arm, a joint outside its limits). The logic is
 :mod:`darp.hardware.check`; see docs/hardware.md.
 """
@@ -73,9 +73,10 @@ def check(
         typer.echo(json.dumps(report.to_dict(), indent=2))
     else:
         _print_table(report)
-    for failure in report.failures:
-        error(f"{failure.name}: {failure.detail}")
-    if report.failures:
+    if report.failures:  # one line: the first failure, and how many more the table (or JSON) lists
+        first, more = report.failures[0], report.failures[1:]
+        also = f" (and {len(more)} more failed check(s): {', '.join(f.name for f in more)})" if more else ""
+        error(f"{first.name}: {first.detail}{also}")
         raise typer.Exit(code=2)
 
 

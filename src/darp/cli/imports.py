@@ -21,6 +21,7 @@ import typer
 
 from darp.cli._app import app
 from darp.cli._options import calibration_option, input_argument, out_option
+from darp.formats.limits import DEPTH_SCALE_MAX_M
 from darp.formats.trajectories import TUM_MAX_DT_S
 
 
@@ -51,13 +52,14 @@ class QuaternionOrder(StrEnum):
 def import_command(
     sequence: Annotated[Path, input_argument("Folder of colour and 16-bit depth images (names or sub-folders "
                                              "with 'color'/'rgb' and 'depth'; frames matched by their number).")],
-    out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).")],
+    out: Annotated[Path, out_option("Imported survey folder to write (keyframes/, import.json).", folder=True)],
     intrinsics: Annotated[Path | None, typer.Option("--intrinsics", help="Depth/colour intrinsics (registered "
                                                     "streams): 3x3 .txt/.npy, .npz or .json; a nerfstudio "
                                                     "transforms.json gives its own; a RealSense .bag/.db3 its "
                                                     "colour stream's.", exists=True,
                                                     dir_okay=False, show_default=False)] = None,
-    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", help="Metres per depth unit (0.001: mm); "
+    depth_scale_m: Annotated[float | None, typer.Option("--depth-scale-m", min=0.0, max=DEPTH_SCALE_MAX_M,
+                                                        help="Metres per depth unit (0.001: mm); "
                                                         "default: the folder format's (TUM 1/5000, nerfstudio's "
                                                         "depth_unit_scale_factor), else 0.001.",
                                                         show_default=False)] = None,
@@ -84,6 +86,8 @@ def import_command(
                                                          "image's and its pose's.")] = TUM_MAX_DT_S,
 ) -> None:
     """Import an RGB-D sequence with poses as a survey that darp process fuses, meshes and evaluates."""
+    if depth_scale_m == 0.0:  # 0 is not "the default": a depth image at 0 m per unit has no depth
+        raise typer.BadParameter("must be > 0 metres per depth unit, got 0", param_hint="'--depth-scale-m'")
     from darp.formats.calibration import read_calibration
     from darp.formats.intrinsics import load_intrinsics
     from darp.formats.poses import PoseConventions, read_pose_csv, read_pose_folder
@@ -163,7 +167,10 @@ def import_command(
                       envelope=envelope, intrinsics_by_key=by_key)
     if posed is not None:
         spec.colour_files, spec.depth_files, spec.stamps = posed.colour, posed.depth, posed.stamps
-    record = import_sequence(spec)
+    from darp.formats.io_output import unfinished_folder
+
+    with unfinished_folder(out, "darp import"):
+        record = import_sequence(spec)
     typer.echo(f"wrote {out} ({record['frames']} frames, {record['heldout']} held out; median depth "
                f"{record['median_depth_m']:.2f} m; neighbouring frames agree to "
                f"{record['pose_check']['neighbour_median_mm']:.1f} mm median)")

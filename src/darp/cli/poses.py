@@ -20,7 +20,7 @@ def warn(message: str) -> None:
 @app.command("poses")
 def poses(
     survey: Annotated[Path, input_argument("Survey folder (cam<serial>.bag x2, arm_poses.csv, ...).")],
-    out: Annotated[Path, out_option("Output folder (created; files replaced atomically).")],
+    out: Annotated[Path, out_option("Output folder (created; files replaced atomically).", folder=True)],
     calibration: Annotated[Path | None, calibration_option(
         "Calibration JSON of the rig epoch (default: the rig's nominal values).")] = None,
     rig_file: RigFile = None,
@@ -50,6 +50,8 @@ def poses(
     cal = read_calibration(calibration) if calibration is not None else rig.nominal_calibration()
     serial_to_arm = {arm.serial: arm_id for arm_id, arm in cal.arms.items()}
     opened = open_survey(survey, serial_to_arm=serial_to_arm, mapping_source=calibration)
+    if opened.partial is not None:  # PARTIAL.txt: the survey did not finish; its poses are partial too
+        warn(f"{survey}: unfinished survey ({opened.partial}): the poses cover what was recorded")
     if calibration is None:
         warn(f"no --calibration given: using the nominal transforms of rig {rig.name!r} and zero joint "
              "offsets; poses can be centimetres off")

@@ -98,7 +98,7 @@ def _stage_callback(progress: Any, label: str) -> Any:
 def keyframes(
     survey: Annotated[Path, input_argument("Survey folder (cam<serial>.bag x2, arm_poses.csv, "
                                            "manip_envelope.json).")],
-    out: Annotated[Path, out_option("Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/).")],
+    out: Annotated[Path, out_option("Keyframes folder (keyframes.json, <arm>/<frame>.npz, poses/).", folder=True)],
     calibration: Annotated[Path | None, calibration_option(CALIBRATION_HELP)] = None,
     truth_poses: TruthPoses = False,
     settings_file: SettingsFile = None,
@@ -182,7 +182,12 @@ def process(
     failed = [o for o in outcomes if o.status == FAILED]
     for o in failed:  # after the progress display is gone: one clean line each
         error(o.message)
-    summary_path = write_summary(out, done, [o.to_dict() for o in failed])
+    try:
+        summary_path = write_summary(out, done, [o.to_dict() for o in failed])
+    except OSError:
+        if failed:  # a full disk already failed the survey(s), in their own lines: one cause, said once
+            raise typer.Exit(2) from None
+        raise
     _print_table(done, failed)
     for o in outcomes:
         for warning in o.warnings:

@@ -244,7 +244,7 @@ def _metadata_json(recording: Any, keys: list[str]) -> dict[str, Any]:
 @recording_app.command("export")
 def export_command(
     file: RecordingFile,
-    out: Annotated[Path, out_option("Output folder.")],
+    out: Annotated[Path, out_option("Output folder.", folder=True)],
     streams: Annotated[list[ExportStream] | None, typer.Option(
         "--stream", help="Stream to export; repeat per stream (imu: accel and gyro; default: every stream "
         "present).", show_default=False)] = None,
@@ -259,10 +259,14 @@ def export_command(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Write into a non-empty output folder.")] = False,
 ) -> None:
     """Write one file per frame (depth 16-bit, colour, IR 8-bit), imu.csv, intrinsics.json and frames.csv."""
+    if start_ms is not None and stop_ms is not None and start_ms >= stop_ms:
+        raise typer.BadParameter(f"--start-ms {start_ms:g} is not before --stop-ms {stop_ms:g}: no frame is between",
+                                 param_hint="'--start-ms' / '--stop-ms'")
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from darp.formats.atomic import atomic_open, atomic_path, write_json_atomic
+    from darp.formats.io_output import unfinished_folder
     from darp.formats.realsense.recording import open_recording
 
     with open_recording(file) as recording:
@@ -271,7 +275,6 @@ def export_command(
             raise RecordingError("exists and is not a folder", out)
         if out.is_dir() and any(out.iterdir()) and not overwrite:
             raise RecordingError("output folder is not empty (use --overwrite to write into it)", out)
-        out.mkdir(parents=True, exist_ok=True)
         chosen = _select(recording, keys, start_ms, stop_ms, every)
         image_keys = [k for k in keys if recording.streams[k].is_image]
         infos = {k: recording.frame_infos(k) for k in keys}
@@ -285,6 +288,7 @@ def export_command(
         console = Console(stderr=True)
         damaged: list[str] = []
         with contextlib.ExitStack() as stack:
+            stack.enter_context(unfinished_folder(out, "darp recording export"))  # entered first, left last
             frames_csv = csv.writer(stack.enter_context(atomic_open(out / "frames.csv", "w", newline="")))
             frames_csv.writerow(["stream", "index", "frame_number", "timestamp_ms", "timestamp_domain", "file",
                                  "recording_time_ns"])
@@ -317,7 +321,7 @@ def export_command(
                                          info.timestamp_domain, name, info.recording_time_ns])
                 counts[key] += 1
                 progress.advance(task)
-        write_json_atomic(out / "intrinsics.json", _metadata_json(recording, keys))
+            write_json_atomic(out / "intrinsics.json", _metadata_json(recording, keys))
     if damaged:
         warnings.warn(DarpWarning(f"{len(damaged)} IMU sample(s) with non-finite or impossible values left out of "
                                   f"imu.csv (first: {damaged[0]})", file), stacklevel=1)

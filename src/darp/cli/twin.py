@@ -29,8 +29,10 @@ from darp.cli._options import (
     out_option,
     parse_placement,
     parse_resolution,
+    progress_bar,
     refuse_output_over_inputs,
 )
+from darp.formats.limits import DWELL_MAX_S
 
 twin_app = typer.Typer(help="The digital twin: record simulated surveys with ground truth.", no_args_is_help=True)
 app.add_typer(twin_app, name="twin")
@@ -41,10 +43,17 @@ PLACEMENT_HELP = "x,y,yaw_deg of the object on the table, in metres, metres and 
 
 def load_object(spec: str, scale: float) -> Any:
     """A built-in twin object by name, or a mesh file (``darp twin objects`` lists the names)."""
-    from darp.twin.objects.model import load_mesh_object, make_object
+    from darp.cli._outputs import add_input
+    from darp.twin.objects.model import OBJECT_NAMES, load_mesh_object, make_object
 
     path = Path(spec)
-    if path.suffix.lower() in MESH_SUFFIXES or path.exists():
+    if spec in OBJECT_NAMES:  # a built-in name is the built-in object, even with a file of that name here
+        if path.exists():
+            typer.echo(f"darp: warning: --object {spec}: using the built-in object (a file {spec!r} is in the "
+                       f"working folder: give ./{spec} to use it)", err=True)
+        return make_object(spec, scale=scale)
+    if path.suffix.lower() in MESH_SUFFIXES or path.exists() or "/" in spec:
+        add_input(path)  # the mesh is an input: -o may not be it
         return load_mesh_object(path, scale=scale)
     return make_object(spec, scale=scale)
 
@@ -75,7 +84,7 @@ def record_command(
     placement: Annotated[Placement | None, typer.Option(
         "--placement", parser=parse_placement, metavar="X,Y,YAW_DEG",
         help=f"{PLACEMENT_HELP} (default: random, seeded).", show_default=False)] = None,
-    seed: Annotated[int | None, typer.Option("--seed", help="Seed of every random draw (default 0).",
+    seed: Annotated[int | None, typer.Option("--seed", min=0, help="Seed of every random draw (default 0).",
                                              show_default=False)] = None,
     profile: ProfileOption = Profile.realistic,
     fps: Annotated[int | None, typer.Option("--fps", help="Camera frame rate (default 30).",
@@ -94,7 +103,7 @@ def record_command(
     """Record a twin survey: arms through the waypoints, both cameras, joint log, envelope and truth/."""
     import dataclasses
 
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import BarColumn, TextColumn, TimeElapsedColumn
 
     from darp.kinematics.rig import load_rig
     from darp.twin.record import record_survey
@@ -116,9 +125,9 @@ def record_command(
     folder = out if out is not None else Path(obj.name)
     sources = [p for p in (waypoints, settings_file, rig_file, Path(obj_name)) if p is not None and p.exists()]
     refuse_output_over_inputs(folder, sources, "--out", folder_output=True)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(),
-                  TextColumn("{task.completed:.1f}/{task.total:.1f} s simulated"), TimeElapsedColumn(),
-                  disable=quiet, transient=False) as bar:
+    with progress_bar(TextColumn("[bold]{task.description}"), BarColumn(),
+                      TextColumn("{task.completed:.1f}/{task.total:.1f} s simulated"), TimeElapsedColumn(),
+                      quiet=quiet, transient=False) as bar:
         task = bar.add_task(f"twin {obj.name}", total=1.0)
 
         def progress(done_s: float, total_s: float) -> None:
@@ -150,7 +159,8 @@ def waypoints_command(
     azimuth_deg: Annotated[list[float] | None, typer.Option(
         "--azimuth-deg", help="Azimuth of one view around the arm's side of the object, degrees; repeat per view "
         "(default: -40, -20, 0, 20, 40).", show_default=False)] = None,
-    dwell_s: Annotated[float, typer.Option("--dwell-s", min=0.0, help="Pause at each view, seconds.")] = 0.5,
+    dwell_s: Annotated[float, typer.Option("--dwell-s", min=0.0, max=DWELL_MAX_S,
+                                           help="Pause at each view, seconds.")] = 0.5,
     rig_file: RigFile = None,
 ) -> None:
     """Write an orbit of look-at views per arm (nominal rig) as a waypoints file for `darp twin record`."""

@@ -20,16 +20,11 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from darp.colours import arm_colour
 from darp.errors import EvaluationError
 from darp.formats.atomic import atomic_path
 
-ARM_COLOURS = {"arm110": "#d62728", "arm111": "#1f5fd6"}  # red, blue (as in the paper)
-OTHER_COLOURS = ("#2ca02c", "#ff7f0e", "#9467bd")
 MAX_DRAWN_POINTS = 60_000
-
-
-def arm_colour(arm: str, index: int = 0) -> str:
-    return ARM_COLOURS.get(arm, OTHER_COLOURS[index % len(OTHER_COLOURS)])
 
 
 def _subsample(points: np.ndarray, limit: int, seed: int) -> np.ndarray:
@@ -178,4 +173,4 @@ def heldout_histogram(distances: Mapping[str, np.ndarray], out: str | Path, *, t
     return _save(fig, out)
 
 
-__all__ = ["ARM_COLOURS", "arm_colour", "cross_arm_figure", "heldout_histogram", "partial_fused_figure"]
+__all__ = ["cross_arm_figure", "heldout_histogram", "partial_fused_figure"]

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from darp.dataset import ProcessedSurvey, find_processed
+from darp.errors import FormatError
 from darp.export.bop import export_bop
 from darp.export.cameras import export_nerfstudio, export_open3d, export_tum
 from darp.export.colmap import export_colmap
@@ -36,7 +37,7 @@ def export(fmt: str, processed: str | Path, out: str | Path) -> dict[str, Any]:
     if fmt in DATASET:
         return {"format": fmt, "out": str(out), **DATASET[fmt](surveys, out)}
     if fmt not in PER_SURVEY:
-        raise ValueError(f"unknown export format {fmt!r}")
+        raise FormatError(f"unknown export format {fmt!r} (formats: {', '.join(FORMATS)})")
     summaries = {}
     for survey in surveys:
         target = out if len(surveys) == 1 else out / survey.name

@@ -10,6 +10,8 @@ import numpy as np
 
 from darp.dataset import ProcessedSurvey
 from darp.errors import FormatError
+from darp.formats.io_input import LIMITS, npz_input
+from darp.formats.text import read_utf8_text
 from darp.formats.truth import read_camera_poses
 
 POSES_DIR = "poses"  # darp process's eq. 1 poses of every frame (darp.reconstruction.poses)
@@ -23,8 +25,9 @@ def estimated_poses(survey: ProcessedSurvey, arm: str) -> tuple[np.ndarray, np.n
     if not files:
         return None
     try:
-        offset_s = float(json.loads((folder / "summary.json").read_text(encoding="utf-8")).get("clock_offset_s", 0.0))
-        with np.load(files[0], allow_pickle=False) as data:
+        summary = json.loads(read_utf8_text(folder / "summary.json", "a JSON file", limit=LIMITS["json"]))
+        offset_s = float(summary.get("clock_offset_s", 0.0))
+        with npz_input(files[0], "a poses .npz") as data:
             t_s = np.asarray(data["timestamps_ms"], np.float64) / 1000.0 - offset_s
             T = np.asarray(data["T_world_cam"], np.float64)
     except (OSError, ValueError, KeyError, TypeError) as err:

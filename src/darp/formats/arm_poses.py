@@ -26,8 +26,8 @@ from typing import NoReturn, Self
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.io_input import LIMITS, input_chunks
 from darp.formats.limits import JOINT_ABS_MAX_RAD, TIME_MAX_S, TIME_MIN_S
-from darp.formats.text import read_utf8_text
 
 JOINT_COLUMNS = ("q1", "q2", "q3", "q4", "q5", "q6")
 COLUMNS = ("time_s", "arm", *JOINT_COLUMNS)
@@ -100,92 +100,204 @@ def read_arm_poses(
     allow_extra_columns: bool = False,
     strict_tail: bool = False,
 ) -> ArmPoseLog:
-    """Read and validate ``arm_poses.csv``.
+    """Read and validate ``arm_poses.csv``, streamed: memory grows with the parsed rows (64 bytes a row), not
+    with the text (about 100 bytes a row and many Python strings when read whole).
 
     ``known_arms=None`` accepts any arm id. ``allow_extra_columns`` ignores (and lists) unknown columns
     instead of refusing them. ``strict_tail`` makes a cut-short last line an error instead of dropping it.
     """
     path = Path(path)
-    text = read_utf8_text(path, "a CSV file")
-    if not text.strip():
-        raise FormatError("empty file: expected a header row " + ",".join(COLUMNS), path)
-
-    lines = text.split("\n")
-    ends_with_newline = lines[-1] == ""
-    if ends_with_newline:
-        lines.pop()
-    header = [name.strip() for name in lines[0].rstrip("\r").split(",")]
-    index, ignored = _column_index(header, path, allow_extra_columns)
-    n_columns = len(header)
-
-    body = lines[1:]
-    line_numbers = list(range(2, len(body) + 2))
-    if "\r" in text:
-        body = [line.rstrip("\r") for line in body]
-    if any(not line.strip() for line in body):  # skip blank lines, keep true line numbers
-        kept = [(n, line) for n, line in zip(line_numbers, body, strict=True) if line.strip()]
-        line_numbers = [n for n, _ in kept]
-        body = [line for _, line in kept]
-
-    truncated: int | None = None
-    if body and not ends_with_newline and not _row_ok(body[-1].split(","), n_columns, index):
-        if strict_tail:
-            _row_error(body[-1].split(","), line_numbers[-1], header, index, path, tail=True)
-        truncated = line_numbers.pop()
-        body.pop()
-    if not body:
-        dropped = f" (the only row, line {truncated}, is cut short)" if truncated else ""
-        raise FormatError(f"no data rows after the header{dropped}", path)
-
-    n_commas = n_columns - 1
-    if any(line.count(",") != n_commas for line in body):
-        bad = next(i for i, line in enumerate(body) if line.count(",") != n_commas)
-        _row_error(body[bad].split(","), line_numbers[bad], header, index, path)
-
-    cells = ",".join(body).split(",")  # one split for the whole file: much faster than per row
-    numeric_names = ("time_s", *JOINT_COLUMNS)
-    numbers = np.empty((len(body), len(numeric_names)), dtype=np.float64)
-    try:
-        for k, name in enumerate(numeric_names):
-            numbers[:, k] = list(map(float, cells[index[name] :: n_columns]))
-    except ValueError:
-        bad = next(i for i, line in enumerate(body) if not _row_ok(line.split(","), n_columns, index))
-        _row_error(body[bad].split(","), line_numbers[bad], header, index, path)
-    line_array = np.asarray(line_numbers, dtype=np.int64)
-
-    finite = np.isfinite(numbers)
-    if not finite.all():
-        row, col = map(int, np.argwhere(~finite)[0])
-        name = ("time_s", *JOINT_COLUMNS)[col]
-        raise FormatError(f"line {line_array[row]}: {name} is {numbers[row, col]} (must be finite)", path)
-    _check_ranges(numbers, line_array, path)
-
-    arm_ids = np.array([cell.strip() for cell in cells[index["arm"] :: n_columns]], dtype=object)
     known = None if known_arms is None else tuple(known_arms)
-    present = list(dict.fromkeys(arm_ids.tolist()))
-    for arm in present:
-        if not arm or (known is not None and arm not in known):
-            first = int(np.nonzero(arm_ids == arm)[0][0])
-            expected = f" (expected one of: {', '.join(known)})" if known else ""
-            raise FormatError(f"line {line_array[first]}: unknown arm id {arm!r}{expected}", path)
+    reader = _Reader(path, known, allow_extra_columns)
+    with input_chunks(path, "a CSV file", limit=LIMITS["csv"], chunk_bytes=CHUNK_BYTES) as chunks:
+        for text in _lines_of(chunks, path):
+            reader.feed(text)
+    return reader.finish(reader.pending_tail, strict_tail)
 
-    times: dict[str, np.ndarray] = {}
-    joints: dict[str, np.ndarray] = {}
-    arm_lines: dict[str, np.ndarray] = {}
-    for arm in present:
-        mask = arm_ids == arm
-        t = numbers[mask, 0]
-        back = np.nonzero(np.diff(t) < 0.0)[0]
-        if back.size:
-            k = int(back[0]) + 1
-            line = int(line_array[mask][k])
-            raise FormatError(
-                f"line {line}: time goes backwards for {arm} ({_fmt_pair(t[k], t[k - 1])})", path
-            )
-        times[arm] = _frozen(t)
-        joints[arm] = _frozen(numbers[mask, 1:])
-        arm_lines[arm] = _frozen(line_array[mask])
-    return ArmPoseLog(path, times, joints, arm_lines, truncated, tuple(ignored))
+
+CHUNK_BYTES = 4 * 1024 * 1024  # text parsed per step (about 40,000 rows)
+
+
+def _lines_of(chunks: Iterable[bytes], path: Path) -> Iterable[str]:
+    """UTF-8 text (a leading BOM dropped) in pieces that end at a newline; the last piece may not."""
+    carry = b""
+    offset = 0  # bytes of the file before ``carry``
+    first = True
+    for block in chunks:
+        data = carry + block
+        cut = data.rfind(b"\n") + 1
+        if cut == 0:
+            carry = data
+            continue
+        yield _decode(data[:cut], offset, first, path)
+        first = False
+        offset += cut
+        carry = data[cut:]
+    if carry or first:
+        yield _decode(carry, offset, first, path)
+
+
+def _decode(data: bytes, offset: int, first: bool, path: Path) -> str:
+    try:
+        return data.decode("utf-8-sig" if first else "utf-8")
+    except UnicodeDecodeError as err:
+        raise FormatError(f"not UTF-8 text (byte {offset + err.start})", path) from err
+
+
+class _Grow:
+    """An arm's rows, appended in blocks: arrays grown in place (``ndarray.resize``, a realloc that moves no
+    data for large arrays), so the peak is the rows themselves and not twice them."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.t = np.empty(1024)
+        self.q = np.empty((1024, N_JOINTS))
+        self.lines = np.empty(1024, dtype=np.int64)
+
+    def add(self, t: np.ndarray, q: np.ndarray, lines: np.ndarray) -> None:
+        need = self.n + t.size
+        if need > self.t.size:
+            size = max(need, 2 * self.t.size)
+            self.t.resize(size, refcheck=False)
+            self.q.resize((size, N_JOINTS), refcheck=False)
+            self.lines.resize(size, refcheck=False)
+        self.t[self.n:need], self.q[self.n:need], self.lines[self.n:need] = t, q, lines
+        self.n = need
+
+    def frozen(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self.t.resize(self.n, refcheck=False)
+        self.q.resize((self.n, N_JOINTS), refcheck=False)
+        self.lines.resize(self.n, refcheck=False)
+        return _frozen(self.t), _frozen(self.q), _frozen(self.lines)
+
+
+class _Reader:
+    """The parse of one file, piece by piece (the rules of the whole-file reader, in the same order per piece)."""
+
+    def __init__(self, path: Path, known: tuple[str, ...] | None, allow_extra: bool) -> None:
+        self.path, self.known, self.allow_extra = path, known, allow_extra
+        self.header: list[str] | None = None
+        self.index: dict[str, int] = {}
+        self.ignored: list[str] = []
+        self.line_no = 0  # lines consumed
+        self.blank_header = False
+        self.pending_tail = ""  # the text after the last newline (a last line without one)
+        self.arms: dict[str, _Grow] = {}
+        self.last_t: dict[str, float] = {}
+        self.rows = 0
+
+    def feed(self, text: str) -> None:
+        lines = text.split("\n")
+        self.pending_tail = lines.pop()  # "" when the piece ends with a newline
+        if self.header is None and lines:
+            self._take_header(lines.pop(0))
+        if self.header is None:
+            return
+        self._rows(lines, self.line_no + 1)
+        self.line_no += len(lines)
+
+    def _take_header(self, line: str) -> None:
+        self.line_no = 1
+        if not line.strip():
+            self.blank_header = True  # an error unless the whole file is blank (finish says which)
+        header = [name.strip() for name in line.rstrip("\r").split(",")]
+        self.header = header
+        self.index, self.ignored = _column_index(header, self.path, self.allow_extra) if not self.blank_header \
+            else ({}, [])
+
+    def _rows(self, lines: list[str], first_line: int) -> None:
+        if self.blank_header:
+            if any(line.strip() for line in lines):
+                _column_index([""], self.path, self.allow_extra)  # "no header row"
+            return
+        assert self.header is not None
+        numbers = list(range(first_line, first_line + len(lines)))
+        body = [line.rstrip("\r") for line in lines]
+        if any(not line.strip() for line in body):  # skip blank lines, keep true line numbers
+            kept = [(n, line) for n, line in zip(numbers, body, strict=True) if line.strip()]
+            numbers = [n for n, _ in kept]
+            body = [line for _, line in kept]
+        if body:
+            self._parse(body, numbers)
+
+    def _parse(self, body: list[str], line_numbers: list[int]) -> None:
+        header, index, path = self.header, self.index, self.path
+        assert header is not None
+        n_columns = len(header)
+        n_commas = n_columns - 1
+        if any(line.count(",") != n_commas for line in body):
+            bad = next(i for i, line in enumerate(body) if line.count(",") != n_commas)
+            _row_error(body[bad].split(","), line_numbers[bad], header, index, path)
+        cells = ",".join(body).split(",")  # one split for the whole piece: much faster than per row
+        numeric_names = ("time_s", *JOINT_COLUMNS)
+        numbers = np.empty((len(body), len(numeric_names)), dtype=np.float64)
+        try:
+            for k, name in enumerate(numeric_names):
+                numbers[:, k] = list(map(float, cells[index[name] :: n_columns]))
+        except ValueError:
+            bad = next(i for i, line in enumerate(body) if not _row_ok(line.split(","), n_columns, index))
+            _row_error(body[bad].split(","), line_numbers[bad], header, index, path)
+        line_array = np.asarray(line_numbers, dtype=np.int64)
+        finite = np.isfinite(numbers)
+        if not finite.all():
+            row, col = map(int, np.argwhere(~finite)[0])
+            raise FormatError(f"line {line_array[row]}: {numeric_names[col]} is {numbers[row, col]} (must be finite)",
+                              path)
+        _check_ranges(numbers, line_array, path)
+        arm_ids = np.array([cell.strip() for cell in cells[index["arm"] :: n_columns]], dtype=object)
+        present = list(dict.fromkeys(arm_ids.tolist()))
+        for arm in present:
+            if not arm or (self.known is not None and arm not in self.known):
+                first = int(np.nonzero(arm_ids == arm)[0][0])
+                expected = f" (expected one of: {', '.join(self.known)})" if self.known else ""
+                raise FormatError(f"line {line_array[first]}: unknown arm id {arm!r}{expected}", path)
+        for arm in present:
+            mask = arm_ids == arm
+            t = numbers[mask, 0]
+            last = self.last_t.get(arm)
+            back = np.nonzero(np.diff(t) < 0.0)[0]
+            if last is not None and t[0] < last:
+                line = int(line_array[mask][0])
+                raise FormatError(f"line {line}: time goes backwards for {arm} ({_fmt_pair(t[0], last)})", path)
+            if back.size:
+                k = int(back[0]) + 1
+                line = int(line_array[mask][k])
+                raise FormatError(f"line {line}: time goes backwards for {arm} ({_fmt_pair(t[k], t[k - 1])})", path)
+            self.arms.setdefault(arm, _Grow()).add(t, numbers[mask, 1:], line_array[mask])
+            self.last_t[arm] = float(t[-1])
+        self.rows += len(body)
+
+    def finish(self, tail: str, strict_tail: bool) -> ArmPoseLog:
+        path = self.path
+        if self.header is None:  # the file is one line without a newline (or empty)
+            if not tail.strip():
+                raise FormatError("empty file: expected a header row " + ",".join(COLUMNS), path)
+            self._take_header(tail)
+            tail = ""
+        if self.blank_header:
+            if tail.strip():
+                _column_index([""], path, self.allow_extra)
+            raise FormatError("empty file: expected a header row " + ",".join(COLUMNS), path)
+        assert self.header is not None
+        truncated: int | None = None
+        line = tail.rstrip("\r")
+        if line.strip():
+            number = self.line_no + 1
+            if _row_ok(line.split(","), len(self.header), self.index):
+                self._parse([line], [number])
+            elif strict_tail:
+                _row_error(line.split(","), number, self.header, self.index, path, tail=True)
+            else:
+                truncated = number
+        if not self.rows:
+            dropped = f" (the only row, line {truncated}, is cut short)" if truncated else ""
+            raise FormatError(f"no data rows after the header{dropped}", path)
+        times: dict[str, np.ndarray] = {}
+        joints: dict[str, np.ndarray] = {}
+        arm_lines: dict[str, np.ndarray] = {}
+        for arm, grow in self.arms.items():
+            times[arm], joints[arm], arm_lines[arm] = grow.frozen()
+        return ArmPoseLog(path, times, joints, arm_lines, truncated, tuple(self.ignored))
 
 
 def _check_ranges(numbers: np.ndarray, line_array: np.ndarray, path: Path) -> None:

@@ -44,6 +44,7 @@ from darp.formats.schema import (
     as_rigid_transform,
     as_str,
     load_json_object,
+    refuse_unknown_keys,
     to_jsonable,
     write_json_checked,
 )
@@ -59,11 +60,7 @@ DEPTH_CORRECTION_MODEL = "z_true = scale * z + offset_m + quad_per_m * z^2"
 
 
 def _refuse_unknown(record: dict[str, Any], known: tuple[str, ...], where: str, path: Path | None) -> None:
-    unknown = [k for k in record if k not in known]
-    if unknown:
-        prefix = f"{where}: " if where else ""
-        raise FormatError(f"{prefix}unknown key(s) {', '.join(map(repr, unknown))} (known: {', '.join(known)})",
-                          path)
+    refuse_unknown_keys(record, known, where, path)
 
 
 @dataclass(frozen=True)

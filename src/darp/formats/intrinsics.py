@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.io_input import LIMITS, load_numpy
+from darp.formats.text import read_utf8_text
 
 
 @dataclass(frozen=True)
@@ -29,12 +31,15 @@ class CameraModel:
     model: str = "Brown Conrady"  # librealsense's name; "Brown Conrady" is OpenCV's model
 
 
-def check_camera_matrix(K: np.ndarray, path: Path) -> np.ndarray:
-    """``K`` as a float 3x3 ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, else a FormatError naming ``path``."""
+def check_camera_matrix(K: np.ndarray, path: Path, where: str = "") -> np.ndarray:
+    """``K`` as a float 3x3 ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` with fx, fy > 0, else a FormatError naming
+    ``path`` (and ``where`` in it, e.g. a frame)."""
     K = np.asarray(K, np.float64).reshape(3, 3)
     if not (np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 and abs(K[2, 2] - 1) < 1e-9
             and K[2, 0] == 0 and K[2, 1] == 0):
-        raise FormatError("not a 3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] (check row/column order)", path)
+        prefix = f"{where}: " if where else ""
+        raise FormatError(f"{prefix}not a 3x3 camera matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0 "
+                          "(check row/column order)", path)
     return K
 
 
@@ -47,7 +52,7 @@ def read_open3d_intrinsic(path: str | Path) -> tuple[np.ndarray, int, int]:
     """Open3D's ``PinholeCameraIntrinsic`` JSON: (K, width, height); ``intrinsic_matrix`` is column-major."""
     p = Path(path)
     try:
-        d = json.loads(p.read_text(encoding="utf-8"))
+        d = json.loads(read_utf8_text(p, "a JSON file", limit=LIMITS["json"]))
         K = open3d_matrix(d["intrinsic_matrix"])
         return K, int(d.get("width", 0)), int(d.get("height", 0))
     except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError) as err:
@@ -69,25 +74,25 @@ def load_intrinsics(path: str | Path) -> CameraModel:
     A text file may hold the 3x3 then one distortion line.
     """
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():  # a folder or a pipe is refused by the reading below, in its own words
         raise FormatError("intrinsics file not found", p)
     if p.suffix in (".bag", ".db3"):
         return _recording_intrinsics(p)
     dist = np.zeros(5)
     try:
         if p.suffix == ".npz":
-            with np.load(p) as z:
-                key = next((k for k in ("cameraMatrix", "camera_matrix", "K", "mtx") if k in z), None)
-                if key is None:
-                    raise FormatError(f"no cameraMatrix/K array (has {', '.join(z.files)})", p)
-                K = z[key]
-                dk = next((k for k in ("distCoeffs", "dist_coeffs", "dist", "D") if k in z), None)
-                if dk is not None:
-                    dist = np.asarray(z[dk], np.float64).reshape(-1)
+            z = load_numpy(p, "an intrinsics .npz")
+            key = next((k for k in ("cameraMatrix", "camera_matrix", "K", "mtx") if k in z), None)
+            if key is None:
+                raise FormatError(f"no cameraMatrix/K array (has {', '.join(z)})", p)
+            K = z[key]
+            dk = next((k for k in ("distCoeffs", "dist_coeffs", "dist", "D") if k in z), None)
+            if dk is not None:
+                dist = np.asarray(z[dk], np.float64).reshape(-1)
         elif p.suffix == ".npy":
-            K = np.load(p)
+            K = load_numpy(p, "an intrinsics .npy")
         elif p.suffix == ".json":
-            d = json.loads(p.read_text(encoding="utf-8"))
+            d = json.loads(read_utf8_text(p, "a JSON file", limit=LIMITS["json"]))
             if "K" in d or "camera_matrix" in d:
                 K = np.asarray(d.get("K", d.get("camera_matrix")), np.float64)
             elif "intrinsic_matrix" in d:  # Open3D's PinholeCameraIntrinsic: 9 values, column-major
@@ -107,7 +112,7 @@ def load_intrinsics(path: str | Path) -> CameraModel:
             else:
                 dist = np.array([d.get(k, 0.0) for k in ("k1", "k2", "p1", "p2", "k3")], np.float64)
         else:
-            rows = [r for r in (line.replace(",", " ").split() for line in p.read_text(encoding="utf-8")
+            rows = [r for r in (line.replace(",", " ").split() for line in read_utf8_text(p, "a text file")
                                 .splitlines() if line.strip() and not line.lstrip().startswith("#")) if r]
             vals = [[float(v) for v in r] for r in rows]
             K = np.array(vals[:3], np.float64)

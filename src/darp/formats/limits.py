@@ -17,6 +17,10 @@ JOINT_OFFSET_ABS_MAX_RAD = 0.5  # a joint-zero correction dq (about 29 degrees)
 HAND_EYE_MAX_M = 0.5  # camera origin to flange distance in T_wrist_cam
 ANGLE_ABS_MAX_DEG = 360.0  # roll, pitch, yaw in a rig file
 DWELL_MAX_S = 600.0  # a waypoint's pause
+JOINT_LOG_RATE_MAX_HZ = 1000.0  # a joint logger's rate (the Z1 SDK runs at 500 Hz, the paper logs at 33 Hz)
+CAMERA_FPS_MAX = 300.0  # a RealSense D4xx stream's rate (its fastest depth mode is 300 fps)
+IMAGE_SIDE_MAX_PX = 16384  # one side of an image (a D4xx's colour is at most 1920 px wide)
+DEPTH_SCALE_MAX_M = 1.0  # metres per depth unit (RealSense 0.001, TUM 0.0002; 1 m per unit is already absurd)
 MAX_JSON_BYTES = 256 * 1024 * 1024  # a JSON file larger than this is not one of darp's
 
 
@@ -26,7 +30,8 @@ def out_of_range(value: float, low: float, high: float) -> bool:
 
 
 __all__ = [
-    "ANGLE_ABS_MAX_DEG", "DWELL_MAX_S", "ENVELOPE_SIZE_MAX_M", "HAND_EYE_MAX_M", "JOINT_ABS_MAX_RAD",
+    "ANGLE_ABS_MAX_DEG", "CAMERA_FPS_MAX", "DEPTH_SCALE_MAX_M", "DWELL_MAX_S", "IMAGE_SIDE_MAX_PX",
+    "JOINT_LOG_RATE_MAX_HZ", "ENVELOPE_SIZE_MAX_M", "HAND_EYE_MAX_M", "JOINT_ABS_MAX_RAD",
     "JOINT_OFFSET_ABS_MAX_RAD", "MAX_JSON_BYTES", "POSITION_ABS_MAX_M", "TIME_MAX_S", "TIME_MIN_S",
     "out_of_range",
 ]

@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.io_input import load_numpy
+from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 from darp.geometry.transforms import quaternion_to_rotation
 
@@ -71,9 +73,10 @@ def read_matrix_file(path: Path) -> np.ndarray:
     """A 4x4 (or 3x4) transform from text (whitespace/commas, # comments) or .npy, as written."""
     try:
         if path.suffix == ".npy":
-            M = np.asarray(np.load(path), np.float64)
+            M = np.asarray(load_numpy(path, "a .npy matrix"), np.float64)
         else:
-            rows = [line.replace(",", " ").split() for line in path.read_text(encoding="utf-8").splitlines()
+            text = read_utf8_text(path, "a text file")
+            rows = [line.replace(",", " ").split() for line in text.splitlines()
                     if line.strip() and not line.lstrip().startswith("#")]
             M = np.array([[float(v) for v in r] for r in rows], np.float64)
     except (ValueError, OSError) as err:
@@ -88,7 +91,7 @@ def read_matrix_file(path: Path) -> np.ndarray:
 def read_pose_csv(path: Path, conv: PoseConventions) -> dict[str, np.ndarray]:
     """``id, x, y, z, q1, q2, q3, q4`` rows (header optional; ``# unit: mm, quaternion: wxyz`` comment)."""
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        lines = read_utf8_text(path, "a text file").splitlines()
     except (OSError, UnicodeDecodeError) as err:
         raise FormatError(f"cannot read ({err})", path) from None
     declared: dict[str, Any] = {}
@@ -173,12 +176,12 @@ def read_board_poses(folder: Path) -> dict[str, np.ndarray]:
     fixed: list[float] = []
     for f in sorted(folder.iterdir()):
         if f.suffix == ".npz":
-            with np.load(f) as z:
-                if "rvec" not in z or "tvec" not in z:
-                    raise FormatError(f"expected rvec and tvec arrays (has {', '.join(z.files)})", f)
-                T = np.eye(4)
-                T[:3, :3] = cv2.Rodrigues(np.asarray(z["rvec"], np.float64).reshape(3))[0]
-                T[:3, 3] = np.asarray(z["tvec"], np.float64).reshape(3)
+            z = load_numpy(f, "an .npz file")
+            if "rvec" not in z or "tvec" not in z:
+                raise FormatError(f"expected rvec and tvec arrays (has {', '.join(z)})", f)
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(np.asarray(z["rvec"], np.float64).reshape(3))[0]
+            T[:3, 3] = np.asarray(z["tvec"], np.float64).reshape(3)
         elif f.suffix in (".txt", ".npy"):
             T = read_matrix_file(f)
         else:

@@ -1,23 +1,25 @@
-"""Small validation helpers shared by the JSON formats (envelope, calibration).
+"""Small validation helpers shared by the JSON formats (envelope, calibration) and every settings reader.
 
 Each helper checks one value and raises :class:`darp.errors.FormatError` (or the subclass given) with
 the file path and the dotted name of the field, so that a bad file is reported in one line:
 ``calibration.json: arms.arm110.T_world_base: not a rigid transform: rotation is not orthonormal (error 3.2e-02,
-...)``.
+...)``. Settings files (rig, twin, processing, hardware, waypoints) are read into dataclasses by the one
+:func:`dataclass_from_mapping`, which refuses unknown keys with :func:`refuse_unknown_keys`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
-from darp.errors import FormatError
+from darp.errors import DarpError, FormatError
 from darp.formats.atomic import write_text_atomic
 from darp.formats.limits import MAX_JSON_BYTES
 from darp.formats.text import read_utf8_text
@@ -28,13 +30,7 @@ def load_json_object(path: str | Path, error: type[FormatError] = FormatError) -
     """Read a JSON file whose top level is an object; syntax errors name the line and column. A file over
     ``MAX_JSON_BYTES`` is refused before it is read (none of darp's JSON files comes near it)."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except OSError:  # missing or unreadable: the read below says which
-        size = 0
-    if size > MAX_JSON_BYTES:
-        raise error(f"{size} bytes, larger than any darp JSON file (limit {MAX_JSON_BYTES // 2**20} MiB)", path)
-    text = read_utf8_text(path, "a JSON file", error)
+    text = read_utf8_text(path, "a JSON file", error, limit=MAX_JSON_BYTES)
     if not text.strip():
         raise error("empty file: expected a JSON object", path)
     try:
@@ -183,3 +179,63 @@ def as_rigid_transform(
     """A 4x4 rigid transform by :func:`darp.geometry.rigid.check_rigid`'s rule: finite, orthonormal right-handed
     rotation, last row ``0 0 0 1``."""
     return check_rigid(as_array(value, field, path, (4, 4), error), field, path, error=error)
+
+
+_Settings = TypeVar("_Settings")
+
+
+def dotted(where: str, key: object) -> str:
+    """The dotted path of ``key`` inside ``where`` (``fusion`` + ``depth`` -> ``fusion.depth``)."""
+    return f"{where}.{key}" if where else str(key)
+
+
+def refuse_unknown_keys(values: Iterable[Any], known: Iterable[str], where: str = "", path: str | Path | None = None,
+                        error: type[DarpError] = FormatError) -> None:
+    """The one unknown-key rule of darp's files: a key not in ``known`` (a misspelt key would otherwise keep its
+    default silently) is refused in one line naming its dotted path, the known keys and the file."""
+    known = tuple(known)
+    unknown = [dotted(where, k) for k in values if k not in known]
+    if unknown:
+        raise error(f"unknown key(s) {', '.join(unknown)} (known: {', '.join(known)})", path)
+
+
+def dataclass_from_mapping(
+    cls: type[_Settings],
+    values: Any,
+    where: str = "",
+    *,
+    base: _Settings | None = None,
+    nested: Mapping[str, type] | None = None,
+    convert: Mapping[str, Callable[[Any], Any]] | None = None,
+    path: str | Path | None = None,
+    error: type[DarpError] = FormatError,
+) -> _Settings:
+    """The dataclass ``cls`` from a (partial) mapping of its field names: the settings readers' one reader.
+
+    Fields not given keep ``base``'s values (``cls``'s defaults without one); ``None`` gives ``base`` or the
+    defaults. ``nested`` fields are dataclasses read the same way; ``convert`` turns a value into the field's
+    type (a YAML list into a tuple). Unknown keys, a non-mapping, a value the class refuses (its own
+    ``__post_init__`` check raising a :class:`~darp.errors.DarpError`) or a missing argument are ``error`` with
+    the dotted path of ``where`` and the file ``path``."""
+    if values is None:
+        return base if base is not None else cls()
+    if not isinstance(values, Mapping):
+        raise error(f"{where or 'settings'}: expected a mapping, got {type(values).__name__}", path)
+    names = [f.name for f in dataclasses.fields(cls)]  # type: ignore[arg-type]  # cls is a dataclass type
+    refuse_unknown_keys(values, names, where, path, error)
+    kwargs = dict(values)
+    for name, sub in (nested or {}).items():
+        if name in kwargs:
+            current = getattr(base, name) if base is not None else None
+            kwargs[name] = dataclass_from_mapping(sub, kwargs[name], dotted(where, name), base=current, path=path,
+                                                  error=error)
+    for name, change in (convert or {}).items():
+        if name in kwargs:
+            kwargs[name] = change(kwargs[name])
+    try:
+        return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)  # type: ignore[type-var]
+    except DarpError as err:  # the class's own check; its message may already name the dotted path
+        named = not where or err.message.startswith((f"{where}.", f"{where}:"))
+        raise error(err.message if named else f"{where}: {err.message}", path) from None
+    except TypeError as err:
+        raise error(f"{where}: {err}" if where else str(err), path) from None

@@ -21,6 +21,7 @@ from pathlib import Path
 from darp.errors import SurveyError
 from darp.formats.arm_poses import ArmPoseLog, read_arm_poses
 from darp.formats.envelope import ENVELOPE_FILE, Envelope, read_envelope
+from darp.formats.io_input import marker_text
 from darp.formats.realsense.recording import Recording, open_recording
 
 DEFAULT_SERIAL_TO_ARM: dict[str, str] = {"348522076490": "arm110", "405622074504": "arm111"}
@@ -229,11 +230,8 @@ def partial_survey_reason(path: str | Path) -> str | None:
     path = Path(path)
     reasons = []
     marker = path / PARTIAL_FILE
-    if marker.is_file():
-        try:
-            first = marker.read_text(encoding="utf-8", errors="replace").strip().splitlines()
-        except OSError:
-            first = []
+    if marker.exists():  # whatever it is: a marker that cannot be read (a pipe, a folder) still marks
+        first = marker_text(marker).strip().splitlines()
         reasons.append(f"{PARTIAL_FILE} says {first[0]!r}" if first else f"{PARTIAL_FILE} present")
     try:
         leftovers = sorted(p.name for p in path.iterdir() if p.name.endswith(PARTIAL_RECORDING_SUFFIX))

@@ -4,54 +4,27 @@ bytes that are not UTF-8."""
 
 from __future__ import annotations
 
-import contextlib
-import os
 import re
-import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from darp.errors import ConfigError, DarpError, FormatError
+from darp.formats.io_input import LIMITS, read_input_bytes
 
 
-def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatError) -> str:
+def read_utf8_text(path: str | Path, what: str, error: type[DarpError] = FormatError, *,
+                   limit: int = LIMITS["text"]) -> str:
     """The text of ``path`` (a leading BOM dropped); ``what`` names the expected kind in the folder
-    error ("is a folder, not a JSON file")."""
+    error ("is a folder, not a JSON file"). Read through :func:`darp.formats.io_input.read_input_bytes`:
+    a regular file of at most ``limit`` bytes."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise error("no such file", path) from None
-    except IsADirectoryError:
-        raise error(f"is a folder, not {what}", path) from None
-    except PermissionError:
-        raise error("permission denied", path) from None
+    data = read_input_bytes(path, what, error, limit=limit)
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as err:
         raise error(f"not UTF-8 text (byte {err.start})", path) from err
-
-
-@contextlib.contextmanager
-def native_stderr_silenced() -> Iterator[None]:
-    """Send what C libraries print on stderr (libpng's "libpng error: ...", OpenCV's decoder warnings) to
-    /dev/null for the block: darp reports the damaged file itself, in one line."""
-    try:
-        sys.stderr.flush()
-        saved = os.dup(2)
-    except (OSError, ValueError):  # no usable fd 2: nothing to silence
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 class YamlLoader(yaml.SafeLoader):
@@ -81,7 +54,7 @@ def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, 
     """Parse a YAML (or JSON) file whose top level is a mapping; every failure is a ConfigError naming
     ``path``. ``empty_ok``: an empty file is an empty mapping (a settings file that changes nothing)."""
     path = Path(path)
-    text = read_utf8_text(path, "a file", ConfigError)
+    text = read_utf8_text(path, "a YAML file", ConfigError, limit=LIMITS["yaml"])
     try:
         data = load_yaml(text)
     except yaml.YAMLError as err:
@@ -99,4 +72,4 @@ def read_yaml_mapping(path: str | Path, *, empty_ok: bool = False) -> dict[str, 
     return data
 
 
-__all__ = ["YamlLoader", "load_yaml", "native_stderr_silenced", "read_utf8_text", "read_yaml_mapping"]
+__all__ = ["YamlLoader", "load_yaml", "read_utf8_text", "read_yaml_mapping"]

@@ -25,7 +25,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from darp.errors import FormatError
-from darp.formats.intrinsics import read_open3d_intrinsic
+from darp.formats.intrinsics import check_camera_matrix, read_open3d_intrinsic
+from darp.formats.io_input import LIMITS
+from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 from darp.geometry.transforms import rotation_to_quaternion
 
@@ -42,7 +44,7 @@ def frame_key(name: str) -> str:
 
 def _rows(path: Path) -> list[list[float]]:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_utf8_text(path, "a text file")
     except (OSError, UnicodeDecodeError) as err:
         raise FormatError(f"cannot read ({err})", path) from None
     out = []
@@ -81,7 +83,7 @@ def read_tum_trajectory(path: str | Path) -> tuple[list[str], np.ndarray]:
     and ``T (N, 4, 4)`` in file order (quaternions normalised)."""
     p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        text = read_utf8_text(p, "a text file")
     except (OSError, UnicodeDecodeError) as err:
         raise FormatError(f"cannot read ({err})", p) from None
     stamps: list[str] = []
@@ -188,7 +190,7 @@ def read_nerfstudio(path: str | Path) -> tuple[dict[str, np.ndarray], dict[str, 
     as written (cx/cy with nerfstudio's +0.5 pixel centres; :func:`read_nerfstudio_folder` converts them)."""
     p = Path(path)
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        data = json.loads(read_utf8_text(p, "a JSON file", limit=LIMITS["json"]))
     except (OSError, json.JSONDecodeError) as err:
         raise FormatError(f"cannot read ({err})", p) from None
     frames = data.get("frames")
@@ -260,7 +262,7 @@ class PosedFrames:
 def _stamped_list(path: Path) -> list[tuple[float, str]]:
     """A TUM ``rgb.txt``/``depth.txt``: ``timestamp filename`` lines."""
     out = []
-    for n, line in enumerate(path.read_text(encoding="utf-8").splitlines()):
+    for n, line in enumerate(read_utf8_text(path, "a text file").splitlines()):
         s = line.strip()
         if not s or s.startswith("#"):
             continue
@@ -354,17 +356,23 @@ def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
     if p.is_dir():
         p = p / "transforms.json"
     try:
-        data = json.loads(p.read_text(encoding="utf-8"))
+        data = json.loads(read_utf8_text(p, "a JSON file", limit=LIMITS["json"]))
     except (OSError, json.JSONDecodeError) as err:
         raise FormatError(f"cannot read ({err})", p) from None
-    frames = data.get("frames")
+    frames = data.get("frames") if isinstance(data, dict) else None
     if not isinstance(frames, list) or not frames:
         raise FormatError("no 'frames' list", p)
     root = p.parent
     rigid = _Rigid(p)
     out = PosedFrames("nerfstudio", depth_scale_m=float(data.get("depth_unit_scale_factor", 1e-3)), source=str(p))
+    seen: dict[str, int] = {}
     for n, fr in enumerate(frames):
+        if not isinstance(fr, dict):
+            raise FormatError(f"frame {n}: not a JSON object", p)
         key, where = str(n), f"frame {n} ({fr.get('file_path')})"
+        first = seen.setdefault(str(fr.get("depth_file_path")), n)
+        if first != n:  # one image listed twice: a broken file (and 100,000 copies would be imported 100,000 times)
+            raise FormatError(f"{where}: depth_file_path repeats frame {first} (duplicate frames)", p)
         M = np.asarray(fr.get("transform_matrix"), float)
         if M.shape != (4, 4):
             raise FormatError(f"{where}: transform_matrix is not 4x4", p)
@@ -381,7 +389,7 @@ def read_nerfstudio_folder(path: str | Path) -> PosedFrames:
             K = np.array([[fx, 0.0, float(get["cx"]) - NERFSTUDIO_PIXEL_CENTRE],
                           [0.0, fy, float(get["cy"]) - NERFSTUDIO_PIXEL_CENTRE], [0.0, 0.0, 1.0]])
             dist = np.array([float(get[k] or 0.0) for k in ("k1", "k2", "p1", "p2", "k3")])
-            out.intrinsics[key] = (K, dist)
+            out.intrinsics[key] = (check_camera_matrix(K, p, where), dist)
     if out.intrinsics and len(out.intrinsics) != len(out.poses):
         raise FormatError(f"{len(out.poses) - len(out.intrinsics)} frame(s) have no fl_x/cx/cy (per frame or at the "
                           "top level)", p)

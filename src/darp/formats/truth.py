@@ -12,6 +12,7 @@ import numpy as np
 
 from darp.errors import FormatError
 from darp.formats.atomic import atomic_path
+from darp.formats.io_input import npz_input
 
 TRUTH_DIR = "truth"
 CALIBRATION_FILE = "calibration.json"
@@ -52,7 +53,7 @@ def read_camera_poses(path: str | Path) -> dict[str, np.ndarray]:
     """Arrays of ``truth/camera_poses_<arm>.npz`` (see :data:`POSE_ARRAYS`)."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with npz_input(path, "a camera poses .npz") as data:
             arrays = {name: data[name] for name in data.files}
     except FileNotFoundError:
         raise FormatError("no such file", path) from None

@@ -8,6 +8,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import ConvexHull, QhullError
 
+from darp.errors import DarpError
+
 Array = NDArray[np.float64]
 
 
@@ -16,7 +18,7 @@ def min_enclosing_circle(points_xy: Array) -> tuple[Array, float]:
     the convex hull's vertices, in a fixed order (deterministic)."""
     P = np.asarray(points_xy, dtype=np.float64)
     if len(P) == 0:
-        raise ValueError("no points to enclose")
+        raise DarpError("no points to enclose")
     if len(P) > 3:
         with contextlib.suppress(QhullError):  # collinear or coincident: all points are on a line
             P = P[ConvexHull(P).vertices]

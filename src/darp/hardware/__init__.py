@@ -6,27 +6,21 @@ Importing this package imports neither vendor SDK: names are resolved lazily, an
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from darp.lazy import LazyExports
 
-_EXPORTS = {
-    "ArmProbe": "darp.hardware.z1_arm",
-    "CameraSettings": "darp.hardware.realsense_camera",
-    "CheckReport": "darp.hardware.check",
-    "HardwareRig": "darp.hardware.rig",
-    "HardwareSettings": "darp.hardware.settings",
-    "JointLogger": "darp.hardware.joint_logger",
-    "MotionLimits": "darp.hardware.z1_arm",
-    "RealSenseCamera": "darp.hardware.realsense_camera",
-    "check_rig": "darp.hardware.check",
-    "WallClock": "darp.hardware.rig",
-    "Z1Arm": "darp.hardware.z1_arm",
-    "Z1Connection": "darp.hardware.z1_arm",
-    "load_hardware_settings": "darp.hardware.settings",
-    "open_rig": "darp.hardware.rig",
-    "probe_arm": "darp.hardware.z1_arm",
-    "sdk_report": "darp.hardware.sdk",
-}
+TYPE_CHECKING = False  # typing.TYPE_CHECKING without importing typing
+
+_lazy = LazyExports(__name__, {
+    ".check": ("CheckReport", "check_rig"),
+    ".joint_logger": ("JointLogger",),
+    ".realsense_camera": ("CameraSettings", "RealSenseCamera"),
+    ".rig": ("HardwareRig", "WallClock", "open_rig"),
+    ".sdk": ("sdk_report",),
+    ".settings": ("HardwareSettings", "load_hardware_settings"),
+    ".z1_arm": ("ArmProbe", "MotionLimits", "Z1Arm", "Z1Connection", "probe_arm"),
+})
+__getattr__ = _lazy.attribute
+__dir__ = _lazy.names
 
 if TYPE_CHECKING:
     from darp.hardware.check import CheckReport, check_rig
@@ -36,17 +30,6 @@ if TYPE_CHECKING:
     from darp.hardware.sdk import sdk_report
     from darp.hardware.settings import HardwareSettings, load_hardware_settings
     from darp.hardware.z1_arm import ArmProbe, MotionLimits, Z1Arm, Z1Connection, probe_arm
-
-
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'darp.hardware' has no attribute {name!r}")
-    return getattr(importlib.import_module(module), name)
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_EXPORTS])
 
 
 __all__ = [

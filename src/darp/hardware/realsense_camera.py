@@ -149,8 +149,8 @@ class RealSenseCamera(CameraBackend):
         self._reader_error: BaseException | None = None
         self._recording_path: Path | None = None
         self._depth_intrinsics: Intrinsics | None = None
-        self._color_intrinsics: Intrinsics | None = None
-        self._T_depth_color: np.ndarray | None = None
+        self._colour_intrinsics: Intrinsics | None = None
+        self._T_color_depth: np.ndarray | None = None
         self.depth_scale: float | None = None
         self.device_info: dict[str, str] = {}
         self.imu_rates_hz: tuple[int, int] | None = None
@@ -244,15 +244,15 @@ class RealSenseCamera(CameraBackend):
         raw = np.asanyarray(depth.get_data())
         depth_m = raw.astype(np.float32) * np.float32(self.depth_scale)
         color = fs.get_color_frame()
-        color_bgr = np.array(np.asanyarray(color.get_data()), copy=True) if color else None
+        colour_bgr = np.array(np.asanyarray(color.get_data()), copy=True) if color else None
         extra: dict[str, object] = {"serial": self.serial, "frame_number": int(depth.get_frame_number()),
                                     "timestamp_domain": domain, "depth_scale": self.depth_scale}
         ir1 = fs.get_infrared_frame(1) if self.settings.infrared else None
         if ir1:
             extra["ir1"] = np.array(np.asanyarray(ir1.get_data()), copy=True)
         return LiveFrameSet(timestamp_s=stamp_ms / 1e3, depth_m=depth_m, depth_intrinsics=self.depth_intrinsics,
-                            color_bgr=color_bgr, color_intrinsics=self._color_intrinsics if color else None,
-                            T_depth_color=None if self._T_depth_color is None else self._T_depth_color.copy(),
+                            colour_bgr=colour_bgr, colour_intrinsics=self._colour_intrinsics if color else None,
+                            T_color_depth=None if self._T_color_depth is None else self._T_color_depth.copy(),
                             extra=extra)
 
     @property
@@ -359,9 +359,9 @@ class RealSenseCamera(CameraBackend):
             depth_p = profile.get_stream(rs.stream.depth).as_video_stream_profile()
             self._depth_intrinsics = _intrinsics(depth_p.get_intrinsics())
             if self.settings.color:
-                color_p = profile.get_stream(rs.stream.color).as_video_stream_profile()
-                self._color_intrinsics = _intrinsics(color_p.get_intrinsics())
-                self._T_depth_color = _transform(color_p.get_extrinsics_to(depth_p))
+                colour_p = profile.get_stream(rs.stream.color).as_video_stream_profile()
+                self._colour_intrinsics = _intrinsics(colour_p.get_intrinsics())
+                self._T_color_depth = _transform(depth_p.get_extrinsics_to(colour_p))
         except RuntimeError as err:
             raise HardwareError(f"{self._label()}: cannot configure the streaming device: {err}") from err
 

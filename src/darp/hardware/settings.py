@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from darp.errors import ConfigError
+from darp.formats.schema import refuse_unknown_keys
 from darp.formats.text import read_yaml_mapping
 from darp.hardware.joint_logger import DEFAULT_RATE_HZ
 from darp.hardware.realsense_camera import CameraSettings
@@ -55,9 +56,7 @@ def _default_connection(order: int) -> Z1Connection:
 
 
 def _typed(data: Mapping[str, Any], types: Mapping[str, type], where: str) -> dict[str, Any]:
-    unknown = sorted(map(str, set(data) - set(types)))
-    if unknown:
-        raise ConfigError(f"{where}: unknown field(s) {', '.join(unknown)} (expected {', '.join(types)})")
+    refuse_unknown_keys(data, types, where, error=ConfigError)
     out = {}
     for key, value in data.items():
         kind = types[key]
@@ -102,14 +101,16 @@ def hardware_settings_from_dict(section: Mapping[str, Any] | None, arm_ids: Sequ
             for i, arm_id in enumerate(arm_ids)}
     _check_ports(arms)
     motion_types = {f.name: float for f in fields(MotionLimits)}
+    motion_values = _typed(top.get("motion", {}), motion_types, f"{SECTION}.motion")
     try:
-        motion = MotionLimits(**_typed(top.get("motion", {}), motion_types, f"{SECTION}.motion"))
+        motion = MotionLimits(**motion_values)
     except ConfigError as err:
         raise ConfigError(err.message if err.message.startswith(SECTION) else f"{SECTION}.{err.message}") from None
     kinds: dict[str, type] = {"int": int, "bool": bool, "str": str, "float": float}
     camera_types = {f.name: kinds[str(f.type)] for f in fields(CameraSettings)}
+    camera_values = _typed(top.get("cameras", {}), camera_types, f"{SECTION}.cameras")
     try:
-        cameras = CameraSettings(**_typed(top.get("cameras", {}), camera_types, f"{SECTION}.cameras"))
+        cameras = CameraSettings(**camera_values)
     except ConfigError as err:
         raise ConfigError(err.message if err.message.startswith(SECTION) else f"{SECTION}.{err.message}") from None
     rate = top.get("joint_log_hz", DEFAULT_RATE_HZ)

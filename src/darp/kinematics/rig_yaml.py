@@ -16,6 +16,7 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.limits import ANGLE_ABS_MAX_DEG, JOINT_ABS_MAX_RAD, POSITION_ABS_MAX_M
+from darp.formats.schema import refuse_unknown_keys
 from darp.geometry.rigid import check_rigid
 from darp.kinematics.transforms import make_transform, rotation_to_rpy, rpy_to_rotation
 
@@ -55,10 +56,7 @@ class FieldReader:
 
     def only(self, *keys: str) -> None:
         """Refuse keys other than ``keys`` (a misspelt key would otherwise be ignored silently)."""
-        unknown = [str(k) for k in self.data if k not in keys]
-        if unknown:
-            where = f"{self.prefix}: " if self.prefix else ""
-            raise ConfigError(f"{where}unknown field(s) {', '.join(unknown)} (expected: {', '.join(keys)})")
+        refuse_unknown_keys(self.data, keys, self.prefix, error=ConfigError)
 
     def bounded(self, key: str, count: int, limit: float, unit: str) -> np.ndarray:
         """``count`` finite numbers with absolute values at most ``limit`` (docs/reliability.md)."""
@@ -96,10 +94,7 @@ class FieldReader:
                 raise ConfigError(f"{name}.matrix: expected 4 rows, got {len(rows)}")
             matrix = np.stack([_numbers(row, 4, f"{name}.matrix[{i}]") for i, row in enumerate(rows)])
             return check_rigid(matrix, name, error=ConfigError)
-        unknown = set(node.data) - {"xyz_m", "rpy_deg"}
-        if unknown:
-            raise ConfigError(f"{name}: unknown field(s) {', '.join(sorted(unknown))} "
-                              "(expected xyz_m, rpy_deg or matrix)")
+        refuse_unknown_keys(node.data, ("xyz_m", "rpy_deg", "matrix"), name, error=ConfigError)
         return pose_from_xyz_rpy(node.bounded("xyz_m", 3, POSITION_ABS_MAX_M, "m"),
                                  np.radians(node.bounded("rpy_deg", 3, ANGLE_ABS_MAX_DEG, "deg")))
 

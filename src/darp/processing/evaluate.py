@@ -28,6 +28,7 @@ from darp.evaluation.truth_metrics import (
     visible_in_frames,
 )
 from darp.formats.atomic import atomic_path
+from darp.formats.io_input import npz_input
 from darp.processing.job import FIGURES_DIR, FUSED_FILE, MESH_FILE, SurveyJob
 from darp.reconstruction.cloud_io import read_mesh_ply, read_ply
 from darp.reconstruction.keyframe_io import DEPTH_ONLY, iter_keyframes, posed_frames, read_keyframe_index
@@ -49,7 +50,7 @@ def load_distances(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         return {}
-    with np.load(path, allow_pickle=False) as data:
+    with npz_input(path, "a distances .npz") as data:
         return {name: data[name] for name in data.files}
 
 

@@ -37,6 +37,7 @@ from darp.errors import DarpWarning, FormatError, ReconstructionError
 from darp.evaluation.heldout import evaluate_heldout, heldout_mask
 from darp.evaluation.point_to_mesh import MeshDistance
 from darp.formats.atomic import write_json_atomic
+from darp.formats.io_input import decode_image
 from darp.formats.realsense.types import Intrinsics
 from darp.formats.schema import to_jsonable
 from darp.formats.trajectories import frame_key
@@ -115,12 +116,16 @@ def find_frames(folder: Path) -> tuple[dict[str, Path], dict[str, Path]]:
 
 
 def _read_depth(path: Path) -> np.ndarray:
-    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    d: np.ndarray | None = decode_image(path, cv2.IMREAD_UNCHANGED, "a depth image")
     if d is None:
         raise FormatError("cannot read the depth image", path)
     if d.dtype != np.uint16 or d.ndim != 2:
         raise FormatError(f"depth must be a 16-bit single-channel image, got {d.dtype} with shape {d.shape}", path)
     return d
+
+
+def _read_colour(path: Path) -> np.ndarray | None:
+    return decode_image(path, cv2.IMREAD_COLOR, "a colour image")
 
 
 def check_depth_scale(depth: np.ndarray, scale: float, path: Path) -> float:
@@ -220,7 +225,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     first = _read_depth(depth[keys[0]])
     h, w = first.shape
     if keys[0] in colour:
-        c = cv2.imread(str(colour[keys[0]]), cv2.IMREAD_COLOR)
+        c = _read_colour(colour[keys[0]])
         if c is None:
             raise FormatError("cannot read the colour image", colour[keys[0]])
         if c.shape[:2] != (h, w):
@@ -249,9 +254,11 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
             raise FormatError(f"depth is {d.shape[1]} x {d.shape[0]}, the first frame {w} x {h}", depth[k])
         rgb: np.ndarray = np.zeros((h, w, 3), np.uint8)
         if k in colour:
-            c = cv2.imread(str(colour[k]), cv2.IMREAD_COLOR)
-            if c is not None and c.shape[:2] == (h, w):
-                rgb = np.ascontiguousarray(c[:, :, ::-1])
+            c = _read_colour(colour[k])
+            if c is None or c.shape[:2] != (h, w):  # never a black image in place of a frame's colour
+                got = "not a readable image" if c is None else f"{c.shape[1]} x {c.shape[0]}, the depth {w} x {h}"
+                raise FormatError(f"colour image: {got}", colour[k])
+            rgb = np.ascontiguousarray(c[:, :, ::-1])
         t_s = spec.stamps.get(k, float(i))
         kf = Keyframe(arm=spec.arm, serial="imported", frame_number=int(_num(k)), timestamp_ms=t_s * 1e3,
                       t_s=t_s, split=HELDOUT if held[i] else FUSE, view=i, T_world_cam=spec.poses[k],

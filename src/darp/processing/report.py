@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import base64
 import html
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,9 +227,9 @@ def to_markdown(blocks: Sequence[Block]) -> str:
         elif b.kind == "raw_md":
             lines += [b.text.rstrip("\n"), ""]
         elif b.kind == "table":
-            lines.append("| " + " | ".join(b.headers) + " |")
+            lines.append("| " + " | ".join(map(md_cell, b.headers)) + " |")
             lines.append("|" + "|".join(["---"] + ["---:"] * (len(b.headers) - 1)) + "|")
-            lines += ["| " + " | ".join(row) + " |" for row in b.rows]
+            lines += ["| " + " | ".join(map(md_cell, row)) + " |" for row in b.rows]
             lines.append("")
         elif b.kind == "img":
             lines += [f"![{b.text}]({b.path})", "", f"*{b.text}*", ""]
@@ -242,8 +243,21 @@ def _inline(text: str) -> str:
     return escaped
 
 
+def md_cell(text: str) -> str:
+    """A Markdown table cell: ``|`` escaped (a survey named ``a|b`` stays one cell), line breaks as spaces."""
+    return " ".join(str(text).replace("|", "\\|").split("\n"))
+
+
+def _md_cells(line: str) -> list[str]:
+    """The cells of one Markdown table row (``\\|`` is a ``|`` inside a cell)."""
+    body = line.strip()
+    body = body[1:] if body.startswith("|") else body
+    body = body[:-1] if body.endswith("|") and not body.endswith("\\|") else body
+    return [c.replace("\\|", "|") for c in re.split(r"(?<!\\)\|", body)]
+
+
 def _md_table_to_html(text: str) -> str:
-    rows = [line.strip().strip("|").split("|") for line in text.strip().splitlines() if line.strip().startswith("|")]
+    rows = [_md_cells(line) for line in text.strip().splitlines() if line.strip().startswith("|")]
     rows = [r for r in rows if not all(set(c.strip()) <= set("-:") for c in r)]
     if not rows:
         return f"<pre>{html.escape(text)}</pre>"

@@ -63,10 +63,12 @@ from darp import paper
 from darp.errors import EvaluationError, FormatError
 from darp.evaluation.heldout import HeldoutResult, HeldoutSummary
 from darp.evaluation.point_to_mesh import distance_stats
-from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M
 from darp.evaluation.trust import envelope_coverage_pct, trust_signals
+from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M
 from darp.formats.atomic import write_json_atomic
+from darp.formats.io_input import LIMITS
 from darp.formats.schema import to_jsonable
+from darp.formats.text import read_utf8_text
 from darp.processing.diagnostics import plausibility_warnings
 from darp.processing.evaluate import EVALUATION_DIR, HELDOUT_DISTANCES, TRUTH_DISTANCES, load_distances
 from darp.processing.job import SurveyJob
@@ -146,7 +148,7 @@ def read_results(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     file = path / RESULTS_FILE if path.is_dir() else path
     try:
-        data = json.loads(file.read_text(encoding="utf-8"))
+        data = json.loads(read_utf8_text(file, "a JSON file", limit=LIMITS["json"]))
     except FileNotFoundError:
         raise FormatError(f"no {RESULTS_FILE} (run darp process first)", path) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as err:

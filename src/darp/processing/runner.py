@@ -24,14 +24,18 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import os
 import time
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, Protocol, TypeVar
 
-from darp.errors import DarpError, ProcessingError
+from darp.errors import DarpError, DarpWarning, FormatError, ProcessingError
 from darp.formats.atomic import UNFINISHED_FILE, atomic_path, write_json_atomic, write_text_atomic
+from darp.formats.io_input import marker_text
+from darp.formats.schema import load_json_object
 
 STAGES_FILE = "stages.json"
 
@@ -102,14 +106,20 @@ def stage_fingerprints(job: RunJob, stages: Sequence[Stage[Any]]) -> dict[str, s
     return out
 
 
-def read_stage_state(out: Path) -> dict[str, Any]:
-    """``stages.json`` of an output folder ({} when absent, unreadable or not of its shape: then nothing is
-    skipped)."""
-    try:
-        state = json.loads((out / STAGES_FILE).read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError):
+def read_stage_state(out: Path, *, strict: bool = False) -> dict[str, Any]:
+    """``stages.json`` of an output folder ({} when absent). A file that is unreadable or not of its shape is
+    {}: nothing is skipped; with ``strict`` (``--resume``, which trusts it) a DarpWarning names it and says so."""
+    path = out / STAGES_FILE
+    if not path.exists():
         return {}
-    if not isinstance(state, dict) or not isinstance(state.get("stages", {}), dict):
+    try:
+        state = load_json_object(path)
+        stages = state.get("stages", {})
+        if not isinstance(stages, dict) or not all(isinstance(v, dict) for v in stages.values()):
+            raise FormatError("'stages' must map each stage name to its record", path)
+    except FormatError as err:
+        if strict:
+            warnings.warn(DarpWarning(f"{err.message}: not trusted, every stage runs again", path), stacklevel=2)
         return {}
     return state
 
@@ -117,12 +127,9 @@ def read_stage_state(out: Path) -> dict[str, Any]:
 def unfinished_reason(out: str | Path) -> str | None:
     """The first line of ``UNFINISHED.txt`` in an output folder, or None when the run completed."""
     marker = Path(out) / UNFINISHED_FILE
-    if not marker.is_file():
+    if not marker.exists():
         return None
-    try:
-        text = marker.read_text(encoding="utf-8", errors="replace").strip()
-    except OSError:
-        return "unfinished (UNFINISHED.txt unreadable)"
+    text = marker_text(marker).strip()  # a marker that cannot be read (a pipe, a folder) still marks
     return text.splitlines()[0] if text else "unfinished"
 
 
@@ -142,7 +149,7 @@ def process_survey(job: J, stages: Sequence[Stage[J]], *, resume: bool = False) 
     """
     job.out.mkdir(parents=True, exist_ok=True)
     fingerprints = stage_fingerprints(job, stages)
-    state = read_stage_state(job.out) if resume else {}
+    state = read_stage_state(job.out, strict=True) if resume else {}
     stages_state: dict[str, Any] = dict(state.get("stages", {}))
     report: dict[str, Any] = {}
     _mark_unfinished(job.out, f"running: {', '.join(s.name for s in stages)}")
@@ -154,8 +161,25 @@ def process_survey(job: J, stages: Sequence[Stage[J]], *, resume: bool = False) 
     return report
 
 
-def _is_done(before: Any, fingerprint: str, outputs: Sequence[Path]) -> bool:
-    return isinstance(before, dict) and before.get("fingerprint") == fingerprint and all(o.exists() for o in outputs)
+def _is_done(before: Any, fingerprint: str, outputs: Sequence[Path], out: Path) -> bool:
+    """A stage is done when its fingerprint matches and every file it declared, and every file it wrote (its
+    record's ``files``: keyframe .npz files as well as keyframes.json), is still there."""
+    if not (isinstance(before, dict) and before.get("fingerprint") == fingerprint):
+        return False
+    written = before.get("files", [])
+    if not isinstance(written, list) or not all(isinstance(f, str) for f in written):
+        return False
+    return all(o.exists() for o in outputs) and all((out / f).is_file() for f in written)
+
+
+def _files(out: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``out`` (relative path -> size, mtime) but the runner's own."""
+    found = {}
+    for p in out.rglob("*"):
+        if p.is_file() and p.name not in (STAGES_FILE, UNFINISHED_FILE) and not p.name.endswith(".partial"):
+            st = p.stat()
+            found[p.relative_to(out).as_posix()] = (st.st_size, st.st_mtime_ns)
+    return found
 
 
 def _run_stages(job: J, stages: Sequence[Stage[J]], resume: bool, fingerprints: dict[str, str],
@@ -164,22 +188,29 @@ def _run_stages(job: J, stages: Sequence[Stage[J]], resume: bool, fingerprints: 
     for stage in stages:
         before = stages_state.get(stage.name, {})
         if resume and not rerun and _is_done(before, fingerprints[stage.name],
-                                             [job.out / o for o in stage.outputs_of(job)]):
+                                             [job.out / o for o in stage.outputs_of(job)], job.out):
             report[stage.name] = {"skipped": True, "seconds": before.get("seconds"), "summary": before.get("summary")}
             job.report(stage.name, 1, 1)
             continue
         rerun = True
         start = time.perf_counter()
+        existing = _files(job.out)
         _mark_unfinished(job.out, f"running: {stage.name}")
         try:
             summary = stage.run(job)
         except DarpError as err:
             _fail(job, stages, stage, stages_state, str(err), err.path)
+        except OSError as err:  # a full or read-only disk while the stage writes: this stage's failure, named
+            where = f"{os.fsdecode(err.filename)}: " if err.filename is not None else ""
+            _fail(job, stages, stage, stages_state, f"{where}{(err.strerror or str(err)).lower()}",
+                  None if err.filename is None else Path(os.fsdecode(err.filename)))
         except (ValueError, RuntimeError, ArithmeticError, IndexError, KeyError, MemoryError) as err:
             # a library failing inside a stage (Open3D, numpy, ...): still this survey's, named and contained
             _fail(job, stages, stage, stages_state, f"{type(err).__name__}: {err}".splitlines()[0], None)
         seconds = round(time.perf_counter() - start, 3)
-        stages_state[stage.name] = {"fingerprint": fingerprints[stage.name], "seconds": seconds, "summary": summary}
+        written = sorted(f for f, st in _files(job.out).items() if existing.get(f) != st)
+        stages_state[stage.name] = {"fingerprint": fingerprints[stage.name], "seconds": seconds, "summary": summary,
+                                    "files": written}
         for later in stages[stages.index(stage) + 1:]:
             stages_state.pop(later.name, None)  # stale once this stage changed
         write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state})
@@ -196,9 +227,10 @@ def _fail(job: J, stages: Sequence[Stage[J]], stage: Stage[J], stages_state: dic
             target = job.out / output
             if target.is_file():
                 target.unlink()
-    write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state,
-                                              "failed": {"stage": stage.name, "reason": reason}})
-    _mark_unfinished(job.out, f"failed: {stage.name}: {reason}")
+    with contextlib.suppress(OSError):  # on a full disk these may fail too: the marker of the run start stays
+        write_json_atomic(job.out / STAGES_FILE, {"survey": job.name, "stages": stages_state,
+                                                  "failed": {"stage": stage.name, "reason": reason}})
+        _mark_unfinished(job.out, f"failed: {stage.name}: {reason}")
     raise StageFailure(job.name, stage.name, reason, path)
 
 

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
-from darp.errors import ConfigError, DarpError
+from darp.errors import ConfigError
+from darp.formats.schema import dataclass_from_mapping, refuse_unknown_keys
 from darp.formats.text import read_yaml_mapping
 from darp.reconstruction.backproject import DepthFilterSettings
 from darp.reconstruction.fusion import FusionSettings
@@ -197,45 +198,27 @@ class ProcessSettings:
         return hashlib.sha256(json.dumps(chosen, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _build(cls: type, values: Any, where: str, nested: Mapping[str, type] | None = None) -> Any:
-    if values is None:
-        return cls()
-    if not isinstance(values, Mapping):
-        raise ConfigError(f"{where}: expected a mapping, got {type(values).__name__}")
-    known = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(map(str, set(values) - known))
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)} (known: {', '.join(sorted(known))})")
-    kwargs = dict(values)
-    for name, sub in (nested or {}).items():
-        if name in kwargs:
-            kwargs[name] = _build(sub, kwargs[name], f"{where}.{name}")
-    if cls is RefineSettings and "max_correspondence_m" in kwargs:
-        kwargs["max_correspondence_m"] = tuple(float(f) for f in kwargs["max_correspondence_m"])
-    if cls is MeshSettings and "radius_factors" in kwargs:
-        kwargs["radius_factors"] = tuple(float(f) for f in kwargs["radius_factors"])
-    try:
-        return cls(**kwargs)
-    except DarpError as err:
-        raise ConfigError(f"{where}: {err.message}") from None
-    except TypeError as err:
-        raise ConfigError(f"{where}: {err}") from None
+def _floats(values: Any) -> tuple[float, ...]:
+    return tuple(float(f) for f in values)
 
 
 def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
     """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
-    groups = {"keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement", "surface"}
-    unknown = sorted(map(str, set(values) - groups))
-    if unknown:
-        raise ConfigError(f"unknown settings group(s) {', '.join(unknown)} (groups: {', '.join(sorted(groups))})")
+    refuse_unknown_keys(values, ("keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement",
+                                 "surface"), error=ConfigError)
     return ProcessSettings(
-        keyframes=_build(KeyframeSettings, values.get("keyframes"), "keyframes"),
-        fusion=_build(FusionSettings, values.get("fusion"), "fusion", {"depth": DepthFilterSettings}),
-        mesh=_build(MeshSettings, values.get("mesh"), "mesh"),
-        evaluation=_build(EvaluationSettings, values.get("evaluation"), "evaluation"),
-        corrections=_build(CorrectionSettings, values.get("corrections"), "corrections"),
-        refinement=_build(RefineSettings, values.get("refinement"), "refinement"),
-        surface=_build(SurfaceSettings, values.get("surface"), "surface"),
+        keyframes=dataclass_from_mapping(KeyframeSettings, values.get("keyframes"), "keyframes", error=ConfigError),
+        fusion=dataclass_from_mapping(FusionSettings, values.get("fusion"), "fusion", nested={
+            "depth": DepthFilterSettings}, error=ConfigError),
+        mesh=dataclass_from_mapping(MeshSettings, values.get("mesh"), "mesh", convert={"radius_factors": _floats},
+                                    error=ConfigError),
+        evaluation=dataclass_from_mapping(EvaluationSettings, values.get("evaluation"), "evaluation",
+                                          error=ConfigError),
+        corrections=dataclass_from_mapping(CorrectionSettings, values.get("corrections"), "corrections",
+                                           error=ConfigError),
+        refinement=dataclass_from_mapping(RefineSettings, values.get("refinement"), "refinement",
+                                          convert={"max_correspondence_m": _floats}, error=ConfigError),
+        surface=dataclass_from_mapping(SurfaceSettings, values.get("surface"), "surface", error=ConfigError),
     )
 
 

@@ -74,7 +74,8 @@ def stage_keyframes(job: SurveyJob) -> dict[str, Any]:
     _clear_keyframes(folder, poses.trajectories)
     selections = {
         arm: select_survey_keyframes({arm: traj}, centre, job.settings.keyframes,
-                                     {arm: job.recording(arm).stream("depth").intrinsics})[arm]
+                                     {arm: job.recording(arm).stream("depth").intrinsics},
+                                     envelope.park_q_rad)[arm]
         for arm, traj in poses.trajectories.items()}
     total = sum(len(s) for s in selections.values())
     done = 0

@@ -17,6 +17,7 @@ import numpy as np
 
 from darp.errors import FormatError
 from darp.formats.atomic import atomic_open
+from darp.formats.io_input import LIMITS, read_input_bytes
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -228,10 +229,7 @@ def _read_ascii(data: bytes, offset: int, elements: list[_Element],
 def read_ply(path: str | Path) -> PlyData:
     """Read a PLY file's vertex properties and triangles; FormatError names what is wrong."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as err:
-        raise FormatError(f"cannot read: {err.strerror}", path) from None
+    data = read_input_bytes(path, "a PLY file", limit=LIMITS["cloud"])
     fmt, elements, comments, offset = _parse_header(data, path)
     if fmt == "ascii":
         vertex, triangles = _read_ascii(data, offset, elements, path)

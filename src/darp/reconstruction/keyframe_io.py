@@ -44,10 +44,12 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import FormatError, ReconstructionError
+from darp.errors import DecodeError, FormatError, ReconstructionError
 from darp.formats.atomic import atomic_open, write_json_atomic
+from darp.formats.io_input import LIMITS, npz_input
 from darp.formats.realsense.recording import Recording
 from darp.formats.realsense.types import FrameSet, Intrinsics
+from darp.formats.text import read_utf8_text
 from darp.reconstruction.align import align_colour_to_depth, colour_to_rgb
 from darp.reconstruction.backproject import DepthCorrectionModel, PosedDepth, correct_raw_depth, depth_to_metres
 from darp.reconstruction.crop import EnvelopeCrop, support_mask
@@ -199,9 +201,9 @@ def read_keyframe(path: str | Path, skip: Iterable[str] = ()) -> Keyframe:
     skipped = set(skip)
     unknown = skipped - set(SKIPPABLE)
     if unknown:
-        raise ValueError(f"cannot skip {', '.join(sorted(unknown))} (skippable: {', '.join(SKIPPABLE)})")
+        raise ReconstructionError(f"cannot skip {', '.join(sorted(unknown))} (skippable: {', '.join(SKIPPABLE)})")
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with npz_input(path, "a keyframe .npz") as data:
             missing = [name for name in KEYFRAME_ARRAYS if name not in data.files]
             if missing:
                 raise FormatError(f"not a darp keyframe: missing array(s) {', '.join(missing)}", path)
@@ -236,11 +238,11 @@ def write_keyframe_index(index: KeyframeIndex) -> Path:
 def read_keyframe_index(folder: str | Path) -> KeyframeIndex:
     """Read ``<folder>/keyframes.json`` (``folder`` may also be the file itself)."""
     folder = Path(folder)
-    path = folder if folder.is_file() else folder / INDEX_FILE
-    if not path.is_file():
+    path = folder if folder.exists() and not folder.is_dir() else folder / INDEX_FILE
+    if not path.exists():  # a pipe or a device is refused by the reading below, in its own words
         raise FormatError(f"no {INDEX_FILE} here (not a keyframes folder)", folder)
     try:
-        payload = json.loads(path.read_text(encoding="utf-8"))
+        payload = json.loads(read_utf8_text(path, "a JSON file", limit=LIMITS["json"]))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise FormatError(f"invalid JSON: {err}", path) from err
     if not isinstance(payload, dict) or payload.get("schema") != SCHEMA:
@@ -251,7 +253,7 @@ def read_keyframe_index(folder: str | Path) -> KeyframeIndex:
         try:
             T = np.array(entry["T_world_cam"], np.float64)
             if T.shape != (4, 4) or entry["split"] not in (FUSE, HELDOUT):
-                raise ValueError("bad pose or split")
+                raise DecodeError("bad pose or split")
             entries.append(KeyframeInfo(file=str(entry["file"]), arm=str(entry["arm"]), serial=str(entry["serial"]),
                                         frame_number=int(entry["frame_number"]),
                                         timestamp_ms=float(entry["timestamp_ms"]), t_s=float(entry["t_s"]),
@@ -389,7 +391,7 @@ def read_observation(path: str | Path) -> dict[str, np.ndarray]:
     """Arrays of an ``observations/<arm>.npz`` file."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        with npz_input(path, "an observation .npz") as data:
             return {name: data[name] for name in data.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
         raise FormatError(f"not a readable observation .npz: {err}", path) from err

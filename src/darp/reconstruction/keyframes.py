@@ -24,6 +24,14 @@ recovery (:func:`darp.reconstruction.poses.recover_survey_poses`) in four steps:
    frames is at least ``min_separation_deg`` from every keyframe of the views already taken. With
    ``max_views``, the most diverse of those views are kept (farthest-point sampling).
 
+Only the survey's own views: frames at the arm's **park pose** (every joint within
+``park_tolerance_rad`` of the envelope's ``park_q_rad``, when the survey records one) are never
+candidates, and a view more than ``max_view_distance_ratio`` times farther from the object centre
+than the arm's nearest view is dropped. A parked camera often still sees the object, from about twice
+the survey's standoff (0.77 m against 0.37 m on the twin): such keyframes had the worst depth
+agreement and the near-empty completion partials (issue 31), and the distance rule also catches a far
+dwell in a survey that records no park pose (the DARP release's envelopes do not).
+
 The viewing direction of a frame is the unit vector from the object centre to the camera centre
 (direction bins about the envelope centre). Without an envelope centre, the point closest to all
 settled optical axes (least squares) is used.
@@ -47,6 +55,7 @@ import numpy as np
 
 from darp.errors import ReconstructionError
 from darp.formats.realsense.types import Intrinsics
+from darp.formats.schema import dataclass_from_mapping
 
 FUSE, HELDOUT = "fuse", "heldout"
 HELDOUT_UNITS = ("keyframe", "view")
@@ -66,6 +75,8 @@ class KeyframeSettings:
     per_view: int = 3  # keyframes per view (dwell), spread evenly over its settled frames
     max_views: int | None = None  # per arm; None: every view that is far enough from the others
     view_margin_px: float = 0.0  # the object centre must project this far inside the image
+    max_view_distance_ratio: float | None = 2.0  # drop views this many times farther than the nearest (None: off)
+    park_tolerance_rad: float = 0.05  # a frame with every joint this close to the park pose is never a keyframe
     heldout_every: int = 5  # held-out split: every n-th keyframe per arm (20 %) ...
     heldout_offset: int = 2  # ... starting with this one
     heldout_unit: str = "keyframe"  # or "view": every n-th view held out whole (all its keyframes)
@@ -85,6 +96,11 @@ class KeyframeSettings:
             raise ReconstructionError(
                 f"held-out split needs heldout_every >= 2 and 0 <= heldout_offset < heldout_every, "
                 f"got {self.heldout_every}, {self.heldout_offset}")
+        if self.max_view_distance_ratio is not None and not self.max_view_distance_ratio >= 1:
+            raise ReconstructionError(
+                f"max_view_distance_ratio must be >= 1 or None, got {self.max_view_distance_ratio}")
+        if not self.park_tolerance_rad >= 0:
+            raise ReconstructionError(f"park_tolerance_rad must be >= 0, got {self.park_tolerance_rad}")
         if self.heldout_unit not in HELDOUT_UNITS:
             raise ReconstructionError(
                 f"heldout_unit must be one of {', '.join(HELDOUT_UNITS)}, got {self.heldout_unit!r}")
@@ -99,11 +115,7 @@ class KeyframeSettings:
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> KeyframeSettings:
-        unknown = sorted(set(values) - set(cls.__dataclass_fields__))
-        if unknown:
-            raise ReconstructionError(f"unknown keyframe setting(s) {', '.join(unknown)} "
-                                      f"(known: {', '.join(cls.__dataclass_fields__)})")
-        return cls(**values)
+        return dataclass_from_mapping(cls, values, "keyframes", error=ReconstructionError)
 
 
 @dataclass(frozen=True, eq=False)
@@ -243,12 +255,14 @@ def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 # -- selection ---------------------------------------------------------------------------------------
 def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joint_speed_rad_s: np.ndarray,
                          centre_m: np.ndarray | None, settings: KeyframeSettings | None = None,
-                         intrinsics: Intrinsics | None = None, speed_noise_rad_s: float = 0.0) -> ArmKeyframes:
+                         intrinsics: Intrinsics | None = None, speed_noise_rad_s: float = 0.0,
+                         q_rad: np.ndarray | None = None, park_q_rad: np.ndarray | None = None) -> ArmKeyframes:
     """Keyframes of one arm's frames (in time order): settled, in view, diverse, split (module docstring).
 
     ``centre_m`` is the object (envelope) centre, or None to use where the settled cameras look.
     Without ``intrinsics`` the in-view test is skipped. ``speed_noise_rad_s``: the joint log's measured
-    speed noise (:func:`joint_speed_noise`), which sets the stillness threshold.
+    speed noise (:func:`joint_speed_noise`), which sets the stillness threshold. ``q_rad`` (N, 6) and
+    ``park_q_rad`` (6,): each frame's joints and the arm's park pose; frames at park are never keyframes.
     """
     settings = settings or KeyframeSettings()
     threshold = settings.still_threshold(speed_noise_rad_s)
@@ -258,17 +272,19 @@ def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joi
         raise ReconstructionError(f"{arm}: poses must be (N, 4, 4), got {T.shape}")
     posed = np.all(np.isfinite(T.reshape(n, 16)), axis=1)
     settled = settled_mask(t_s, joint_speed_rad_s, settings, threshold) & posed
+    parked = at_park(q_rad, park_q_rad, settings.park_tolerance_rad, n)
     if centre_m is None:
         centre = look_at_point(T[settled]) if settled.sum() >= 2 else None
     else:
         centre = np.asarray(centre_m, np.float64).reshape(3)
-    counts = {"frames": n, "posed": int(posed.sum()), "settled": int(settled.sum())}
+    counts = {"frames": n, "posed": int(posed.sum()), "settled": int(settled.sum()),
+              "at_park": int((settled & parked).sum())}
     noise = {"still_threshold_rad_s": threshold, "speed_noise_rad_s": float(speed_noise_rad_s)}
     if centre is None:
         return _empty(arm, {**counts, "in_view": 0, "views_found": 0, "views": 0}, **noise)
     directions = np.zeros((n, 3))
     directions[posed] = viewing_directions(T[posed], centre)
-    candidate = settled & np.all(np.isfinite(directions), axis=1)
+    candidate = settled & ~parked & np.all(np.isfinite(directions), axis=1)
     if intrinsics is not None:
         candidate[posed] &= centre_in_view(T[posed], centre, intrinsics, settings.view_margin_px)
     counts["in_view"] = int(candidate.sum())
@@ -279,7 +295,11 @@ def select_arm_keyframes(arm: str, t_s: np.ndarray, T_world_cam: np.ndarray, joi
         return _empty(arm, {**counts, "views": 0}, **noise)
 
     members = [spread(np.flatnonzero(view_of == v), settings.per_view) for v in range(n_views)]
-    taken = _diverse_views(members, view_of, directions, T[:, :3, 3] - centre, settings)
+    offsets = T[:, :3, 3] - centre
+    distance = np.array([np.linalg.norm(offsets[m], axis=1).mean() for m in members])
+    near = _near_views(distance, settings.max_view_distance_ratio)
+    counts["far_views"] = int(n_views - near.sum())
+    taken = _diverse_views(members, view_of, directions, distance, near, settings)
     counts["views"] = len(taken)
     indices = np.sort(np.concatenate([members[v] for v in taken]))
     heldout = heldout_split(view_of[indices], settings)
@@ -304,14 +324,36 @@ def heldout_split(view_ids: np.ndarray, settings: KeyframeSettings) -> np.ndarra
     return held
 
 
+def at_park(q_rad: np.ndarray | None, park_q_rad: np.ndarray | None, tolerance_rad: float, n: int) -> np.ndarray:
+    """Boolean (N,): frames whose every joint is within ``tolerance_rad`` of the park pose (none without one)."""
+    if q_rad is None or park_q_rad is None:
+        return np.zeros(n, bool)
+    q = np.asarray(q_rad, np.float64).reshape(n, -1)
+    park = np.asarray(park_q_rad, np.float64).reshape(-1)
+    if q.shape[1] != park.size:
+        raise ReconstructionError(f"joints {q.shape} and park pose {park.shape} differ in length")
+    with np.errstate(invalid="ignore"):
+        parked: np.ndarray = np.all(np.abs(q - park) <= tolerance_rad, axis=1)
+    return parked
+
+
+def _near_views(distance: np.ndarray, ratio: float | None) -> np.ndarray:
+    """Boolean (V,): views at most ``ratio`` times as far from the object as the nearest (all with None)."""
+    if ratio is None or distance.size == 0:
+        return np.ones(distance.size, bool)
+    near: np.ndarray = distance <= ratio * float(distance.min()) + 1e-9
+    return near
+
+
 def _diverse_views(members: list[np.ndarray], view_of: np.ndarray, directions: np.ndarray,
-                   offsets: np.ndarray, settings: KeyframeSettings) -> list[int]:
-    """Views taken nearest first (then longest, then earliest) when far enough from those taken;
-    with ``max_views``, the most diverse of them by farthest-point sampling (the nearest view first)."""
+                   distance: np.ndarray, near: np.ndarray, settings: KeyframeSettings) -> list[int]:
+    """Views taken nearest first (then longest, then earliest) when ``near`` and far enough in direction
+    from those taken; with ``max_views``, the most diverse of them by farthest-point sampling (the nearest
+    view first)."""
     n_views = len(members)
-    distance = np.array([np.linalg.norm(offsets[m], axis=1).mean() for m in members])
     length = np.bincount(view_of[view_of >= 0], minlength=n_views)
-    order = sorted(range(n_views), key=lambda v: (round(float(distance[v]), 3), -int(length[v]), v))
+    order = sorted((v for v in range(n_views) if near[v]),
+                   key=lambda v: (round(float(distance[v]), 3), -int(length[v]), v))
     taken: list[int] = []
     chosen = np.empty((0, 3))
     for v in order:
@@ -337,21 +379,24 @@ def _empty(arm: str, counts: dict[str, int], still_threshold_rad_s: float = 0.02
 
 def select_survey_keyframes(trajectories: Mapping[str, Any], centre_m: np.ndarray | None,
                             settings: KeyframeSettings | None = None,
-                            intrinsics: Mapping[str, Intrinsics | None] | None = None) -> dict[str, ArmKeyframes]:
+                            intrinsics: Mapping[str, Intrinsics | None] | None = None,
+                            park_q_rad: Mapping[str, Any] | None = None) -> dict[str, ArmKeyframes]:
     """Keyframes of every arm of a pose recovery (``SurveyPoses.trajectories``: CameraTrajectory by arm).
 
     Frames are taken in timestamp order; ``intrinsics`` (depth stream, by arm) enable the in-view test
     (an arm without them, missing or None, gets none). A trajectory's ``speed_noise_rad_s`` (measured
     from the joint log by :func:`darp.reconstruction.poses.recover_survey_poses`) sets its arm's
-    stillness threshold.
+    stillness threshold. ``park_q_rad`` (by arm: the envelope's park poses) keeps keyframes off the park pose.
     """
     out: dict[str, ArmKeyframes] = {}
     for arm, traj in trajectories.items():
         order = np.argsort(traj.timestamps_ms, kind="stable")
         poses = traj.poses
+        park = None if park_q_rad is None else park_q_rad.get(arm)
         picked = select_arm_keyframes(
             arm, poses.t_s[order], poses.T_world_cam[order], poses.joint_speed_rad_s[order], centre_m, settings,
-            None if intrinsics is None else intrinsics.get(arm), float(getattr(traj, "speed_noise_rad_s", 0.0)))
+            None if intrinsics is None else intrinsics.get(arm), float(getattr(traj, "speed_noise_rad_s", 0.0)),
+            None if park is None else poses.q_rad[order], None if park is None else np.asarray(park, np.float64))
         out[arm] = ArmKeyframes(arm, order[picked.indices], picked.view_ids, picked.heldout, picked.directions,
                                 picked.counts, picked.still_threshold_rad_s, picked.speed_noise_rad_s)
     return out
@@ -362,6 +407,7 @@ __all__ = [
     "HELDOUT",
     "ArmKeyframes",
     "KeyframeSettings",
+    "at_park",
     "centre_in_view",
     "joint_speed_noise",
     "look_at_point",

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from darp.colours import arm_colour
 from darp.formats.atomic import atomic_path
 from darp.kinematics import z1
 from darp.kinematics.rig import Rig
@@ -23,15 +24,9 @@ from darp.kinematics.rig import Rig
 if TYPE_CHECKING:
     from darp.reconstruction.poses import SurveyPoses
 
-ARM_COLOURS = {"arm110": "tab:red", "arm111": "tab:blue"}
-FALLBACK_COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:orange")
 FRUSTUM_FOV_DEG = (69.0, 42.0)  # D435-class colour camera, horizontal x vertical
 FRUSTUM_DEPTH_M = 0.10
 AXIS_ARROW_M = 0.08
-
-
-def arm_colour(arm: str, index: int = 0) -> str:
-    return ARM_COLOURS.get(arm, FALLBACK_COLOURS[index % len(FALLBACK_COLOURS)])
 
 
 def _pyplot() -> Any:
@@ -254,5 +249,5 @@ def plot_trajectories(
     return _save(fig, out)
 
 
-__all__ = ["arm_colour", "box_lines", "capsule_lines", "frustum_lines", "plot_rig", "plot_trajectories",
+__all__ = ["box_lines", "capsule_lines", "frustum_lines", "plot_rig", "plot_trajectories",
            "primitive_lines"]

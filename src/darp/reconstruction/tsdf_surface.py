@@ -127,8 +127,10 @@ class MeasuredSurface:
 
     def _make_grid(self) -> Any:
         f32 = o3d.core.float32
-        return o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (f32, f32), (1, 1), self.voxel_size_m,
-                                             self.settings.block_resolution, 4096, o3d.core.Device("CPU:0"))
+        # open3d's stubs want SizeVectors for the channels; its binding takes plain ints (as its examples pass)
+        return o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight"), (f32, f32), (1, 1),  # type: ignore[arg-type]
+                                             self.voxel_size_m, self.settings.block_resolution, 4096,
+                                             o3d.core.Device("CPU:0"))
 
     def add(self, frame: PosedDepth) -> int:
         """Clean and integrate one frame; returns the pixels it kept. Colour is not fused (it doubles the cost
@@ -148,10 +150,11 @@ class MeasuredSurface:
         if self._grid is None:
             self._grid = self._make_grid()
         K = np.array([[it.fx, 0, it.ppx], [0, it.fy, it.ppy], [0, 0, 1]])
-        Kt = o3d.core.Tensor(K, o3d.core.float64)
         extrinsic = np.linalg.inv(frame.T_world_cam)
-        Et = o3d.core.Tensor(extrinsic, o3d.core.float64)
-        depth = o3d.t.geometry.Image(o3d.core.Tensor(z))
+        # open3d's stubs make Tensor's dtype and device required; they default to the array's and the CPU
+        Kt = o3d.core.Tensor.from_numpy(np.ascontiguousarray(K, np.float64))
+        Et = o3d.core.Tensor.from_numpy(np.ascontiguousarray(extrinsic, np.float64))
+        depth = o3d.t.geometry.Image(o3d.core.Tensor.from_numpy(np.ascontiguousarray(z)))
         mult = self.truncation_m / self.voxel_size_m
         blocks = self._grid.compute_unique_block_coordinates(depth, Kt, Et, 1.0, self.max_depth_m, mult)
         self._grid.integrate(blocks, depth, Kt, Et, 1.0, self.max_depth_m, mult)
@@ -191,7 +194,7 @@ class MeasuredSurface:
         tsdf = self._grid.attribute("tsdf").numpy().reshape(-1)
         weight = self._grid.attribute("weight").numpy().reshape(-1)
         near = (weight > 0) & (np.abs(tsdf) < 0.5)
-        return weight[near].astype(np.float32)
+        return np.asarray(weight[near], np.float32)
 
     def mesh(self) -> tuple[o3d.geometry.TriangleMesh, dict[str, Any]]:
         """The supported zero level as a mesh, and what was done (counts, thresholds)."""

@@ -204,6 +204,9 @@ def record_survey(
         _check_overwritable(out)
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
+        if not overwrite:  # whatever it holds (a user's files too), it is not this run's to delete
+            raise TwinError("an unfinished recording is there (remove it, or give --overwrite to replace it)",
+                            partial)
         if not (partial / PARTIAL_FILE).is_file():
             raise TwinError(f"exists but holds no {PARTIAL_FILE}: not an interrupted recording of darp's, refusing "
                             "to delete it", partial)

@@ -134,8 +134,8 @@ class TwinRig(RigBackend):
         try:
             for index, (arm_id, true_arm) in enumerate(self.true_rig.arms.items()):
                 unit = draw_unit(s.rng(f"unit:{true_arm.serial}")) if c.unit_variation else UnitCalibration()
-                spec = make_camera_spec(unit, serial=true_arm.serial, depth_resolution=size, color_resolution=size,
-                                        fps=c.fps, color_fps=c.fps, accel_hz=c.accel_hz, gyro_hz=c.gyro_hz)
+                spec = make_camera_spec(unit, serial=true_arm.serial, depth_resolution=size, colour_resolution=size,
+                                        fps=c.fps, colour_fps=c.fps, accel_hz=c.accel_hz, gyro_hz=c.gyro_hz)
                 seed = int(s.rng(f"camera:{true_arm.serial}").integers(2**31))
                 cam_settings, factory = camera_unit_errors(s, true_arm.serial, spec, base_cam_settings)
                 threads = max(1, available_cores() // len(self.true_rig.arms))

@@ -35,6 +35,8 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.limits import CAMERA_FPS_MAX, IMAGE_SIDE_MAX_PX, JOINT_LOG_RATE_MAX_HZ, TIME_MAX_S
+from darp.formats.schema import dataclass_from_mapping, refuse_unknown_keys
 from darp.formats.text import read_yaml_mapping
 
 SCHEMA = "darp-twin-settings/1"
@@ -93,6 +95,12 @@ class TimingSettings:
 
     def __post_init__(self) -> None:
         _check_pos(self, "timing", ("start_time_s", "joint_log_rate_hz"))
+        if self.start_time_s > TIME_MAX_S:  # past year 5100: a time in milliseconds, or a corrupt value
+            raise ConfigError(f"timing.start_time_s: at most {TIME_MAX_S:.0e} s (Unix seconds), "
+                              f"got {self.start_time_s!r}")
+        if self.joint_log_rate_hz > JOINT_LOG_RATE_MAX_HZ:  # a simulated logger faster than any arm's
+            raise ConfigError(f"timing.joint_log_rate_hz: at most {JOINT_LOG_RATE_MAX_HZ:.0f} Hz, "
+                              f"got {self.joint_log_rate_hz!r}")
         _check_nonneg(self, "timing", ("joint_log_jitter_ms", "camera_stagger_ms"))
         if not np.isfinite(self.camera_clock_offset_ms):
             raise ConfigError("timing.camera_clock_offset_ms: must be finite")
@@ -121,6 +129,10 @@ class CameraSettings:
 
     def __post_init__(self) -> None:
         _check_pos(self, "camera", ("width", "height", "fps", "accel_hz", "gyro_hz"))
+        for name, high in (("width", IMAGE_SIDE_MAX_PX), ("height", IMAGE_SIDE_MAX_PX), ("fps", CAMERA_FPS_MAX),
+                           ("accel_hz", JOINT_LOG_RATE_MAX_HZ), ("gyro_hz", JOINT_LOG_RATE_MAX_HZ)):
+            if getattr(self, name) > high:
+                raise ConfigError(f"camera.{name}: at most {high:g}, got {getattr(self, name)!r}")
         if self.depth_noise not in DEPTH_NOISE_PROFILES:
             raise ConfigError(f"camera.depth_noise: must be one of {', '.join(DEPTH_NOISE_PROFILES)}, "
                               f"got {self.depth_noise!r}")
@@ -388,22 +400,14 @@ class TwinSettings:
         profile = data.pop("profile", "realistic")
         seed = data.pop("seed", 0)
         base = cls.from_profile(str(profile), seed=seed) if isinstance(seed, int) else cls(seed=seed)
-        groups = {f.name: f.type for f in dataclasses.fields(cls) if f.name not in ("profile", "seed")}
+        groups = [f.name for f in dataclasses.fields(cls) if f.name not in ("profile", "seed")]
+        refuse_unknown_keys(data, groups, error=ConfigError)
         changes: dict[str, Any] = {}
         for key, value in data.items():
-            if key not in groups:
-                raise ConfigError(f"unknown settings group {key!r} (groups: {', '.join(groups)})")
-            if not isinstance(value, dict):
-                raise ConfigError(f"{key}: expected a mapping of settings")
+            if value is None:
+                raise ConfigError(f"{key}: expected a mapping of settings, got nothing")
             current = getattr(base, key)
-            names = {f.name for f in dataclasses.fields(current)}
-            unknown = sorted(map(str, set(value) - names))
-            if unknown:
-                raise ConfigError(f"{key}: unknown setting(s) {', '.join(unknown)} (known: {', '.join(sorted(names))})")
-            try:
-                changes[key] = dataclasses.replace(current, **value)
-            except TypeError as err:
-                raise ConfigError(f"{key}: {err}") from None
+            changes[key] = dataclass_from_mapping(type(current), value, key, base=current, error=ConfigError)
         return dataclasses.replace(base, **changes)
 
     @classmethod

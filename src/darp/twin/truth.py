@@ -38,6 +38,8 @@ import numpy as np
 from darp.errors import FormatError
 from darp.formats.atomic import atomic_path, write_json_atomic, write_text_atomic
 from darp.formats.calibration import ArmCalibration, Calibration, read_calibration, write_calibration
+from darp.formats.io_input import LIMITS
+from darp.formats.text import read_utf8_text
 from darp.formats.truth import (
     CALIBRATION_FILE,
     OBJECT_JSON_FILE,
@@ -250,7 +252,7 @@ def read_truth(survey_folder: str | Path) -> SurveyTruth:
     object_info = None
     if (truth / OBJECT_JSON_FILE).is_file():
         try:
-            object_info = json.loads((truth / OBJECT_JSON_FILE).read_text(encoding="utf-8"))
+            object_info = json.loads(read_utf8_text(truth / OBJECT_JSON_FILE, "a JSON file", limit=LIMITS["json"]))
         except (json.JSONDecodeError, UnicodeDecodeError) as err:
             raise FormatError(f"invalid JSON: {err}", truth / OBJECT_JSON_FILE) from err
     mesh = truth / OBJECT_MESH_FILE

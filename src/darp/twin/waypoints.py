@@ -35,7 +35,9 @@ import yaml
 
 from darp.errors import ConfigError
 from darp.formats.atomic import write_text_atomic
+from darp.formats.io_input import LIMITS
 from darp.formats.limits import DWELL_MAX_S
+from darp.formats.schema import refuse_unknown_keys
 from darp.formats.text import load_yaml, read_utf8_text
 from darp.kinematics import z1
 
@@ -106,9 +108,7 @@ def _waypoint(entry: Any, where: str, dwell: float, speed: float | None) -> Wayp
     keys = [k for k in ("q_rad", "q_deg", "named") if k in entry]
     if len(keys) != 1:
         raise ConfigError(f"{where}: give exactly one of q_rad, q_deg, named")
-    unknown = sorted(str(k) for k in set(entry) - {"q_rad", "q_deg", "named", "dwell_s", "speed_rad_s"})
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}")
+    refuse_unknown_keys(entry, ("q_rad", "q_deg", "named", "dwell_s", "speed_rad_s"), where, error=ConfigError)
     if keys[0] == "named":
         name = entry["named"]
         if name not in z1.NAMED_CONFIGS:
@@ -127,9 +127,7 @@ def plan_from_dict(data: dict[str, Any]) -> WaypointPlan:
     schema = data.get("schema", SCHEMA)
     if schema != SCHEMA:
         raise ConfigError(f"schema: expected {SCHEMA!r}, got {schema!r}")
-    unknown = sorted(str(k) for k in set(data) - {"schema", "speed_rad_s", "dwell_s", "order", "arms"})
-    if unknown:
-        raise ConfigError(f"unknown key(s) {', '.join(unknown)} (keys: schema, speed_rad_s, dwell_s, order, arms)")
+    refuse_unknown_keys(data, ("schema", "speed_rad_s", "dwell_s", "order", "arms"), error=ConfigError)
     dwell = _positive(data["dwell_s"], "dwell_s", True) if "dwell_s" in data else DEFAULT_DWELL_S
     speed = _positive(data["speed_rad_s"], "speed_rad_s", False) if "speed_rad_s" in data else None
     arms_data = data.get("arms")
@@ -179,7 +177,7 @@ def _plan_from_csv(text: str) -> WaypointPlan:
 def load_waypoints(path: str | Path, arm_ids: Sequence[str] | None = None) -> WaypointPlan:
     """Read a YAML (``.yaml``/``.yml``) or CSV (``.csv``) waypoints file; errors name the file."""
     path = Path(path)
-    text = read_utf8_text(path, "a waypoints file", ConfigError)
+    text = read_utf8_text(path, "a waypoints file", ConfigError, limit=LIMITS["yaml"])
     try:
         if path.suffix.lower() == ".csv":
             plan = _plan_from_csv(text)

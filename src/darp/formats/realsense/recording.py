@@ -130,9 +130,9 @@ class Recording(ABC):
         present = [key for key in IMAGE_STREAMS if key in self.streams]
         if "depth" not in present:
             raise RecordingError("no depth stream to group frame sets on", self.path)
-        color_stamps = self.timestamps_ms("color") if "color" in present else np.empty(0)
-        color_order = np.argsort(color_stamps, kind="stable")
-        color_sorted = color_stamps[color_order]
+        colour_stamps = self.timestamps_ms("color") if "color" in present else np.empty(0)
+        colour_order = np.argsort(colour_stamps, kind="stable")
+        colour_sorted = colour_stamps[colour_order]
         ir_keys = [k for k in ("ir1", "ir2") if k in present]
         buffers: dict[str, deque[Frame]] = {k: deque(maxlen=_FRAMESET_BUFFER) for k in ir_keys}
         waiting: deque[Frame] = deque()
@@ -143,11 +143,11 @@ class Recording(ABC):
         def emit(depth: Frame) -> FrameSet:
             ir = {k: (_match(buffers[k], depth.info) if k in buffers else None) for k in ("ir1", "ir2")}
             color = None
-            if color_sorted.size:
-                pos = int(np.searchsorted(color_sorted, depth.info.timestamp_ms))
-                cands = [c for c in (pos - 1, pos) if 0 <= c < color_sorted.size]
-                best = min(cands, key=lambda c: abs(color_sorted[c] - depth.info.timestamp_ms))
-                color = self.read_frame("color", int(color_order[best]))
+            if colour_sorted.size:
+                pos = int(np.searchsorted(colour_sorted, depth.info.timestamp_ms))
+                cands = [c for c in (pos - 1, pos) if 0 <= c < colour_sorted.size]
+                best = min(cands, key=lambda c: abs(colour_sorted[c] - depth.info.timestamp_ms))
+                color = self.read_frame("color", int(colour_order[best]))
             return FrameSet(depth=depth, ir1=ir["ir1"], ir2=ir["ir2"], color=color)
 
         # IR frames may be stored before or after their depth frame: hold a few depth frames back

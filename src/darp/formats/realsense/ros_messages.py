@@ -20,6 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from darp.errors import DecodeError
+
 _SEP = "=" * 80 + "\n"
 _HEADER_DEF = "MSG: std_msgs/Header\nuint32 seq\ntime stamp\nstring frame_id\n"
 _VECTOR3_DEF = "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
@@ -140,7 +142,7 @@ def encode_stream_info(fps: int, encoding: str, is_recommended: bool = True) -> 
 
 def encode_imu_intrinsic(data: tuple[float, ...], noise: tuple[float, ...], bias: tuple[float, ...]) -> bytes:
     if len(data) != 12 or len(noise) != 3 or len(bias) != 3:
-        raise ValueError("IMU intrinsics need 12 data values and 3 noise and 3 bias variances")
+        raise DecodeError("IMU intrinsics need 12 data values and 3 noise and 3 bias variances")
     return struct.pack("<18f", *data, *noise, *bias)
 
 
@@ -192,7 +194,7 @@ def _read_string(buf: bytes | memoryview, pos: int) -> tuple[str, int]:
     (length,) = _LENGTH.unpack_from(buf, pos)
     end = pos + 4 + length
     if end > len(buf):
-        raise ValueError(f"string of {length} bytes runs past its buffer")
+        raise DecodeError(f"string of {length} bytes runs past its buffer")
     return str(buf[pos + 4:end], "utf-8", "replace"), end
 
 
@@ -275,7 +277,7 @@ def decode_image_head(buf: bytes | memoryview, pos: int, end: int) -> ImageHead:
     data_start = pos + 9
     tail = end - (data_start + data_len)
     if tail < 0:
-        raise ValueError(f"image data ({data_len} bytes) runs past the end of its message")
+        raise DecodeError(f"image data ({data_len} bytes) runs past the end of its message")
     depth_units = struct.unpack_from("<f", buf, data_start + data_len)[0] if tail >= 4 else 0.0
     return ImageHead(seq, ms_from_stamp(sec, nsec), height, width, encoding, bool(bigendian), step,
                      data_start, data_len, depth_units)
@@ -298,7 +300,7 @@ def image_pixels(buf: bytes | memoryview, head: ImageHead) -> np.ndarray:
     dtype_name, channels = IMAGE_ENCODINGS.get(head.encoding, ("u1", 0))
     dtype = np.dtype(dtype_name).newbyteorder(">" if head.is_bigendian else "<")
     if head.step * head.height > head.data_len:
-        raise ValueError(f"image data has {head.data_len} bytes, {head.height} rows of {head.step} need more")
+        raise DecodeError(f"image data has {head.data_len} bytes, {head.height} rows of {head.step} need more")
     if channels == 0:
         return np.frombuffer(buf, np.uint8, head.step * head.height, head.data_start).reshape(head.height, head.step)
     row_bytes = head.width * channels * dtype.itemsize
@@ -306,7 +308,7 @@ def image_pixels(buf: bytes | memoryview, head: ImageHead) -> np.ndarray:
     if head.step == row_bytes:
         return np.frombuffer(buf, dtype, head.height * head.width * channels, head.data_start).reshape(shape)
     if head.step < row_bytes:
-        raise ValueError(f"image step {head.step} is shorter than a row of {row_bytes} bytes")
+        raise DecodeError(f"image step {head.step} is shorter than a row of {row_bytes} bytes")
     rows = np.frombuffer(buf, np.uint8, head.step * head.height, head.data_start).reshape(head.height, head.step)
     return rows[:, :row_bytes].view(dtype).reshape(shape)
 
@@ -356,7 +358,7 @@ def quaternion_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
     """3x3 rotation of a quaternion (x, y, z, w); insensitive to the overall sign and to scale."""
     norm = math.sqrt(x * x + y * y + z * z + w * w)
     if norm == 0.0:
-        raise ValueError("zero quaternion")
+        raise DecodeError("zero quaternion")
     x, y, z, w = x / norm, y / norm, z / norm, w / norm
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],

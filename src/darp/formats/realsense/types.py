@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from darp.errors import DecodeError
+
 # darp's short stream keys and the librealsense stream they stand for: (stream type, stream index).
 STREAM_KEYS: dict[str, tuple[str, int]] = {
     "depth": ("Depth", 0),
@@ -136,7 +138,7 @@ class FrameSet:
         for frame in (self.depth, self.ir1, self.ir2, self.color):
             if frame is not None:
                 return frame.info.timestamp_ms
-        raise ValueError("empty frame set")
+        raise DecodeError("empty frame set")
 
 
 @dataclass(frozen=True)

@@ -303,9 +303,9 @@ class TwinCameraBackend(CameraBackend):
             timestamp_s=stamp_ms / 1e3,
             depth_m=depth_m,
             depth_intrinsics=self.factory_spec.depth,
-            color_bgr=frames["color"],
-            color_intrinsics=self.factory_spec.color,
-            T_depth_color=self.spec.T_depth_stream("color"),
+            colour_bgr=frames["color"],
+            colour_intrinsics=self.factory_spec.color,
+            T_color_depth=self.spec.T_color_depth,
             extra={"ir1": frames["ir1"], "ir2": frames["ir2"], "frame_number": n},
         )
 

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from darp.errors import TwinError
+from darp.formats.limits import IMAGE_SIDE_MAX_PX
 from darp.formats.realsense.types import Intrinsics
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -162,9 +163,14 @@ class SceneRenderer:
         # The offscreen buffer is sized from the model; grow it (a visual-only setting) if too small.
         model.vis.global_.offwidth = max(model.vis.global_.offwidth, self.max_width)
         model.vis.global_.offheight = max(model.vis.global_.offheight, self.max_height)
+        if max(self.max_width, self.max_height) > IMAGE_SIDE_MAX_PX:
+            raise TwinError(f"{self.max_width}x{self.max_height} images are too large to render (at most "
+                            f"{IMAGE_SIDE_MAX_PX} px a side)")
+        context_made = False
         try:
             self._gl = _gl_context_class()(self.max_width, self.max_height)
             self._gl.make_current()
+            context_made = True
             quality = model.vis.quality
             saved = (quality.offsamples, quality.numslices, quality.numstacks)
             quality.offsamples = 0  # no MSAA in this context (see module docstring)
@@ -181,6 +187,9 @@ class SceneRenderer:
             raise
         except Exception as err:  # EGL/OSMesa failures surface as assorted exception types
             self.close()
+            if context_made:  # OpenGL works; its buffers for this image size could not be made
+                raise TwinError(f"cannot allocate offscreen buffers for {self.max_width}x{self.max_height} images "
+                                f"({type(err).__name__}: {err})") from err
             raise TwinError(
                 f"cannot create an offscreen OpenGL context ({type(err).__name__}: {err}); "
                 "install libegl1/libosmesa6 or set MUJOCO_GL"

@@ -163,7 +163,7 @@ class TwinCameraSettings:
     ir: IrSettings = field(default_factory=IrSettings)
     depth_mode: str = "model"  # "model": parametric D4 model; "sgbm": OpenCV SGBM on the IR pair
     stereo: StereoSettings = field(default_factory=StereoSettings)
-    color_noise_dn: float = 1.0  # Gaussian colour sensor noise, 8-bit digital numbers
+    colour_noise_dn: float = 1.0  # Gaussian colour sensor noise, 8-bit digital numbers
     render_ir: bool = True  # False skips both IR images (and the right view unless occlusion needs it)
     segmentation: bool = True  # truth geom ids; when off, dropout geoms get ids only around their image
     imu: ImuSettings = field(default_factory=ImuSettings)
@@ -176,8 +176,8 @@ class TwinCameraSettings:
             raise ConfigError(f"unknown depth mode {self.depth_mode!r} (modes: {', '.join(DEPTH_MODES)})")
         if self.depth_mode == "sgbm" and not self.render_ir:
             raise ConfigError("depth mode 'sgbm' needs the IR images (render_ir=True)")
-        if self.color_noise_dn < 0:
-            raise ConfigError(f"color_noise_dn must be >= 0, got {self.color_noise_dn}")
+        if self.colour_noise_dn < 0:
+            raise ConfigError(f"colour_noise_dn must be >= 0, got {self.colour_noise_dn}")
 
     @classmethod
     def from_profile(cls, profile: str, **overrides: Any) -> TwinCameraSettings:
@@ -187,7 +187,7 @@ class TwinCameraSettings:
                 "profile": "ideal",
                 "depth": DepthNoiseSettings.ideal(),
                 "ir": IrSettings.ideal(),
-                "color_noise_dn": 0.0,
+                "colour_noise_dn": 0.0,
                 "imu": ImuSettings.ideal(),
             }
         elif profile == "realistic":
@@ -265,14 +265,14 @@ class TwinCamera:
             self.settings.ir, spec.depth, spec.baseline_m, spec.projector_x_m, seed=[self.seed, 2]
         )
         c = spec.color
-        self._color_noise = (
+        self._colour_noise = (
             NoiseBank(
                 (c.height, c.width, 3),
                 np.random.default_rng([self.seed, 3]),
-                scale=self.settings.color_noise_dn,
+                scale=self.settings.colour_noise_dn,
                 dtype=np.int16,
             )
-            if self.settings.color_noise_dn > 0
+            if self.settings.colour_noise_dn > 0
             else None
         )
         self._stereo = (
@@ -330,7 +330,7 @@ class TwinCamera:
         t0 = cpu()
         r = self.renderer
         r.update_scene(data)
-        color_rgb = r.render_view(T_world_color, self.spec.color, depth=False).rgb
+        colour_rgb = r.render_view(T_world_color, self.spec.color, depth=False).rgb
         need_seg = s.segmentation or self._dropout_lookup is not None
         geom_id = None  # full-image ids (segmentation on)
         dropout_ids = None  # ids around the dropout geoms only (segmentation off)
@@ -352,7 +352,7 @@ class TwinCamera:
             left = r.render_view(T_world_depth, self.spec.depth, rgb=False)
         need_right = s.render_ir or (s.depth.occlusion and s.depth_mode == "model")
         right = r.render_view(T_world_ir2, self.spec.depth, rgb=s.render_ir) if need_right else None
-        assert color_rgb is not None and left.depth_m is not None
+        assert colour_rgb is not None and left.depth_m is not None
         t1 = cpu()
         stage["render"] += t1 - t0
 
@@ -390,18 +390,18 @@ class TwinCamera:
         t3 = cpu()
         stage["depth_noise"] += t3 - t2
 
-        color_bgr = cv2.cvtColor(color_rgb, cv2.COLOR_RGB2BGR)
-        if self._color_noise is not None:  # integer noise, saturating add
-            color_bgr = cv2.add(color_bgr, self._color_noise.draw(rng), dtype=cv2.CV_8U)
+        colour_bgr = cv2.cvtColor(colour_rgb, cv2.COLOR_RGB2BGR)
+        if self._colour_noise is not None:  # integer noise, saturating add
+            colour_bgr = cv2.add(colour_bgr, self._colour_noise.draw(rng), dtype=cv2.CV_8U)
         if s.errors is not None:
-            color_bgr = s.errors.photograph(color_bgr, rng, motion_px)
+            colour_bgr = s.errors.photograph(colour_bgr, rng, motion_px)
         t4 = cpu()
         stage["colour"] += t4 - t3
         depth_z16 = depth_to_z16(depth_m, self.spec.depth_unit_m)
         stage["z16"] += cpu() - t4
 
         return {
-            "color": color_bgr,
+            "color": colour_bgr,
             "depth": depth_z16,
             "ir1": ir1,
             "ir2": ir2,

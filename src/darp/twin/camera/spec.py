@@ -30,9 +30,9 @@ from darp.geometry.transforms import skew
 from darp.kinematics.transforms import compose, invert_transform
 
 DEPTH_FULL_SENSOR = (1280, 800)
-COLOR_FULL_SENSOR = (1920, 1080)
+COLOUR_FULL_SENSOR = (1920, 1080)
 DEPTH_RESOLUTIONS = ((1280, 720), (848, 480), (640, 480), (640, 360), (480, 270), (424, 240))
-COLOR_RESOLUTIONS = (
+COLOUR_RESOLUTIONS = (
     (1920, 1080),
     (1280, 720),
     (960, 540),
@@ -44,7 +44,7 @@ COLOR_RESOLUTIONS = (
     (320, 180),
 )
 DEPTH_FPS = (6, 15, 30, 60, 90)
-COLOR_FPS = (6, 15, 30, 60)
+COLOUR_FPS = (6, 15, 30, 60)
 ACCEL_HZ = (63, 100, 200, 250)
 GYRO_HZ = (200, 400)
 REFERENCE_RESOLUTION = (640, 480)
@@ -60,10 +60,10 @@ class UnitCalibration:
     depth_fy: float = 383.5
     depth_ppx: float = 320.5
     depth_ppy: float = 241.0
-    color_fx: float = 610.5
-    color_fy: float = 609.5
-    color_ppx: float = 318.5
-    color_ppy: float = 242.5
+    colour_fx: float = 610.5
+    colour_fy: float = 609.5
+    colour_ppx: float = 318.5
+    colour_ppy: float = 242.5
     baseline_m: float = 0.050
     t_color_depth_m: tuple[float, float, float] = (0.015, 0.0, 0.0004)
     rotvec_color_depth_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -83,10 +83,10 @@ def draw_unit(rng: np.random.Generator | int) -> UnitCalibration:
         depth_fy=float(np.clip(fx + g.uniform(-0.5, 0.5), 382.0, 385.0)),
         depth_ppx=g.uniform(319.0, 322.0),
         depth_ppy=g.uniform(236.0, 246.0),
-        color_fx=g.uniform(606.0, 615.0),
-        color_fy=g.uniform(606.0, 613.0),
-        color_ppx=g.uniform(314.0, 323.0),
-        color_ppy=g.uniform(237.0, 248.0),
+        colour_fx=g.uniform(606.0, 615.0),
+        colour_fy=g.uniform(606.0, 613.0),
+        colour_ppx=g.uniform(314.0, 323.0),
+        colour_ppy=g.uniform(237.0, 248.0),
         baseline_m=g.uniform(0.0497, 0.0503),
         t_color_depth_m=(g.uniform(0.0145, 0.0153), g.uniform(-0.0002, 0.0002), g.uniform(0.0, 0.0008)),
         rotvec_color_depth_rad=(rx, ry, rz),
@@ -134,7 +134,7 @@ class CameraSpec:
     T_color_depth: np.ndarray = field(repr=False)  # librealsense extrinsic depth -> colour
     projector_x_m: float = 0.025
     fps: int = 30
-    color_fps: int = 30
+    colour_fps: int = 30
     accel_hz: int = 250
     gyro_hz: int = 200
     depth_unit_m: float = DEPTH_UNIT_M
@@ -178,7 +178,7 @@ class CameraSpec:
             "depth": StreamProfile("depth", "Depth", 0, 0, "z16", self.fps, d.width, d.height, d),
             "ir1": StreamProfile("ir1", "Infrared", 1, 0, "y8", self.fps, d.width, d.height, d),
             "ir2": StreamProfile("ir2", "Infrared", 2, 0, "y8", self.fps, d.width, d.height, d),
-            "color": StreamProfile("color", "Color", 0, 1, "bgr8", self.color_fps, c.width, c.height, c),
+            "color": StreamProfile("color", "Color", 0, 1, "bgr8", self.colour_fps, c.width, c.height, c),
             "accel": StreamProfile(
                 "accel", "Accel", 0, 2, "motion_xyz32f", self.accel_hz, motion_intrinsics=identity_imu
             ),
@@ -201,19 +201,19 @@ def make_camera_spec(
     *,
     serial: str = "000000000000",
     depth_resolution: tuple[int, int] = REFERENCE_RESOLUTION,
-    color_resolution: tuple[int, int] = REFERENCE_RESOLUTION,
+    colour_resolution: tuple[int, int] = REFERENCE_RESOLUTION,
     fps: int = 30,
-    color_fps: int = 30,
+    colour_fps: int = 30,
     accel_hz: int = 250,
     gyro_hz: int = 200,
 ) -> CameraSpec:
     """Build a camera's streams at the requested modes from a unit calibration (nominal if ``None``)."""
     unit = unit if unit is not None else UnitCalibration()
     depth_size = _mode(depth_resolution, DEPTH_RESOLUTIONS, "depth")
-    color_size = _mode(color_resolution, COLOR_RESOLUTIONS, "colour")
-    if fps not in DEPTH_FPS or color_fps not in COLOR_FPS:
+    colour_size = _mode(colour_resolution, COLOUR_RESOLUTIONS, "colour")
+    if fps not in DEPTH_FPS or colour_fps not in COLOUR_FPS:
         raise ConfigError(
-            f"frame rates must be in {DEPTH_FPS} (depth) and {COLOR_FPS} (colour), got {fps} and {color_fps}"
+            f"frame rates must be in {DEPTH_FPS} (depth) and {COLOUR_FPS} (colour), got {fps} and {colour_fps}"
         )
     if accel_hz not in ACCEL_HZ or gyro_hz not in GYRO_HZ:
         raise ConfigError(
@@ -223,8 +223,8 @@ def make_camera_spec(
     depth_ref = Intrinsics(
         w_ref, h_ref, unit.depth_fx, unit.depth_fy, unit.depth_ppx, unit.depth_ppy, "Brown Conrady"
     )
-    color_ref = Intrinsics(
-        w_ref, h_ref, unit.color_fx, unit.color_fy, unit.color_ppx, unit.color_ppy, "Inverse Brown Conrady"
+    colour_ref = Intrinsics(
+        w_ref, h_ref, unit.colour_fx, unit.colour_fy, unit.colour_ppx, unit.colour_ppy, "Inverse Brown Conrady"
     )
     T_color_depth = np.eye(4)
     T_color_depth[:3, :3] = _rotvec_to_matrix(unit.rotvec_color_depth_rad)
@@ -232,27 +232,27 @@ def make_camera_spec(
     return CameraSpec(
         serial=serial,
         depth=scale_intrinsics(depth_ref, DEPTH_FULL_SENSOR, depth_size),
-        color=scale_intrinsics(color_ref, COLOR_FULL_SENSOR, color_size),
+        color=scale_intrinsics(colour_ref, COLOUR_FULL_SENSOR, colour_size),
         baseline_m=unit.baseline_m,
         T_color_depth=T_color_depth,
         projector_x_m=unit.projector_x_m,
         fps=fps,
-        color_fps=color_fps,
+        colour_fps=colour_fps,
         accel_hz=accel_hz,
         gyro_hz=gyro_hz,
     )
 
 
 def with_resolution(
-    spec: CameraSpec, depth_resolution: tuple[int, int], color_resolution: tuple[int, int] | None = None
+    spec: CameraSpec, depth_resolution: tuple[int, int], colour_resolution: tuple[int, int] | None = None
 ) -> CameraSpec:
-    """The same unit at other stream modes (colour unchanged when ``color_resolution`` is None)."""
+    """The same unit at other stream modes (colour unchanged when ``colour_resolution`` is None)."""
     depth = scale_intrinsics(
         spec.depth, DEPTH_FULL_SENSOR, _mode(depth_resolution, DEPTH_RESOLUTIONS, "depth")
     )
     color = spec.color
-    if color_resolution is not None:
+    if colour_resolution is not None:
         color = scale_intrinsics(
-            spec.color, COLOR_FULL_SENSOR, _mode(color_resolution, COLOR_RESOLUTIONS, "colour")
+            spec.color, COLOUR_FULL_SENSOR, _mode(colour_resolution, COLOUR_RESOLUTIONS, "colour")
         )
     return replace(spec, depth=depth, color=color)

@@ -18,6 +18,7 @@ import trimesh
 from numpy.typing import ArrayLike
 from PIL import Image
 
+from darp.errors import TwinError
 from darp.kinematics.transforms import compose, matvec
 from darp.twin.objects import textures as tex
 from darp.twin.objects.geometry import (
@@ -64,7 +65,7 @@ def make_part(name: str, piece: Piece, rgba: RGBA | None = None, texture: np.nda
     """Wrap a piece as a part; textured parts keep their UV (seams stay split), others are merged."""
     if texture is not None:
         if piece.uv is None:
-            raise ValueError(f"part {name!r} has a texture but no UV")
+            raise TwinError(f"part {name!r} has a texture but no UV")
         # trimesh's TextureVisuals has no annotations
         visual = trimesh.visual.TextureVisuals(uv=piece.uv, image=Image.fromarray(texture))  # type: ignore[no-untyped-call]
         mesh = trimesh.Trimesh(piece.vertices, piece.faces, visual=visual, process=False)
@@ -313,7 +314,7 @@ def _top_surface(mesh: trimesh.Trimesh) -> Callable[[float, float], float]:
         t = (e1[:, 0] * q[:, 1] - e1[:, 1] * q[:, 0]) / det
         inside = ok & (s >= 0) & (t >= 0) & (s + t <= 1)
         if not inside.any():
-            raise ValueError(f"no surface above ({x_cm}, {y_cm}) cm")
+            raise TwinError(f"no surface above ({x_cm}, {y_cm}) cm")
         z = a[:, 2] + s * (b - a)[:, 2] + t * (c - a)[:, 2]
         return float(z[inside].max()) / CM
 

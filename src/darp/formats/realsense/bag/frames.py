@@ -14,6 +14,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from darp.errors import DecodeError
 from darp.formats.realsense import ros_messages as rm
 from darp.formats.realsense.types import Frame, FrameInfo
 
@@ -31,7 +32,7 @@ def message_span(buf: memoryview, offset: int) -> tuple[int, int]:
     (data_len,) = _U32.unpack_from(buf, start - 4)
     end = start + data_len
     if end > len(buf):
-        raise ValueError(f"message record at offset {offset} runs past its chunk")
+        raise DecodeError(f"message record at offset {offset} runs past its chunk")
     return start, end
 
 
@@ -87,7 +88,7 @@ def key_value(buf: memoryview, offset: int) -> tuple[bytes, int, int]:
     key_end = start + 4 + key_len
     (value_len,) = _U32.unpack_from(buf, key_end)
     if key_end + 4 + value_len > end:
-        raise ValueError(f"KeyValue record at offset {offset} runs past its message")
+        raise DecodeError(f"KeyValue record at offset {offset} runs past its message")
     return bytes(buf[start + 4:key_end]), key_end + 4, key_end + 4 + value_len
 
 

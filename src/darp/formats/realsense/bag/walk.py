@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from darp.errors import DecodeError
 from darp.formats.realsense.bag.chunks import ChunkStore
 from darp.formats.realsense.bag.frames import MetadataSource, message_span
 
@@ -25,7 +26,7 @@ _AHEAD = 8  # chunks announced ahead of the one being read (the store caps what 
 _BLOCK = 1024  # messages prepared (as Python lists) at a time
 
 
-class CorruptMessage(ValueError):
+class CorruptMessage(DecodeError):
     """A message record that does not fit its chunk; ``chunk`` is the chunk's number."""
 
     def __init__(self, chunk: int, err: Exception) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from darp.errors import RecordingError
+from darp.errors import DecodeError, RecordingError
 from darp.formats.realsense.db3.images import decode_compressed_image, decode_raw_image
 from darp.formats.realsense.recording import Recording, require_regular_file
 from darp.formats.realsense.types import (
@@ -207,7 +207,7 @@ class Db3Recording(Recording):
         try:
             rotation, translation = _f32s(pairs["rotation"]), _f32s(pairs["translation"])
             if len(rotation) != 9 or len(translation) != 3:
-                raise ValueError("wrong number of values")
+                raise DecodeError("wrong number of values")
         except (KeyError, ValueError) as err:
             raise RecordingError(f"{topic}: bad extrinsics ({err})", self.path) from err
         T = np.eye(4)
@@ -325,7 +325,7 @@ class Db3Recording(Recording):
             return decode_compressed_image(message, profile)
         if topic_type == "sensor_msgs/msg/Image":
             return decode_raw_image(message, profile)
-        raise ValueError(f"unsupported frame message type {topic_type}")
+        raise DecodeError(f"unsupported frame message type {topic_type}")
 
     # -- the Recording interface -----------------------------------------------------------------
     def frame_infos(self, stream: str) -> list[FrameInfo]:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.errors import RecordingError
+from darp.errors import DecodeError, RecordingError
 from darp.formats.realsense.rosbag1.records import (  # re-exported: the record level of the format
     ENTRY_DTYPE,
     INDEX_HEAD,
@@ -75,7 +75,7 @@ def load_index(source: ByteSource | memoryview, path: Path) -> BagIndex:
     try:
         fields, data_start, data_len, _ = record_at(src, len(MAGIC), with_data=False)
         if record_op(fields) != OP_BAG_HEADER:
-            raise ValueError("first record is not a bag header")
+            raise DecodeError("first record is not a bag header")
         index_pos = struct.unpack("<Q", fields["index_pos"])[0]
         conn_count, chunk_count = field_u32(fields, "conn_count"), field_u32(fields, "chunk_count")
     except Incomplete:
@@ -144,7 +144,7 @@ def _indexed_general(src: ByteSource, path: Path, connections: dict[int, Connect
                 for _ in range(conn_in_chunk):
                     conn, count, start, length = index_record(region, pos, len(region))
                     if count * 12 > length:
-                        raise ValueError(
+                        raise DecodeError(
                             f"index-data record at byte offset {index_start + pos} is shorter than its count")
                     found.append((conn, number, count, region[start:start + 12 * count]))
                     pos = start + length
@@ -226,7 +226,7 @@ def _index_tail(tail: bytes, index_pos: int, records: int) -> tuple[dict[int, Co
         elif op == OP_CHUNK_INFO:
             infos.append((struct.unpack("<Q", fields["chunk_pos"])[0], start, field_u32(fields, "count")))
         else:
-            raise ValueError(f"unexpected record op {op} in the index at byte offset {index_pos + pos}")
+            raise DecodeError(f"unexpected record op {op} in the index at byte offset {index_pos + pos}")
         pos = start + length
     if pos > end:
         raise Incomplete

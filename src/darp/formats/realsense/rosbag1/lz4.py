@@ -22,12 +22,14 @@ import lz4.block
 import lz4.frame
 import numpy as np
 
+from darp.errors import DecodeError
+
 LZ4_MAGIC = 0x184D2204
 _U32 = struct.Struct("<I")
 _BUFFER_STEP = 256 << 10  # buffer capacities are rounded up to this, so that they can be reused
 
 
-class Lz4Error(ValueError):
+class Lz4Error(DecodeError):
     """The bytes are not a well-formed LZ4 frame, or they fail its checksum."""
 
 
@@ -97,7 +99,7 @@ def decode_frame(source: bytes | memoryview, out: ChunkBuffer, size: int, verify
     must come out. ``verify`` checks the content checksum (and block checksums), as librealsense does.
     Raises :class:`Lz4Error` on any malformed or damaged frame."""
     if size > out.capacity:
-        raise ValueError(f"a buffer of {out.capacity} bytes cannot hold {size}")
+        raise DecodeError(f"a buffer of {out.capacity} bytes cannot hold {size}")
     library = native()
     if library is not None:
         _decode_native(library, source, out, size, verify)

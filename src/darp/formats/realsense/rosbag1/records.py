@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.errors import RecordingError
+from darp.errors import DecodeError, RecordingError
 from darp.formats.realsense.rosbag1.lz4 import ChunkBuffer, Lz4Error, decode_frame
 from darp.formats.realsense.rosbag1.write import OP_CHUNK, OP_INDEX_DATA
 
@@ -73,7 +73,7 @@ def decode_header(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> di
         stop = i + length
         equals = raw.find(b"=", i, stop)
         if stop > n or equals < 0:
-            raise ValueError("malformed record header field")
+            raise DecodeError("malformed record header field")
         fields[raw[i:equals].decode("ascii", errors="replace")] = raw[equals + 1:stop]
         i = stop
     return fields
@@ -98,7 +98,7 @@ def read_record(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> tupl
 def record_op(fields: dict[str, bytes]) -> int:
     op = fields.get("op")
     if op is None or len(op) != 1:
-        raise ValueError("record without a valid 'op' field")
+        raise DecodeError("record without a valid 'op' field")
     return op[0]
 
 
@@ -177,7 +177,7 @@ def record_at(src: ByteSource, pos: int, with_data: bool, hint: int = 512) -> tu
 
 def chunk_from(fields: dict[str, bytes], pos: int, data_start: int, data_len: int, path: Path) -> Chunk:
     if record_op(fields) != OP_CHUNK:
-        raise ValueError(f"expected a chunk record at byte offset {pos}")
+        raise DecodeError(f"expected a chunk record at byte offset {pos}")
     chunk = Chunk(pos, data_start, data_len, fields["compression"].decode("ascii", errors="replace"),
                   field_u32(fields, "size"))
     check_compression(chunk, path)
@@ -201,5 +201,5 @@ def index_record(view: bytes | memoryview, pos: int, size: int) -> tuple[int, in
             return h[3], h[6], start, h[13]
     fields, start, length = read_record(view, pos, size)
     if record_op(fields) != OP_INDEX_DATA:
-        raise ValueError(f"expected an index-data record at byte offset {pos}")
+        raise DecodeError(f"expected an index-data record at byte offset {pos}")
     return field_u32(fields, "conn"), field_u32(fields, "count"), start, length

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from darp.errors import RecordingError
+from darp.errors import DecodeError, RecordingError
 from darp.formats.realsense.rosbag1.records import (
     ENTRY_DTYPE,
     BagIndex,
@@ -34,7 +34,7 @@ _Parts = dict[int, list[tuple[int, np.ndarray]]]  # conn -> [(chunk number, uint
 def _add_index_data(parts: _Parts, conn: int, count: int, view: bytes | memoryview, start: int, length: int,
                     chunk_number: int) -> None:
     if count * 12 > length:
-        raise ValueError(f"index-data record at byte offset {start} is shorter than its count")
+        raise DecodeError(f"index-data record at byte offset {start} is shorter than its count")
     rows = np.frombuffer(view, "<u4", count=3 * count, offset=start).reshape(count, 3)
     parts.setdefault(conn, []).append((chunk_number, rows))
 
