@@ -34,8 +34,8 @@ class TrustBounds:
     """The stated bounds of the trust flags (module doc)."""
 
     max_heldout_median_mm: float = 4.26  # twice the paper's held-out median (2.13 mm)
-    max_cross_arm_mm: float = 5.0  # the arms' co-observed surface apart by more than the paper's held-out p90 (6.38)
-    cross_arm_factor: float = 2.0  # ... or by more than this x the held-out median (and at least cross_arm_floor_mm)
+    max_cross_arm_mm: float = 6.38  # the arms' co-observed surface apart by more than the paper's held-out p90
+    cross_arm_factor: float = 3.0  # ... or by more than this x the held-out median (and at least cross_arm_floor_mm)
     cross_arm_floor_mm: float = 2.0
     max_handeye_p90_mm: float = 8.0  # the calibration's held-out corner p90 (the paper's hand-eye: 3.58 / 3.93 mm)
     max_arm_p90_mm: float = 20.0  # one arm's held-out p90, about 3x the paper's pooled p90
