@@ -51,7 +51,7 @@ def demo_command(
         "reproduces its error levels; realistic has only errors a calibration absorbs.")] = Profile.paper,
     settings_file: SettingsFile = None,
 ) -> None:
-    """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores).
+    """Run the whole system on the digital twin: calibrate, survey, process, report (6-9 minutes on 2 idle cores).
 
     Default profile paper: the real rig's error levels. --profile realistic: only errors calibration absorbs.
     """
