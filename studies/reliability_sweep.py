@@ -35,7 +35,8 @@ CASES = [
     "calib handeye g -o g/cal.json", "poses s -o s/poses", "export tum s -o s/x", "import g -o g/imp",
     f"recording export {BAG} -o .", "calib capture --twin -o s", "process s -o s/out", "keyframes s -o s/kf",
     # values
-    "twin waypoints --object cube -o w.yaml --elevation-deg nan", "twin waypoints --object cube -o w.yaml --dwell-s 1e9",
+    "twin waypoints --object cube -o w.yaml --elevation-deg nan",
+    "twin waypoints --object cube -o w.yaml --dwell-s 1e9",
     "twin waypoints --object cube -o w.yaml --azimuth-deg inf", "twin waypoints --object cube -o w.yaml --scale 1e30",
     "twin waypoints --object cube -o w.yaml --placement 1e9,0,0", "poses s -o p --max-gap-s nan",
     f"recording export {BAG} -o ex --start-ms 10 --stop-ms 5", f"recording export {BAG} -o ex --stop-ms nan",
