@@ -98,6 +98,19 @@ def test_real_doosan_heldout_board_consistency_beats_every_opencv_method(doosan)
     assert rep["sag"]["doosan"][0] > 0  # the flange droops with reach (rad per m)
     # The data's own noise: about 1.5 mm mean / 3 mm max (shared/realdata/README.md).
     assert mm["mean"] < 1.5 and mm["max"] < 3.0 and deg["mean"] < 1.2
+
+
+@needs_real
+def test_real_doosan_per_capture_figure_uses_the_fits_flange_poses(doosan) -> None:
+    """per_capture_error.png's reprojection bars are the report's fit errors per capture: with the sag-corrected
+    flange poses (the raw ones put capture 3's median at 6.0 px, above the fit's 4.7 px maximum)."""
+    from darp.calibration.anyarm_report import per_capture_fit_px
+
+    fit = doosan.calibration.report["fit"]["reprojection_px"]
+    px = per_capture_fit_px(doosan)
+    assert px.shape == (31,)
+    assert np.all(px <= fit["max"]) and np.min(px) >= 0.0
+    assert np.min(px) <= fit["median"] <= np.max(px)
     # A D435 about 30 mm off the flange axis, looking along the flange z (upstream's hand-set value: 32 mm off).
     X = doosan.params.T_wrist_cam["doosan"]
     assert 0.02 < np.linalg.norm(X[:3, 3]) < 0.06

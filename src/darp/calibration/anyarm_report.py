@@ -31,11 +31,11 @@ def write_handeye_report(outcome: HandEyeOutcome, folder: str | Path) -> list[Pa
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    obs, params, rep = outcome.observations, outcome.params, outcome.calibration.report
+    obs, rep = outcome.observations, outcome.calibration.report
     write_json_checked(folder / "report.json", rep)
     written = [folder / "report.json"]
 
-    fit_px = per_capture(reprojection_errors(params, obs), obs)
+    fit_px = per_capture_fit_px(outcome)
     held = outcome.consistency.get("per_capture", {})
     fig = Figure(figsize=(11, 5.5))
     x = np.arange(obs.n_captures)
@@ -96,6 +96,15 @@ def write_handeye_report(outcome: HandEyeOutcome, folder: str | Path) -> list[Pa
     return written
 
 
+def per_capture_fit_px(outcome: HandEyeOutcome) -> np.ndarray:
+    """(M,) each capture's median reprojection error with the flange poses the fit used (sag corrected), the
+    same errors as the report's ``fit.reprojection_px``."""
+    from darp.calibration.anyarm_refine import corrected_observations
+
+    obs = corrected_observations(outcome.params, outcome.observations)
+    return per_capture(reprojection_errors(outcome.params, obs), obs)
+
+
 def darp_residual(outcome: HandEyeOutcome) -> np.ndarray:
     """(C, 2) final reprojection residuals of the calibration."""
     from darp.calibration.anyarm_refine import corrected_observations
@@ -142,4 +151,4 @@ def _row(name: str, mm: dict[str, float], corner: dict[str, float], deg: dict[st
             f"{deg['mean']:.3f} | {deg['max']:.3f} |")
 
 
-__all__ = ["summary_markdown", "write_handeye_report"]
+__all__ = ["per_capture_fit_px", "summary_markdown", "write_handeye_report"]
