@@ -247,3 +247,12 @@ def test_a_run_holding_an_output_in_another_process_refuses_this_one(tmp_path: P
         holder.kill()
         holder.wait()
     assert run(["twin", "waypoints", "--object", "cube", "-o", str(out)]) == 0  # the kernel freed the lock
+
+
+def test_an_output_in_folders_not_made_yet_is_locked_too(tmp_path: Path) -> None:
+    out = tmp_path / "a" / "b" / "out.json"
+    with output_lock(out) as held:
+        assert held is not None and held.parent == out.parent
+        with pytest.raises(OutputBusy), output_lock(out):
+            pass
+    assert not (tmp_path / "a").exists()  # the folders made for the lock alone are gone again

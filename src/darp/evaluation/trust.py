@@ -28,16 +28,18 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+from darp import paper
+
 
 @dataclass(frozen=True)
 class TrustBounds:
     """The stated bounds of the trust flags (module doc)."""
 
-    max_heldout_median_mm: float = 4.26  # twice the paper's held-out median (2.13 mm)
-    max_cross_arm_mm: float = 6.38  # the arms' co-observed surface apart by more than the paper's held-out p90
+    max_heldout_median_mm: float = 2.0 * float(paper.HELDOUT["median_mm"])  # twice the paper's held-out median
+    max_cross_arm_mm: float = float(paper.HELDOUT["p90_mm"])  # co-observed surface apart by more than the paper's p90
     cross_arm_factor: float = 3.0  # ... or by more than this x the held-out median (and at least cross_arm_floor_mm)
     cross_arm_floor_mm: float = 2.0
-    max_handeye_p90_mm: float = 8.0  # the calibration's held-out corner p90 (the paper's hand-eye: 3.58 / 3.93 mm)
+    max_handeye_p90_mm: float = 8.0  # the calibration's held-out corner p90 (about 2x the paper's hand-eye figures)
     max_arm_p90_mm: float = 20.0  # one arm's held-out p90, about 3x the paper's pooled p90
     min_seeable_pct: float = 50.0  # twin: share of the seeable true surface within 5 mm of the fused cloud
     min_envelope_pct: float = 10.0  # the share of the envelope's top and side the fused voxels could cover

@@ -85,6 +85,8 @@ class ImportSpec:
     arm: str = "arm"
     every: int = 1
     heldout_every: int = 5
+    heldout_offset: int = 2  # frame i (in import order) is held out when i % heldout_every == heldout_offset
+    heldout_keys: frozenset[str] | None = None  # instead: exactly these frame keys are held out (--heldout-list)
     distortion_model: str = "Brown Conrady"  # librealsense's name of the model of ``dist``
     envelope: Path | None = None  # manip_envelope.json in the world frame of the poses (copied into the survey)
     # a posed folder's own pairing (darp.formats.trajectories.PosedFrames); else find_frames(sequence)
@@ -122,10 +124,6 @@ def _read_depth(path: Path) -> np.ndarray:
     if d.dtype != np.uint16 or d.ndim != 2:
         raise FormatError(f"depth must be a 16-bit single-channel image, got {d.dtype} with shape {d.shape}", path)
     return d
-
-
-def _read_colour(path: Path) -> np.ndarray | None:
-    return decode_image(path, cv2.IMREAD_COLOR, "a colour image")
 
 
 def check_depth_scale(depth: np.ndarray, scale: float, path: Path) -> float:
@@ -225,7 +223,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     first = _read_depth(depth[keys[0]])
     h, w = first.shape
     if keys[0] in colour:
-        c = _read_colour(colour[keys[0]])
+        c = decode_image(colour[keys[0]], cv2.IMREAD_COLOR, "a colour image")
         if c is None:
             raise FormatError("cannot read the colour image", colour[keys[0]])
         if c.shape[:2] != (h, w):
@@ -246,7 +244,14 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
                           spec.distortion_model, tuple(float(v) for v in (list(dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
 
     folder = spec.out / "keyframes"
-    held = heldout_mask(len(keys), spec.heldout_every)
+    if spec.heldout_keys is not None:
+        unknown = sorted(spec.heldout_keys - set(keys))
+        if unknown:
+            raise FormatError(f"{len(unknown)} held-out frame(s) are not imported frames (e.g. {unknown[0]!r})",
+                              spec.sequence)
+        held = np.array([k in spec.heldout_keys for k in keys])
+    else:
+        held = heldout_mask(len(keys), spec.heldout_every, spec.heldout_offset)
     entries, files = [], []
     for i, k in enumerate(keys):
         d = _read_depth(depth[k])
@@ -254,7 +259,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
             raise FormatError(f"depth is {d.shape[1]} x {d.shape[0]}, the first frame {w} x {h}", depth[k])
         rgb: np.ndarray = np.zeros((h, w, 3), np.uint8)
         if k in colour:
-            c = _read_colour(colour[k])
+            c = decode_image(colour[k], cv2.IMREAD_COLOR, "a colour image")
             if c is None or c.shape[:2] != (h, w):  # never a black image in place of a frame's colour
                 got = "not a readable image" if c is None else f"{c.shape[1]} x {c.shape[0]}, the depth {w} x {h}"
                 raise FormatError(f"colour image: {got}", colour[k])
@@ -271,7 +276,9 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
         files.append({"key": k, "frame_number": kf.frame_number, "keyframe": rel, "depth": str(depth[k]),
                       "colour": str(colour[k]) if k in colour else None})
     index = KeyframeIndex(folder=folder, survey=spec.sequence.name, object_name=spec.sequence.name,
-                          pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every},
+                          pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every,
+                                    "heldout_offset": spec.heldout_offset,
+                                    "heldout": "list" if spec.heldout_keys is not None else "every"},
                           arms={spec.arm: {"serial": "imported", "keyframes": len(keys), "heldout": int(held.sum())}},
                           keyframes=entries, extra={"import": str(spec.out / IMPORT_FILE)})
     write_keyframe_index(index)
