@@ -389,6 +389,7 @@ def process_imported_measured(folder: Path, out: Path, index: KeyframeIndex, sur
         depth_stats_of,
         envelope_open_pct,
         evaluate_heldout_measured,
+        mesh_raster_figure,
         write_mesh_cloud,
     )
 
@@ -424,8 +425,8 @@ def process_imported_measured(folder: Path, out: Path, index: KeyframeIndex, sur
     vertices = np.asarray(mesh.vertices, np.float32)
     figures = draw_figures(out, {}, np.empty((0, 3)), None, held.distances, title=index.survey)
     pooled = np.concatenate(list(held.distances.values())) if held.distances else np.empty(0)
-    _figure(mesh, shown, out / FIGURES_DIR / "imported_mesh.png", index.survey,
-            float(np.median(pooled)) * 1e3 if pooled.size else float("nan"), max_triangles=20_000)
+    mesh_raster_figure(mesh, shown, out / FIGURES_DIR / "imported_mesh.png", index.survey,
+                       float(np.median(pooled)) * 1e3 if pooled.size else float("nan"))
     figures["mesh"] = f"{FIGURES_DIR}/imported_mesh.png"
     cpu["figures"] = time.process_time() - t
     info["open_pct"] = envelope_open_pct(mesh, envelope_info, info["voxel_size_m"])
