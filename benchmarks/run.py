@@ -34,7 +34,8 @@ from results import Row, machine, markdown, write  # noqa: E402  (benchmarks/res
 BENCHMARKS = {"kinematics": "Pinocchio", "db3_read": "pyrealsense2", "bag_read": "pyrealsense2",
               "twin_camera": "MuJoCo's ray caster and the facts' timings", "fusion": "Open3D's TSDF and libigl",
               "viewpoints": "the paper's fixed orbit", "handeye": "OpenCV's hand-eye methods",
-              "calibration": "OpenCV's hand-eye and robot-world solvers"}
+              "calibration": "OpenCV's hand-eye and robot-world solvers",
+              "real_fusion": "Open3D's VoxelBlockGrid TSDF on real depth"}
 
 
 def load(name: str, folder: Path = HERE) -> ModuleType:

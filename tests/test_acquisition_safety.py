@@ -28,9 +28,10 @@ FAST = ["--fps", "6", "--resolution", "424x240", "--quiet"]
     ("-0.62,0.02,0", "mm from arm110's shoulder_motor"),
     ("1.5,0,0", "is not on the table"),
     ("0,0.44,0", "is not on the table"),  # centre on the table, footprint over its edge
-    ("inf,0,0", "placement must be finite numbers, got x=inf"),
-    ("0,nan,0", "placement must be finite numbers, got y=nan"),
-    ("0,0,inf", "got yaw=inf"),
+    # non-finite values are refused where the option enters (issue 32), before any placement check
+    ("inf,0,0", "'--placement': expected finite x,y within +-10 m and yaw_deg within +-360, got 'inf,0,0'"),
+    ("0,nan,0", "'--placement': expected finite x,y within +-10 m and yaw_deg within +-360, got '0,nan,0'"),
+    ("0,0,inf", "'--placement': expected finite x,y within +-10 m and yaw_deg within +-360, got '0,0,inf'"),
     ("0,0.37,0", "outside the reachable workspace"),
 ])
 def test_invalid_placements_are_refused_before_anything_moves(tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -196,3 +197,11 @@ def test_a_controller_fault_on_hardware_stops_both_arms_and_raises(fake_z1, fake
             checked_move(rig, ArmCollisionModel(RIG, "arm111"), park)
     finally:
         rig.close()
+
+
+@pytest.mark.parametrize(("values", "named"), [((float("inf"), 0.0, 0.0), "x=inf"), ((0.0, float("nan"), 0.0), "y=nan"),
+                                                ((0.0, 0.0, float("inf")), "yaw=inf")])
+def test_the_library_refuses_non_finite_placements_too(values: tuple[float, float, float], named: str) -> None:
+    """Callers that bypass the CLI (batches, scripts) get the same refusal, naming the value."""
+    with pytest.raises(TwinError, match=f"placement must be finite numbers, got {named}"):
+        validate_placement(RIG, 0.04, 0.1, ObjectPlacement(*values))

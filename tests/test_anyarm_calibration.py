@@ -88,10 +88,29 @@ def test_real_doosan_heldout_board_consistency_beats_every_opencv_method(doosan)
     mm, deg = rep["heldout"]["board_consistency_mm"], rep["heldout"]["board_consistency_deg"]
     cv = rep["opencv_heldout_board_consistency"]
     assert set(cv) == {f"calibrateHandEye/{m}" for m in ("TSAI", "PARK", "HORAUD", "ANDREFF", "DANIILIDIS")}
-    assert mm["mean"] <= min(v["mm"]["mean"] for v in cv.values() if "mm" in v)
-    assert mm["max"] <= min(v["mm"]["max"] for v in cv.values() if "mm" in v)
+    corner = rep["heldout"]["board_corner_consistency_mm"]
+    for stat in ("mean", "max"):  # at least 10 % better than the best OpenCV method, at the centre and the corner
+        assert mm[stat] <= 0.9 * min(v["mm"][stat] for v in cv.values() if "mm" in v)
+        assert corner[stat] <= 0.9 * min(v["corner_mm"][stat] for v in cv.values() if "mm" in v)
+    # held-out rotation: a tie with the best method (0.4029 vs HORAUD's 0.4028 deg on this split); the rotation of
+    # a withheld capture is mostly its own board pose's tilt noise, which no hand-eye removes
+    assert deg["mean"] <= 1.01 * min(v["deg"]["mean"] for v in cv.values() if "mm" in v)
+    assert rep["sag"]["doosan"][0] > 0  # the flange droops with reach (rad per m)
     # The data's own noise: about 1.5 mm mean / 3 mm max (shared/realdata/README.md).
     assert mm["mean"] < 1.5 and mm["max"] < 3.0 and deg["mean"] < 1.2
+
+
+@needs_real
+def test_real_doosan_per_capture_figure_uses_the_fits_flange_poses(doosan) -> None:
+    """per_capture_error.png's reprojection bars are the report's fit errors per capture: with the sag-corrected
+    flange poses (the raw ones put capture 3's median at 6.0 px, above the fit's 4.7 px maximum)."""
+    from darp.calibration.anyarm_report import per_capture_fit_px
+
+    fit = doosan.calibration.report["fit"]["reprojection_px"]
+    px = per_capture_fit_px(doosan)
+    assert px.shape == (31,)
+    assert np.all(px <= fit["max"]) and np.min(px) >= 0.0
+    assert np.min(px) <= fit["median"] <= np.max(px)
     # A D435 about 30 mm off the flange axis, looking along the flange z (upstream's hand-set value: 32 mm off).
     X = doosan.params.T_wrist_cam["doosan"]
     assert 0.02 < np.linalg.norm(X[:3, 3]) < 0.06
@@ -296,7 +315,7 @@ def test_exported_darp_captures_give_darp_solvers_calibration(tmp_path: Path) ->
     obs = build_observations(detect_captures(caps), caps.board, arms)
     native = calibrate_observations(obs, RefineSettings(estimate_offsets=False), {a: np.zeros(6, bool) for a in arms})
     assert export_captures(caps, tmp_path / "generic") == 16
-    generic = solve_folder(tmp_path / "generic", folds=0, compare=False)
+    generic = solve_folder(tmp_path / "generic", folds=0, compare=False, refinement="pixels")
     assert generic.observations.arms == arms and generic.observations.n_captures == 16
     # Two solvers of the same problem stop within their convergence tolerance of each other (about 1e-5 rad
     # and 0.01 mm with numpy 2.4 / scipy 1.17); a convention slip would be millimetres to centimetres off.

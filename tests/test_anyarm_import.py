@@ -137,7 +137,9 @@ def test_real_3dmatch_process_fuses_meshes_and_evaluates(tmp_path: Path) -> None
 
     assert run(["import", str(SEQ), "-o", str(tmp_path / "imp"), "--intrinsics", str(REAL / "camera-intrinsics.txt"),
                 "--trajectory", str(SEQ), "--trajectory-format", "pose-txt"]) == 0
-    (tmp_path / "room.yaml").write_text("fusion:\n  voxel_size_m: 0.01\n  min_frames: 2\n  min_view_bins: 1\n"
+    # the paper's surface (voxel support and ball pivoting) with a room's settings; the default is test_real_fusion's
+    (tmp_path / "room.yaml").write_text("surface:\n  method: paper\n"
+                                        "fusion:\n  voxel_size_m: 0.01\n  min_frames: 2\n  min_view_bins: 1\n"
                                         "  depth:\n    max_depth_m: 5.0\n    discontinuity_abs_m: 0.02\n")
     assert run(["process", str(tmp_path / "imp"), "-o", str(tmp_path / "out"), "--settings",
                 str(tmp_path / "room.yaml")]) == 0

@@ -29,9 +29,10 @@ SHORT_FORMS = {"-o": "--out", "-c": "--calibration", "-q": "--quiet", "-f": "--f
 # Path-valued options: outputs (written) and inputs (must exist). Any other path option is a breach.
 OUTPUT_PATHS = {"--out", "--report", "--save"}  # --save: darp view's recording (no window)
 INPUT_PATHS = {"--rig", "--calibration", "--settings", "--plan", "--truth", "--waypoints", "--intrinsics",
-               "--trajectory", "--flange-poses", "--envelope", "--extend"}
+               "--trajectory", "--flange-poses", "--envelope", "--extend", "--hand-eye", "--order", "--folds-file",
+               "--heldout-list"}
 FILE_ONLY = {"--rig", "--calibration", "--plan", "--truth", "--waypoints", "--settings", "--intrinsics",
-             "--envelope"}
+             "--envelope", "--hand-eye", "--order", "--folds-file", "--heldout-list"}
 # Closed sets: these options take a checked choice (an Enum), never a free string.
 CHOICE_OPTIONS = {"--profile", "--stream", "--paper", "--dictionary", "--format", "--config", "--model"}
 # Words that name a physical quantity: an option containing one ends in its unit.

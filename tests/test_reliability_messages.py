@@ -18,38 +18,18 @@ import pytest
 
 from darp.cli._app import run
 from darp.errors import FormatError
-
-
-class _Job:
-    def __init__(self, out: Path) -> None:
-        self.out = out
-
-    @property
-    def name(self) -> str:
-        return "s"
-
-    def identity(self) -> dict[str, Any]:
-        return {}
-
-    def settings_fingerprint(self, groups: Any) -> str:
-        return ""
-
-    def report(self, stage: str, done: float, total: float | None) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
+from helpers.runner_job import FakeJob
 
 
 def test_a_full_disk_in_a_stage_names_that_stage(tmp_path: Path) -> None:
     from darp.processing.runner import Stage, StageFailure, process_survey
 
-    def fusion(job: _Job) -> dict[str, Any]:
+    def fusion(job: FakeJob) -> dict[str, Any]:
         raise OSError(errno.ENOSPC, "No space left on device", str(job.out / "fused.ply"))
 
     stages = (Stage("poses", lambda job: {}, ()), Stage("fusion", fusion, ("fused.ply",)))
     with pytest.raises(StageFailure) as caught:
-        process_survey(_Job(tmp_path), stages)
+        process_survey(FakeJob(tmp_path), stages)
     assert caught.value.stage == "fusion"
     assert caught.value.reason == f"{tmp_path / 'fused.ply'}: no space left on device"
 
@@ -119,3 +99,22 @@ def test_an_image_that_is_a_pipe_or_damaged_is_refused_or_undecodable(tmp_path: 
     path = tmp_path / "x.png"
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\x00" * 10)
     assert decode_image(path, 0) is None
+
+
+def test_a_signal_while_exiting_after_a_complete_run_is_one_line() -> None:
+    import signal
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).parents[1] / "src")}
+    code = ("import atexit, sys, time\n"
+            "atexit.register(lambda: (print('exiting', flush=True), time.sleep(30)))  # a slow library exit hook\n"
+            "from darp.cli import main\nsys.argv = ['darp', 'rig', 'show']\nmain()\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    assert proc.stdout is not None and proc.stderr is not None
+    for line in proc.stdout:
+        if line.strip() == "exiting":
+            break
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=20) == 143
+    err = proc.stderr.read()
+    assert err.strip().splitlines() == [err.strip()] and "stopped by SIGTERM while exiting" in err, err

@@ -79,12 +79,14 @@ def test_identical_or_one_axis_hand_eye_poses_are_refused(tmp_path: Path) -> Non
     (["twin", "waypoints", "--object", "cube", "-o", "{tmp}/w.yaml", "--dwell-s", "nan"], "'--dwell-s'"),
     (["twin", "waypoints", "--object", "cube", "-o", "{tmp}/w.yaml", "--placement", "nan,0,0"], "'--placement'"),
     (["twin", "waypoints", "--object", "cube", "-o", "{tmp}/w.yaml", "--distance-m", "inf"], "finite"),
+    (["twin", "waypoints", "--object", "cube", "-o", "{tmp}/w.yaml", "--scale", "1e30"], "'--scale'"),
     (["twin", "record", "--object", "cube", "-w", "{g}/w.yaml", "-o", "{tmp}/s", "--resolution", "100000x100000"],
      "'--resolution'"),
     (["recording", "export", "{bag}", "-o", "{tmp}/x", "--start-ms", "nan"], "'--start-ms'"),
     (["recording", "export", "{bag}", "-o", "{tmp}/x", "--start-ms", "500", "--stop-ms", "100"], "not before"),
     (["import", "{g}", "-o", "{tmp}/imp", "--depth-scale-m", "0"], "'--depth-scale-m'"),
     (["twin", "generate", "-o", "{tmp}/gen", "--executor", "ray:nonsense"], "'--executor'"),
+    (["twin", "generate", "-n", "1", "-o", "{tmp}/gen", "--views", "100000000"], "'--views'"),
 ])
 def test_an_option_out_of_range_is_one_line_exit_2(argv: list[str], words: str, tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:

@@ -7,9 +7,10 @@ refinement's model, Jacobian and solver with identifiability and uncertainty (:m
 :mod:`.refine`, pose helpers in :mod:`.geometry`), kinematic identifiability (:mod:`.kinematic_ident`), depth
 corrections from the board (:mod:`.depth_fit`); the world frame (:mod:`.world_frame`); the driver
 (:mod:`.solve`); held-out and truth errors (:mod:`.evaluate`); figures (:mod:`.report`); staleness
-(:mod:`.check`). Any arm: hand-eye from measured flange poses (:mod:`.anyarm`, its report and exports in
-:mod:`.anyarm_report` and :mod:`.anyarm_export`, convention checks in :mod:`.diagnose`). OpenCV loads only when a
-board is built or detected.
+(:mod:`.check`). Any arm: hand-eye from measured flange poses (:mod:`.anyarm`, its refinement in
+:mod:`.anyarm_refine`, held-out split and scores in :mod:`.anyarm_heldout`, its report and exports in
+:mod:`.anyarm_report` and :mod:`.anyarm_export`, checks of the data in :mod:`.anyarm_checks` and
+:mod:`.diagnose`). OpenCV loads only when a board is built or detected.
 """
 
 from __future__ import annotations

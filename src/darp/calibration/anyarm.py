@@ -11,7 +11,7 @@ poses inverted: the solver's "hand-eye" is then the camera in the base and its "
 flange.
 
 Quality: k-fold over captures, each fold calibrated without its captures, and for each withheld capture
-(a) its corners' errors (:func:`darp.calibration.evaluate.kfold_heldout`) and (b) **board consistency**:
+(a) its corners' errors (:func:`darp.calibration.anyarm_heldout.heldout_corners`) and (b) **board consistency**:
 the board placed in the base by that capture alone (``F_i X T_cam_board_i``) against the calibration's
 board, as the distance of the board's centre (mm) and the rotation angle (deg).
 """
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,25 +29,36 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from darp.calibration import handeye
+from darp.calibration.anyarm_checks import check_capture_pairing, disagreeing_captures, marker_diagnosis
+from darp.calibration.anyarm_heldout import (
+    board_consistency,
+    board_in_reference,
+    fold_split,
+    heldout_consistency,
+    heldout_corners,
+)
+from darp.calibration.anyarm_refine import anyarm_solver, anyarm_solver_no_sag, corrected_observations
 from darp.calibration.board import Board, parse_board
 from darp.calibration.detect import board_pose_pnp, detect_corners, ideal_pixels
-from darp.calibration.evaluate import fold_assignment, kfold_heldout, summarise
+from darp.calibration.evaluate import summarise
 from darp.calibration.model import ChainParams, Observations, flange_poses, reprojection_errors
 from darp.calibration.refine import RefineSettings, refine
 from darp.errors import CalibrationError, FormatError
 from darp.formats.calibration import ArmCalibration, Calibration
-from darp.formats.captures import CaptureFolder, read_capture_folder
+from darp.formats.captures import CaptureFolder, PairingOptions, read_capture_folder
 from darp.formats.intrinsics import CameraModel
 from darp.formats.io_input import decode_image
-from darp.kinematics.transforms import invert_transform, pose_error
+from darp.formats.pairing import describe_pairs, natural_key
+from darp.kinematics.transforms import invert_transform
 
+BOARD_POSES = "board_poses"  # a detection's source prefix when the capture is a board pose, not an image
 OPENCV_METHODS = tuple(f"calibrateHandEye/{m}" for m in handeye.HAND_EYE_METHODS)
 
 
 def load_capture_folder(root: str | Path, intrinsics: str | Path | None = None,
-                        eye_to_hand: bool | None = None) -> CaptureFolder[Board]:
+                        eye_to_hand: bool | None = None, how: PairingOptions | None = None) -> CaptureFolder[Board]:
     """Read a generic captures folder (:func:`darp.formats.captures.read_capture_folder`) with its board."""
-    return read_capture_folder(root, parse_board, intrinsics, eye_to_hand)
+    return read_capture_folder(root, parse_board, intrinsics, eye_to_hand, how or PairingOptions())
 
 
 # -- detections -> observations -----------------------------------------------------------------------
@@ -89,7 +100,7 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
     raw: list[tuple[str, str, np.ndarray, np.ndarray, str]] = []
     size: tuple[int, int] | None = None
     for arm in folder.arms:
-        for key, img_path in arm.images.items():
+        for key, img_path in sorted(arm.images.items(), key=lambda kv: natural_key(kv[0])):
             grey = decode_image(img_path, cv2.IMREAD_GRAYSCALE, "a board image")
             if grey is None:
                 raise FormatError("cannot read the image", img_path)
@@ -120,6 +131,8 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
         d = GenericDetection(arm_name, key, ids, ideal_pixels(camera, uv), False, source=src)
         if len(ids) < min_corners:
             d.reason = f"too few corners ({len(ids)} < {min_corners})"
+            if folder.board.kind == "charuco":
+                d.reason += marker_diagnosis(folder.board, src)
         else:
             T, rms = board_pose_pnp(P[ids], d.corners_px, camera.K)
             d.T_cam_board, d.pnp_rms_px = T, rms
@@ -128,14 +141,15 @@ def detect_folder(folder: CaptureFolder[Board], min_corners: int = 8, max_pnp_rm
         dets.append(d)
     for arm in folder.arms:  # board poses given instead of images: their corners, seen through K
         camera = cameras[arm.arm]
-        for key, T in arm.board_poses.items():
+        names = {k: o for k, o, _ in arm.pairing.pairs} if arm.pairing is not None else {}
+        for key, T in sorted(arm.board_poses.items(), key=lambda kv: natural_key(kv[0])):
             if key in arm.images:
                 continue
             Pc = P @ T[:3, :3].T + T[:3, 3]
             uv = (Pc[:, :2] / Pc[:, 2:3]) * np.diag(camera.K)[:2] + camera.K[:2, 2]
             dets.append(GenericDetection(arm.arm, key, np.arange(len(P)), uv, bool(np.all(Pc[:, 2] > 0)),
                                          "" if np.all(Pc[:, 2] > 0) else "board behind the camera", T, 0.0,
-                                         "board_poses"))
+                                         f"{BOARD_POSES}/{names.get(key, key)}"))
     return dets, cameras, info
 
 
@@ -180,6 +194,12 @@ def build_generic_observations(folder: CaptureFolder[Board], dets: list[GenericD
 # -- solving and held-out checks ----------------------------------------------------------------------
 
 REFINE = RefineSettings(estimate_offsets=False)
+REFINEMENT_TEXT = {
+    "poses": "boards placed together in the base: centre (mm) and PnP-weighted rotation, flange sag "
+             "(darp.calibration.anyarm_refine)",
+    "pixels": "corner reprojection (px), darp's joint refinement without joint offsets",
+    "board poses": "board poses: board centre (mm) and rotation (x 1000 mm/rad) in the base",
+}
 
 
 def darp_solver(obs: Observations, settings: RefineSettings = REFINE, metric: bool = False) -> ChainParams:
@@ -262,47 +282,6 @@ def opencv_solver(method: str) -> Callable[[Observations], ChainParams]:
     return solve
 
 
-def board_in_reference(params: ChainParams, obs: Observations) -> np.ndarray:
-    """(M, 4, 4) the board placed in the reference frame by each capture alone."""
-    out = np.empty((obs.n_captures, 4, 4))
-    for a, arm in enumerate(obs.arms):
-        sel = obs.arm_index == a
-        if np.any(sel):
-            out[sel] = (params.T_ref_base[arm] @ flange_poses(obs, sel, params.dq[arm]) @ params.T_wrist_cam[arm]
-                        @ obs.T_depth_board_pnp[sel])
-    return out
-
-
-def board_consistency(params: ChainParams, obs: Observations, centre_board: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Per capture: distance (mm) of the board centre and rotation (deg) vs the calibration's board."""
-    T = board_in_reference(params, obs)
-    c = np.append(centre_board, 1.0)
-    pred = T @ c
-    ref = params.T_ref_board @ c
-    d = 1e3 * np.linalg.norm(pred[:, :3] - ref[:3], axis=1)
-    _, r = pose_error(T, np.broadcast_to(params.T_ref_board, T.shape))
-    return d, np.degrees(np.asarray(r))
-
-
-def heldout_consistency(obs: Observations, solver: Callable[[Observations], ChainParams], centre_board: np.ndarray,
-                        k: int = 5, seed: int = 0) -> dict[str, Any]:
-    """k-fold held-out board consistency: each withheld capture against the calibration made without it."""
-    folds = fold_assignment(obs, k, seed)
-    mm = np.full(obs.n_captures, np.nan)
-    deg = np.full(obs.n_captures, np.nan)
-    for f in range(k):
-        test = folds == f
-        if not np.any(test):
-            continue
-        params = solver(obs.subset(~test))
-        d, r = board_consistency(params, obs.subset(test), centre_board)
-        mm[test], deg[test] = d, r
-    return {"folds": k, "mm": summarise(mm), "deg": summarise(deg),
-            "per_capture": {c: {"mm": float(a), "deg": float(b)} for c, a, b in zip(obs.capture_ids, mm, deg,
-                                                                                   strict=True)}}
-
-
 @dataclass
 class HandEyeOutcome:
     """What :func:`solve_folder` found."""
@@ -316,6 +295,21 @@ class HandEyeOutcome:
     consistency: dict[str, Any]
     comparison: dict[str, dict[str, Any]]
     warnings: list[str]
+    pairing_lines: list[str] = field(default_factory=list)  # how captures were paired, and the check's numbers
+
+
+REFINEMENTS = ("poses", "poses-no-sag", "pixels")
+
+
+def choose_solver(refinement: str, pose_only: bool, eye_to_hand: bool) -> Callable[[Observations], ChainParams]:
+    """``poses``: :mod:`darp.calibration.anyarm_refine` (sag term for eye-in-hand); ``poses-no-sag``: the same
+    without it; ``pixels``: darp's corner reprojection refinement (board poses without images: the unweighted
+    board-pose refinement)."""
+    if refinement == "pixels":
+        return metric_solver if pose_only else darp_solver
+    if refinement not in REFINEMENTS:
+        raise CalibrationError(f"unknown refinement {refinement!r} ({', '.join(REFINEMENTS)})")
+    return anyarm_solver_no_sag if eye_to_hand or refinement == "poses-no-sag" else anyarm_solver
 
 
 MIN_ROTATION_DEG = 2.0  # the smallest flange rotation between captures, about each of two axes, hand-eye needs
@@ -337,40 +331,53 @@ def check_flange_motion(obs: Observations, arm: str, root: Path) -> None:
 
 
 def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_to_hand: bool | None = None,
-                 folds: int = 5, seed: int = 0, compare: bool = True) -> HandEyeOutcome:
+                 folds: int = 5, seed: int = 0, compare: bool = True, folds_file: str | Path | None = None,
+                 refinement: str = "poses", how: PairingOptions | None = None, force: bool = False
+                 ) -> HandEyeOutcome:
     """The whole any-arm calibration of a captures folder."""
     from darp.calibration.diagnose import check_pose_conventions
 
-    folder = load_capture_folder(root, intrinsics, eye_to_hand)
+    folder = load_capture_folder(root, intrinsics, eye_to_hand, how)
     dets, cameras, info = detect_folder(folder)
     obs, warns = build_generic_observations(folder, dets, cameras)
+    pairing_checks = {}
     for arm in obs.arms:
         if int(np.sum(obs.for_arm(arm))) < 4:
             raise CalibrationError(f"{arm}: {int(np.sum(obs.for_arm(arm)))} usable captures; hand-eye needs at "
                                    "least 4", folder.root)
         check_pose_conventions(folder, obs, arm)
         check_flange_motion(obs, arm, folder.root)
-    pose_only = all(d.source == "board_poses" for d in dets if d.ok)
-    solver = metric_solver if pose_only else darp_solver
+        pairing_checks[arm], kept = check_capture_pairing(folder, obs, arm, force)
+        if kept:
+            warns.append(kept)
+    pose_only = all(d.source.startswith(BOARD_POSES) for d in dets if d.ok)
+    solver = choose_solver(refinement, pose_only, folder.eye_to_hand)
     params = solver(obs)
     centre = folder.board.corners_m().mean(axis=0)
     k = min(folds, min(int(np.sum(obs.for_arm(a))) for a in obs.arms)) if folds > 1 else 0
-    held = kfold_heldout(obs, solver, k, seed) if k > 1 else {}
-    cons = heldout_consistency(obs, solver, centre, k, seed) if k > 1 else {}
+    split = fold_split(obs, k, seed, folds_file) if (k > 1 or folds_file is not None) else None
+    held = heldout_corners(obs, solver, split) if split is not None else {}
+    cons = heldout_consistency(obs, solver, centre, split) if split is not None else {}
     comparison: dict[str, dict[str, Any]] = {}
-    if compare and k > 1:
+    if compare and split is not None:
         for m in OPENCV_METHODS:
             try:
-                comparison[m] = heldout_consistency(obs, opencv_solver(m), centre, k, seed)
+                comparison[m] = heldout_consistency(obs, opencv_solver(m), centre, split)
             except CalibrationError as err:
                 comparison[m] = {"error": str(err)}
-    fit = reprojection_errors(params, obs)
+    fit = reprojection_errors(params, corrected_observations(params, obs))
     fit_cons = board_consistency(params, obs, centre)
+    warns += disagreeing_captures(obs, dets, fit_cons[0])
     report: dict[str, Any] = {
         "kind": "any-arm hand-eye",
         "mode": "eye_to_hand" if folder.eye_to_hand else "eye_in_hand",
-        "refinement": ("board poses: board centre (mm) and rotation (x 1000 mm/rad) in the base" if pose_only
-                       else "corner reprojection (px), darp's joint refinement without joint offsets"),
+        "refinement": REFINEMENT_TEXT[refinement if refinement.startswith("poses") else
+                                      ("pixels" if not pose_only else "board poses")]
+        + (" (no sag)" if refinement == "poses-no-sag" or (refinement == "poses" and folder.eye_to_hand) else ""),
+        "sag": {a: v.tolist() for a, v in getattr(params, "sag", {}).items()},
+        "pairing": {a.arm: {"rule": a.pairing.rule, "pairs": len(a.pairing.pairs),
+                            "first": a.pairing.pairs[:3], "last": a.pairing.pairs[-3:],
+                            "check_mm": pairing_checks.get(a.arm, {})} for a in folder.arms if a.pairing},
         "captures_folder": str(folder.root),
         "board": folder.board.describe(),
         "pose_conventions": {"unit": folder.conventions.unit, "quaternion": folder.conventions.quaternion},
@@ -379,13 +386,18 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
         "n_captures": {a: int(np.sum(obs.for_arm(a))) for a in obs.arms},
         "rejected": {f"{d.arm}/{d.capture_id}": d.reason for d in dets if not d.ok},
         "fit": {"reprojection_px": summarise(fit), "board_consistency_mm": summarise(fit_cons[0]),
-                "board_consistency_deg": summarise(fit_cons[1])},
-        "heldout": {"folds": k,
-                    "corner_3d_mm": {a: summarise(v["corner_3d_mm"]) for a, v in held.get("per_arm", {}).items()},
-                    "reprojection_px": {a: summarise(v["reprojection_px"]) for a, v in held.get("per_arm", {}).items()},
-                    "board_consistency_mm": cons.get("mm"), "board_consistency_deg": cons.get("deg")},
-        "opencv_heldout_board_consistency": {m: ({"mm": v["mm"], "deg": v["deg"]} if "mm" in v else v)
-                                             for m, v in comparison.items()},
+                "board_corner_consistency_mm": summarise(fit_cons[1]),
+                "board_consistency_deg": summarise(fit_cons[2])},
+        "heldout": {"folds": int(len(np.unique(split))) if split is not None else 0,
+                    "split": (f"folds file {folds_file}" if folds_file is not None else
+                              f"seeded ({seed}), {k} folds: darp.calibration.anyarm_heldout.fold_split"),
+                    "fold_of": dict(zip(obs.capture_ids, split.tolist(), strict=True)) if split is not None else {},
+                    "corner_3d_mm": {a: summarise(v["corner_3d_mm"]) for a, v in held.items()},
+                    "reprojection_px": {a: summarise(v["reprojection_px"]) for a, v in held.items()},
+                    "board_consistency_mm": cons.get("mm"), "board_corner_consistency_mm": cons.get("corner_mm"),
+                    "board_consistency_deg": cons.get("deg")},
+        "opencv_heldout_board_consistency": {m: ({"mm": v["mm"], "corner_mm": v["corner_mm"], "deg": v["deg"]}
+                                                 if "mm" in v else v) for m, v in comparison.items()},
         "warnings": warns,
     }
     if folder.eye_to_hand:
@@ -407,7 +419,15 @@ def solve_folder(root: str | Path, *, intrinsics: str | Path | None = None, eye_
              f"the base frame of {obs.arms[0]} (any-arm calibration, no joint offsets)")
     cal = Calibration(epoch=folder.root.name, date=dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                       arms=arms_out, board=folder.board.spec(), world_frame=world, report=_jsonable(report))
-    return HandEyeOutcome(cal, params, obs, dets, cameras, held, cons, comparison, warns)
+    lines = []
+    for ac in folder.arms:
+        if ac.pairing is not None:
+            lines.append(f"{ac.arm}: {describe_pairs(ac.pairing)}")
+        c = pairing_checks.get(ac.arm)
+        if c:
+            lines.append(f"{ac.arm}: pairing check: boards agree to {c['as given']:.2f} mm median as paired, "
+                         f"{c['shift+1']:.1f} / {c['shift-1']:.1f} mm with the poses shifted by +1 / -1")
+    return HandEyeOutcome(cal, params, obs, dets, cameras, {"per_arm": held}, cons, comparison, warns, lines)
 
 
 def _jsonable(v: Any) -> Any:
@@ -422,6 +442,7 @@ def _jsonable(v: Any) -> Any:
     return v
 
 
-__all__ = ["GenericDetection", "HandEyeOutcome", "OPENCV_METHODS", "board_consistency", "build_generic_observations",
-           "darp_solver", "detect_folder", "heldout_consistency", "load_capture_folder", "metric_solver",
-           "opencv_solver", "refine_metric", "solve_folder", "solve_intrinsics"]
+__all__ = ["OPENCV_METHODS", "REFINEMENTS", "GenericDetection", "HandEyeOutcome", "board_consistency",
+           "board_in_reference", "build_generic_observations", "check_capture_pairing", "choose_solver", "darp_solver",
+           "detect_folder", "fold_split", "heldout_consistency", "load_capture_folder", "marker_diagnosis",
+           "metric_solver", "opencv_solver", "refine_metric", "solve_folder", "solve_intrinsics"]

@@ -316,19 +316,24 @@ def read_captures(folder: str | Path, *, unfinished_ok: bool = False) -> Capture
                       created=str(index.get("created", "")))
 
 
+def check_capture_output(folder: Path, overwrite: bool) -> None:
+    """Refuse an output folder a capture run may not write into: one that holds captures (without ``overwrite``)
+    or one that is not empty and holds none (a survey, a user's files: never darp's to replace)."""
+    if (folder / INDEX_FILE).exists() and not overwrite:
+        raise CalibrationError("already holds captures (captures.json); choose another folder", folder)
+    if folder.is_dir() and not (folder / INDEX_FILE).exists() and any(
+            p.name != UNFINISHED_FILE for p in folder.iterdir()):
+        raise CalibrationError("is not empty and holds no captures (captures.json): choose a new or empty folder",
+                               folder)
+
+
 class CaptureWriter:
     """Writes a capture folder one capture at a time (PNG + JSON, then the index, all atomic)."""
 
     def __init__(self, folder: str | Path, board: CharucoBoardSpec, *, source: str = "",
                  notes: dict[str, Any] | None = None, overwrite: bool = False) -> None:
         self.folder = Path(folder)
-        if (self.folder / INDEX_FILE).exists() and not overwrite:
-            raise CalibrationError("already holds captures (captures.json); choose another folder",
-                                   self.folder)
-        if self.folder.is_dir() and not (self.folder / INDEX_FILE).exists() and any(
-                p.name != UNFINISHED_FILE for p in self.folder.iterdir()):  # a survey, a user's files: not ours
-            raise CalibrationError("is not empty and holds no captures (captures.json): choose a new or empty "
-                                   "folder", self.folder)
+        check_capture_output(self.folder, overwrite)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.board = board
         self.source = source
@@ -405,5 +410,6 @@ class CaptureWriter:
 
 __all__ = [
     "INDEX_FILE", "STREAMS", "CaptureRecord", "CaptureSet", "CaptureWriter", "board_from_dict", "board_to_dict",
+    "check_capture_output",
     "intrinsics_from_dict", "intrinsics_to_dict", "read_captures", "record_from_dict", "record_to_dict",
 ]

@@ -17,6 +17,7 @@
 
 from __future__ import annotations
 
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -51,7 +52,7 @@ SquaresY = Annotated[int, typer.Option("--squares-y", help="Squares along the bo
 SquareMm = Annotated[float, typer.Option("--square-mm", help="Square side, millimetres.")]
 MarkerMm = Annotated[float, typer.Option("--marker-mm", help="ArUco marker side, millimetres.")]
 DictionaryOption = Annotated[Dictionary, typer.Option("--dictionary", help="OpenCV ArUco dictionary.")]
-Captures = Annotated[int, typer.Option("--captures", min=1, help="Captures per arm (when planning).")]
+Captures = Annotated[int, typer.Option("--captures", min=1, max=10000, help="Captures per arm (when planning).")]
 def _folds(value: int) -> int:
     if value != 0 and value < 2:  # one fold holds everything out; a negative count is no count
         raise typer.BadParameter(f"expected 0 (no held-out evaluation) or at least 2 folds, got {value}")
@@ -162,8 +163,10 @@ def capture_command(
     """Take calibration captures (one arm moving at a time) on the twin or the real rig."""
     if twin == hardware:
         raise typer.BadParameter("choose exactly one", param_hint="'--twin' / '--hardware'")
+    from darp.calibration.captures import check_capture_output
     from darp.calibration.plan import CapturePlan
 
+    check_capture_output(out, overwrite)  # before any work: a survey or a user's folder is refused at once
     plan = CapturePlan.load(plan_file) if plan_file is not None else None
     total = sum(len(p) for p in plan.poses.values()) if plan is not None else 2 * captures
     from darp.formats.io_output import unfinished_folder
@@ -332,6 +335,26 @@ def _print_check(result: Any) -> None:
     typer.echo("calibration holds" if result.ok else "calibration is stale: recalibrate")
 
 
+IdColumn = Annotated[str | None, typer.Option("--id-column", help="Header name of the pose table's id column "
+                                             "(default: its first column when that is not a number).",
+                                             show_default=False)]
+OrderFile = Annotated[Path | None, typer.Option("--order", help="Order file: one image/frame name per line, in the "
+                                                "order of the pose rows (pairs by position).", exists=True,
+                                                dir_okay=False, show_default=False)]
+PairShift = Annotated[int, typer.Option("--pair-shift", help="Pair image i with the pose N places later (a known "
+                                        "off-by-N in the data).")]
+Force = Annotated[bool, typer.Option("--force", help="Keep the pairing and poses as given when a likely mistake "
+                                     "(shifted, inverted) fits much better: a warning instead of an error.")]
+
+
+class Refinement(StrEnum):
+    """darp.calibration.anyarm.REFINEMENTS."""
+
+    poses = "poses"
+    poses_no_sag = "poses-no-sag"
+    pixels = "pixels"
+
+
 @calib_app.command("handeye")
 def handeye_command(
     captures: Annotated[Path, input_argument("Generic captures folder (handeye.yaml, images/ or board_poses/, "
@@ -351,6 +374,17 @@ def handeye_command(
     seed: Annotated[int, typer.Option("--seed", min=0, help="Seed of the fold assignment.")] = 0,
     compare: Annotated[bool, typer.Option("--compare/--no-compare", help="Also score each OpenCV calibrateHandEye "
                                           "method on the same held-out folds.")] = True,
+    folds_file: Annotated[Path | None, typer.Option("--folds-file", help="The held-out split: 'capture_id fold' "
+                                                    "lines (or JSON {id: fold}); replaces --folds/--seed.",
+                                                    exists=True, dir_okay=False, show_default=False)] = None,
+    refinement: Annotated[Refinement, typer.Option("--refinement", help="poses: boards placed together, "
+                                                   "PnP-weighted, flange sag; poses-no-sag: without the sag "
+                                                   "term; pixels: corner reprojection (darp's Z1 solver "
+                                                   "without joint offsets).")] = Refinement.poses,
+    id_column: IdColumn = None,
+    order: OrderFile = None,
+    pair_shift: PairShift = 0,
+    force: Force = False,
 ) -> None:
     """Hand-eye calibration of any arm and camera from a generic captures folder, with held-out checks."""
     import warnings
@@ -359,29 +393,34 @@ def handeye_command(
     from darp.calibration.anyarm_report import write_handeye_report
     from darp.errors import DarpWarning
     from darp.formats.calibration import write_calibration
+    from darp.formats.captures import PairingOptions
 
     outcome = solve_folder(captures, intrinsics=intrinsics, eye_to_hand=True if eye_to_hand else None,
-                           folds=folds, seed=seed, compare=compare)
+                           folds=folds, seed=seed, compare=compare, folds_file=folds_file,
+                           refinement=refinement.value, how=PairingOptions(id_column, order, pair_shift), force=force)
     for w in outcome.warnings:
         warnings.warn(w, DarpWarning, stacklevel=1)
     if report is not None:  # the report first: the calibration, written last, is the sign of a complete run
         write_handeye_report(outcome, report)
     write_calibration(out, outcome.calibration)
     r = outcome.calibration.report
+    for line in outcome.pairing_lines:
+        typer.echo(line)
     typer.echo(f"wrote {out} ({r['mode']}; captures used: "
                + ", ".join(f"{a} {n}" for a, n in r["n_captures"].items()) + ")")
     typer.echo(f"  fit: reprojection median {r['fit']['reprojection_px']['median']:.3f} px")
     held = r["heldout"]
+
+    def cell(v: dict[str, Any]) -> str:
+        return (f"centre {v['mm']['mean']:.3f} / {v['mm']['max']:.3f} mm, corner {v['corner_mm']['mean']:.3f} / "
+                f"{v['corner_mm']['max']:.3f} mm, {v['deg']['mean']:.3f} / {v['deg']['max']:.3f} deg")
+
     if held.get("board_consistency_mm"):
-        typer.echo(f"  held-out board consistency ({held['folds']}-fold): mean "
-                   f"{held['board_consistency_mm']['mean']:.3f} mm / max {held['board_consistency_mm']['max']:.3f} mm, "
-                   f"mean {held['board_consistency_deg']['mean']:.3f} deg / max "
-                   f"{held['board_consistency_deg']['max']:.3f} deg")
+        typer.echo(f"  held-out board consistency ({held['folds']} folds; mean / max): "
+                   + cell({"mm": held["board_consistency_mm"], "corner_mm": held["board_corner_consistency_mm"],
+                           "deg": held["board_consistency_deg"]}))
     for m, v in r.get("opencv_heldout_board_consistency", {}).items():
-        if "mm" in v:
-            typer.echo(f"  {m:30s} mean {v['mm']['mean']:.3f} mm / max {v['mm']['max']:.3f} mm")
-        else:
-            typer.echo(f"  {m:30s} {v.get('error', 'failed')}")
+        typer.echo(f"  {m:30s} " + (cell(v) if "mm" in v else str(v.get("error", "failed"))))
     for name, T in r.get("base_to_base", {}).items():
         t = np.asarray(T)[:3, 3] * 1e3
         typer.echo(f"  base-to-base {name}: translation ({t[0]:.1f}, {t[1]:.1f}, {t[2]:.1f}) mm")
@@ -395,6 +434,8 @@ def export_command(
     """Write a darp capture folder as a generic any-arm captures folder (flange poses from the Z1 model)."""
     from darp.calibration.anyarm_export import export_captures
     from darp.calibration.captures import read_captures
+    from darp.formats.io_output import unfinished_folder
 
-    n = export_captures(read_captures(captures), out)
+    with unfinished_folder(out, "darp calib export"):
+        n = export_captures(read_captures(captures), out)
     typer.echo(f"wrote {out} ({n} captures)")

@@ -45,7 +45,7 @@ def demo_command(
                                       help="Seed of the twin (true rig errors, placements, noise).")] = 0,
     fps: Annotated[int, typer.Option("--fps", min=1, help="Camera frame rate of the demo surveys: 6, 15 or 30 "
                                      "(the real rig records 30).")] = 6,
-    captures: Annotated[int, typer.Option("--captures", min=1, help="Calibration captures per arm.")] = 20,
+    captures: Annotated[int, typer.Option("--captures", min=1, max=10000, help="Calibration captures per arm.")] = 20,
     profile: Annotated[Profile, typer.Option(
         "--profile", help="Twin error profile: paper (the default) has the real rig's uncalibrated errors and "
         "reproduces its error levels; realistic has only errors a calibration absorbs.")] = Profile.paper,

@@ -26,7 +26,7 @@ def generate_command(
     resolution: Annotated[Resolution | None, typer.Option(
         "--resolution", parser=parse_resolution, metavar="WIDTHxHEIGHT", help="Image size (default 424x240).",
         show_default=False)] = None,
-    views: Annotated[int, typer.Option("--views", min=1, help="Orbit views per arm.")] = 3,
+    views: Annotated[int, typer.Option("--views", min=1, max=360, help="Orbit views per arm.")] = 3,
     executor: ExecutorOption = None,
 ) -> None:
     """Record N twin surveys with random objects, placements, yaws, materials and error draws (one task each)."""

@@ -237,7 +237,8 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
     # fits 80 columns: held-out point-to-mesh median / RMSE [mm] and % within 10 mm; truth: fused-cloud accuracy
     table = Table(title="held-out evaluation (mm) and clouds", box=box.SIMPLE_HEAD,
                   caption="kf: keyframes; truth: fused cloud to the true mesh, median (mm); "
-                          "(!) implausible, see the warnings; FAILED: see the error lines")
+                          "(!) implausible, see the warnings; (?) not to be trusted, see results.json trust.flags; "
+                          "FAILED: see the error lines")
     table.add_column("survey", justify="left", overflow="fold")
     for column in ("poses", "kf", "fused", "median", "RMSE", "<=10mm %", "truth"):
         table.add_column(column, justify="right", no_wrap=True)
@@ -246,7 +247,8 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
         h = r["heldout"]["aggregate"]
         acc = ((r.get("truth") or {}).get("cloud") or {}).get("accuracy", {}).get("median_mm")
         source = {"calibration": "calib"}.get(r["pose_source"], r["pose_source"])
-        name = r["survey"] + (" (!)" if r.get("warnings") else "")
+        name = r["survey"] + (" (!)" if r.get("warnings") else "") + (
+            " (?)" if (r.get("trust") or {}).get("flags") else "")
         table.add_row(name, source, str(r["keyframes"]["total"]), f"{r['clouds'].get('fused', 0):,}",
                       mm(h.get("median_mm")), mm(h.get("rmse_mm")), mm(h.get("within_10mm_pct")), mm(acc))
     for o in failed:

@@ -12,6 +12,7 @@ Waypoints format and every setting: docs/twin.md.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -42,7 +43,21 @@ PLACEMENT_HELP = "x,y,yaw_deg of the object on the table, in metres, metres and 
 
 
 def load_object(spec: str, scale: float) -> Any:
-    """A built-in twin object by name, or a mesh file (``darp twin objects`` lists the names)."""
+    """A built-in twin object by name, or a mesh file (``darp twin objects`` lists the names), of a size an
+    envelope can hold (1 mm to 5 m across and high after ``--scale``)."""
+    from darp.formats.limits import ENVELOPE_SIZE_MAX_M
+
+    if not (math.isfinite(scale) and 1e-4 <= scale <= 1e3):  # mm-to-m is 1e-3; nothing real needs 1e4
+        raise typer.BadParameter(f"expected a scale from 0.0001 to 1000, got {scale:g}", param_hint="'--scale'")
+    obj = _load_object(spec, scale)
+    size = max(obj.radius_m, obj.height_m)
+    if not (math.isfinite(size) and 1e-3 <= size <= ENVELOPE_SIZE_MAX_M):
+        raise typer.BadParameter(f"{spec} at scale {scale:g} is {size:.3g} m in radius or height: not within 1 mm "
+                                 f"to {ENVELOPE_SIZE_MAX_M:g} m (is the scale right?)", param_hint="'--scale'")
+    return obj
+
+
+def _load_object(spec: str, scale: float) -> Any:
     from darp.cli._outputs import add_input
     from darp.twin.objects.model import OBJECT_NAMES, load_mesh_object, make_object
 

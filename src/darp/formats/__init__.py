@@ -4,9 +4,10 @@
 The survey folder (:mod:`.survey`) with its joint log (:mod:`.arm_poses`), envelope (:mod:`.envelope`) and
 RealSense recordings (:mod:`.realsense`); the calibration file (:mod:`.calibration`); the twin's ``truth/`` folder
 (:mod:`.truth`); camera trajectories (:mod:`.trajectories`), intrinsics files (:mod:`.intrinsics`), per-capture
-pose files (:mod:`.poses`) and the any-arm captures folder (:mod:`.captures`); and what they share: atomic writes
-(:mod:`.atomic`), text and YAML reading (:mod:`.text`), JSON schema helpers (:mod:`.schema`) and value ranges
-(:mod:`.limits`).
+pose files (:mod:`.poses`), pose tables (:mod:`.pose_tables`), hand-eye files (:mod:`.hand_eye`), the pairing of
+files with poses (:mod:`.pairing`) and the any-arm captures folder (:mod:`.captures`); and what they share:
+atomic writes (:mod:`.atomic`), text and YAML reading (:mod:`.text`), JSON schema helpers (:mod:`.schema`) and
+value ranges (:mod:`.limits`).
 """
 
 from __future__ import annotations

@@ -5,7 +5,8 @@
 - a folder of 4x4 (or 3x4) matrices, one ``.txt`` (whitespace or commas, ``#`` comments) or ``.npy`` per capture;
 - ``board_poses/``: camera-from-board per capture, 4x4 ``.txt``/``.npy`` or ``.npz`` with OpenCV's ``rvec``/``tvec``.
 
-Each file is keyed by its capture id (:func:`capture_key`: the last number in its name). Every matrix must be a
+Each file is keyed by its capture id (:func:`capture_key`: :mod:`darp.formats.pairing`'s rule). More table
+forms (``.npz``, ``.json``, 4x4 rows) are read by :mod:`darp.formats.pose_tables`. Every matrix must be a
 rigid transform by :mod:`darp.geometry.rigid`'s rule; rotations a little off orthonormal (up to
 ``NEAR_RIGID_LIMIT``) are replaced by the nearest rotation with one warning per file or folder.
 """
@@ -13,7 +14,6 @@ rigid transform by :mod:`darp.geometry.rigid`'s rule; rotations a little off ort
 from __future__ import annotations
 
 import csv
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,17 +27,43 @@ from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 from darp.geometry.transforms import quaternion_to_rotation
 
+ROTATION_FORMS = "rotvec (x y z rx ry rz, UR style), euler-<axes>-<deg|rad> (e.g. euler-xyz-deg: SciPy's axes, " \
+    "lower case extrinsic, upper case intrinsic)"
+
 
 @dataclass(frozen=True)
 class PoseConventions:
-    """How pose files are written: the translation unit and the quaternion order."""
+    """How pose files are written: the translation unit, the quaternion order, and what six values per pose
+    mean (``rotation``: ``rotvec`` or ``euler-<axes>-<deg|rad>``; empty: six values are refused)."""
 
     unit: str = "m"  # "m" | "mm"
     quaternion: str = "xyzw"  # "xyzw" | "wxyz"
+    rotation: str = ""  # x y z + 3 rotation values: "rotvec" | "euler-xyz-deg" | "euler-ZYX-rad" ...
 
     @property
     def scale(self) -> float:
         return 1e-3 if self.unit == "mm" else 1.0
+
+
+def six_value_pose(values: Any, conv: PoseConventions, path: Path) -> np.ndarray:
+    """4x4 from ``x y z`` + three rotation values in the declared ``rotation`` form (translation as written)."""
+    from scipy.spatial.transform import Rotation
+
+    v = np.asarray(values, np.float64)
+    T = np.eye(4)
+    T[:3, 3] = v[:3]
+    if conv.rotation == "rotvec":
+        T[:3, :3] = Rotation.from_rotvec(v[3:6]).as_matrix()
+        return T
+    parts = conv.rotation.split("-")
+    if len(parts) != 3 or parts[0] != "euler" or parts[2] not in ("deg", "rad"):
+        raise FormatError(f"6 values per pose: x y z and a rotation vector or Euler angles are ambiguous; declare "
+                          f"rotation: {ROTATION_FORMS} (or write x y z qx qy qz qw, or the 4x4)", path)
+    try:
+        T[:3, :3] = Rotation.from_euler(parts[1], v[3:6], degrees=parts[2] == "deg").as_matrix()
+    except ValueError as err:
+        raise FormatError(f"rotation {conv.rotation!r}: {err}", path) from None
+    return T
 
 
 def pose_conventions(data: dict[str, Any], path: Path, base: PoseConventions | None = None) -> PoseConventions:
@@ -45,17 +71,20 @@ def pose_conventions(data: dict[str, Any], path: Path, base: PoseConventions | N
     b = base or PoseConventions()
     unit = str(data.get("unit", b.unit)).lower()
     quat = str(data.get("quaternion", b.quaternion)).lower()
+    rotation = str(data.get("rotation", b.rotation))
     if unit not in ("m", "mm"):
         raise FormatError(f"unit {unit!r} is not m or mm", path)
     if quat not in ("xyzw", "wxyz"):
         raise FormatError(f"quaternion order {quat!r} is not xyzw or wxyz", path)
-    return PoseConventions(unit, quat)
+    return PoseConventions(unit, quat, rotation)
 
 
 def capture_key(stem: str) -> str:
-    """The capture id of a file: its last number (``pose_003`` and ``calib_3`` -> ``3``), else its stem."""
-    runs = re.findall(r"\d+", stem)
-    return (runs[-1].lstrip("0") or "0") if runs else stem
+    """The capture id of a file or CSV id: :func:`darp.formats.pairing.frame_id` (the stem without role words;
+    ``pose_003``, ``calib_3`` and ``003`` -> ``3``; ``img_14-05-41`` -> ``14-05-41``)."""
+    from darp.formats.pairing import frame_id
+
+    return frame_id(stem)
 
 
 def quat_pose(values: Sequence[float], conv: PoseConventions) -> np.ndarray:
@@ -94,21 +123,11 @@ def read_pose_csv(path: Path, conv: PoseConventions) -> dict[str, np.ndarray]:
         lines = read_utf8_text(path, "a text file").splitlines()
     except (OSError, UnicodeDecodeError) as err:
         raise FormatError(f"cannot read ({err})", path) from None
-    declared: dict[str, Any] = {}
-    body = []
-    for line in lines:
-        s = line.strip()
-        if s.startswith("#"):
-            for part in s.lstrip("#").replace(";", ",").split(","):
-                if ":" in part or "=" in part:
-                    k, v = part.replace("=", ":").split(":", 1)
-                    declared[k.strip().lower()] = v.strip()
-        elif s:
-            body.append(s)
-    conv = pose_conventions(declared, path, conv)
+    body = [s for s in (line.strip() for line in lines) if s and not s.startswith("#")]
+    conv = pose_conventions(comment_declarations(lines), path, conv)
     out: dict[str, np.ndarray] = {}
     for n, row in enumerate(csv.reader(body)):
-        if n == 0 and not _is_number(row[1] if len(row) > 1 else ""):
+        if n == 0 and not is_number(row[1] if len(row) > 1 else ""):
             continue  # header
         if len(row) < 8:
             raise FormatError(f"row {n + 1} has {len(row)} values; expected id, x, y, z, q1, q2, q3, q4", path)
@@ -127,12 +146,27 @@ def read_pose_csv(path: Path, conv: PoseConventions) -> dict[str, np.ndarray]:
     return out
 
 
-def _is_number(s: str) -> bool:
+def is_number(s: str) -> bool:
+    """Whether ``s`` parses as a float (a header row's cells do not)."""
     try:
         float(s)
     except ValueError:
         return False
     return True
+
+
+def comment_declarations(lines: list[str]) -> dict[str, str]:
+    """``key: value`` (or ``key=value``) pairs declared in a table's comment lines, e.g.
+    ``# unit: mm, quaternion: wxyz``; keys lower-cased."""
+    out: dict[str, str] = {}
+    for line in lines:
+        s = line.strip()
+        if s.startswith("#"):
+            for part in s.lstrip("#").replace(";", ",").split(","):
+                if ":" in part or "=" in part:
+                    k, v = part.replace("=", ":").split(":", 1)
+                    out[k.strip().lower()] = v.strip()
+    return out
 
 
 def _stem_key(f: Path) -> str:
@@ -192,5 +226,6 @@ def read_board_poses(folder: Path) -> dict[str, np.ndarray]:
     return out
 
 
-__all__ = ["PoseConventions", "capture_key", "pose_conventions", "quat_pose", "read_board_poses",
-           "read_matrix_file", "read_pose_csv", "read_pose_folder", "read_poses"]
+__all__ = ["ROTATION_FORMS", "PoseConventions", "capture_key", "comment_declarations", "is_number",
+           "pose_conventions", "quat_pose", "read_board_poses", "read_matrix_file", "read_pose_csv",
+           "read_pose_folder", "read_poses", "six_value_pose"]

@@ -85,7 +85,10 @@ def process_folder(survey_path: str | Path, out: str | Path, calibration_path: s
     read). Returns its ``results.json`` document; raises like :func:`process_survey_folder`."""
     survey_path, settings = Path(survey_path), settings or ProcessSettings()
     if is_imported(survey_path):
-        return process_imported(survey_path, Path(out), settings.fusion_used, settings.mesh_used)
+        return process_imported(survey_path, Path(out), settings.fusion_used, settings.mesh_used, settings.surface)
+    if settings.surface.method == "measured":
+        raise StageFailure(survey_path.name, "open", "surface.method measured applies to imported surveys only "
+                           "(darp import); DARP surveys take auto or paper", None)
     cal_path = None if calibration_path is None else Path(calibration_path)
     if calibration is None:
         try:

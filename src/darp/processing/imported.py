@@ -23,6 +23,7 @@ back-projected points agree much better with the inverted poses: both numbers ar
 
 from __future__ import annotations
 
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,7 @@ from darp.formats.schema import to_jsonable
 from darp.formats.trajectories import frame_key
 from darp.kinematics.transforms import invert_transform
 from darp.processing.evaluate import EVALUATION_DIR, HELDOUT_DISTANCES, _save_arrays, draw_figures
+from darp.processing.imported_surface import DEPTH_ONLY, resolve_method
 from darp.processing.job import FIGURES_DIR
 from darp.processing.results import RESULTS_FILE, SCHEMA
 from darp.reconstruction.backproject import PosedDepth, backproject
@@ -56,6 +58,7 @@ from darp.reconstruction.keyframe_io import (
 )
 from darp.reconstruction.keyframes import FUSE, HELDOUT
 from darp.reconstruction.mesh import MeshSettings, ball_pivoting_mesh, mesh_area, write_mesh
+from darp.reconstruction.tsdf_surface import SurfaceSettings
 
 IMPORT_FILE = "import.json"
 POSE_SOURCE = "imported"
@@ -82,6 +85,8 @@ class ImportSpec:
     arm: str = "arm"
     every: int = 1
     heldout_every: int = 5
+    heldout_offset: int = 2  # frame i (in import order) is held out when i % heldout_every == heldout_offset
+    heldout_keys: frozenset[str] | None = None  # instead: exactly these frame keys are held out (--heldout-list)
     distortion_model: str = "Brown Conrady"  # librealsense's name of the model of ``dist``
     envelope: Path | None = None  # manip_envelope.json in the world frame of the poses (copied into the survey)
     # a posed folder's own pairing (darp.formats.trajectories.PosedFrames); else find_frames(sequence)
@@ -119,10 +124,6 @@ def _read_depth(path: Path) -> np.ndarray:
     if d.dtype != np.uint16 or d.ndim != 2:
         raise FormatError(f"depth must be a 16-bit single-channel image, got {d.dtype} with shape {d.shape}", path)
     return d
-
-
-def _read_colour(path: Path) -> np.ndarray | None:
-    return decode_image(path, cv2.IMREAD_COLOR, "a colour image")
 
 
 def check_depth_scale(depth: np.ndarray, scale: float, path: Path) -> float:
@@ -222,7 +223,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     first = _read_depth(depth[keys[0]])
     h, w = first.shape
     if keys[0] in colour:
-        c = _read_colour(colour[keys[0]])
+        c = decode_image(colour[keys[0]], cv2.IMREAD_COLOR, "a colour image")
         if c is None:
             raise FormatError("cannot read the colour image", colour[keys[0]])
         if c.shape[:2] != (h, w):
@@ -243,7 +244,14 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
                           spec.distortion_model, tuple(float(v) for v in (list(dist) + [0.0] * 5)[:5]))  # type: ignore[arg-type]
 
     folder = spec.out / "keyframes"
-    held = heldout_mask(len(keys), spec.heldout_every)
+    if spec.heldout_keys is not None:
+        unknown = sorted(spec.heldout_keys - set(keys))
+        if unknown:
+            raise FormatError(f"{len(unknown)} held-out frame(s) are not imported frames (e.g. {unknown[0]!r})",
+                              spec.sequence)
+        held = np.array([k in spec.heldout_keys for k in keys])
+    else:
+        held = heldout_mask(len(keys), spec.heldout_every, spec.heldout_offset)
     entries, files = [], []
     for i, k in enumerate(keys):
         d = _read_depth(depth[k])
@@ -251,7 +259,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
             raise FormatError(f"depth is {d.shape[1]} x {d.shape[0]}, the first frame {w} x {h}", depth[k])
         rgb: np.ndarray = np.zeros((h, w, 3), np.uint8)
         if k in colour:
-            c = _read_colour(colour[k])
+            c = decode_image(colour[k], cv2.IMREAD_COLOR, "a colour image")
             if c is None or c.shape[:2] != (h, w):  # never a black image in place of a frame's colour
                 got = "not a readable image" if c is None else f"{c.shape[1]} x {c.shape[0]}, the depth {w} x {h}"
                 raise FormatError(f"colour image: {got}", colour[k])
@@ -268,7 +276,9 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
         files.append({"key": k, "frame_number": kf.frame_number, "keyframe": rel, "depth": str(depth[k]),
                       "colour": str(colour[k]) if k in colour else None})
     index = KeyframeIndex(folder=folder, survey=spec.sequence.name, object_name=spec.sequence.name,
-                          pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every},
+                          pose_source=POSE_SOURCE, settings={"every": spec.every, "heldout_every": spec.heldout_every,
+                                    "heldout_offset": spec.heldout_offset,
+                                    "heldout": "list" if spec.heldout_keys is not None else "every"},
                           arms={spec.arm: {"serial": "imported", "keyframes": len(keys), "heldout": int(held.sum())}},
                           keyframes=entries, extra={"import": str(spec.out / IMPORT_FILE)})
     write_keyframe_index(index)
@@ -298,28 +308,36 @@ def is_imported(folder: Path) -> bool:
 
 
 def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettings | None = None,
-                     mesh_settings: MeshSettings | None = None) -> dict[str, Any]:
-    """Fusion of the ``fuse`` keyframes, ball-pivoting mesh, held-out point-to-mesh; writes results.json.
+                     mesh_settings: MeshSettings | None = None,
+                     surface: SurfaceSettings | None = None) -> dict[str, Any]:
+    """Fusion of the ``fuse`` keyframes, a mesh, held-out point-to-mesh; writes results.json.
 
-    The results document follows ``darp-results/1`` (:mod:`darp.processing.results`) with pose_source
-    "imported", no cross-arm section, no truth and no composition row, so ``darp report`` takes it.
+    The surface is ``surface.method``'s (``auto``: the measured surface, :mod:`darp.processing.imported_surface`;
+    ``paper``: voxel-support fusion and ball pivoting). The results document follows ``darp-results/1``
+    (:mod:`darp.processing.results`) with pose_source "imported", no cross-arm section, no truth and no
+    composition row, so ``darp report`` takes it.
     """
     out = out or folder
     out.mkdir(parents=True, exist_ok=True)
     kdir = folder / "keyframes"
     index = read_keyframe_index(kdir)
     settings = fusion or FusionSettings()
+    surface = surface or SurfaceSettings()
     from darp.formats.envelope import ENVELOPE_FILE, read_envelope
 
+    measured = resolve_method(surface, imported=True) == "measured"
     envelope_info: dict[str, Any]
     fuse_frames: list[PosedDepth] | None = None
     if (folder / ENVELOPE_FILE).is_file():
         crop = settings.crop(read_envelope(folder / ENVELOPE_FILE))
         envelope_info = {"source": "manip_envelope.json", "center_m": list(crop.center_m), "radius_m": crop.radius_m,
                          "height_m": crop.height_m}
-    else:  # the fuse frames are read once: for the estimate, then for fusion
-        fuse_frames = [kf.posed_depth() for kf in iter_keyframes(kdir, FUSE)]
+    else:  # the fuse frames are read once: for the estimate, then for fusion (the measured surface: depth only)
+        fuse_frames = [kf.posed_depth(colour=not measured)
+                       for kf in iter_keyframes(kdir, FUSE, skip=DEPTH_ONLY if measured else ())]
         crop, envelope_info = _estimated_crop(fuse_frames, kdir, settings)
+    if measured:
+        return process_imported_measured(folder, out, index, surface, crop, envelope_info, fuse_frames)
     fz = VoxelFusion(settings, crop)
     for frame in fuse_frames if fuse_frames is not None else (kf.posed_depth() for kf in iter_keyframes(kdir, FUSE)):
         fz.add(frame)
@@ -363,6 +381,72 @@ def process_imported(folder: Path, out: Path | None = None, fusion: FusionSettin
     return res
 
 
+def process_imported_measured(folder: Path, out: Path, index: KeyframeIndex, surface: SurfaceSettings, crop: Any,
+                              envelope_info: dict[str, Any], fuse_frames: list[PosedDepth] | None) -> dict[str, Any]:
+    """:func:`process_imported` with the measured surface (depth statistics, cleaned TSDF, supported mesh)."""
+    from darp.processing.imported_surface import (
+        build_measured_surface,
+        depth_stats_of,
+        envelope_open_pct,
+        evaluate_heldout_measured,
+        write_mesh_cloud,
+    )
+
+    kdir = folder / "keyframes"
+    cpu: dict[str, float] = {}
+    t = time.process_time()
+    stats = depth_stats_of(fuse_frames if fuse_frames is not None else
+                           (kf.posed_depth(colour=False) for kf in iter_keyframes(kdir, FUSE, skip=DEPTH_ONLY)),
+                           surface)
+    del fuse_frames
+    cpu["depth_stats"] = time.process_time() - t
+    frames_in = (kf.posed_depth() for kf in iter_keyframes(kdir, FUSE, skip=("ir_left", "ir_right", "support_mask")))
+    mesh, info = build_measured_surface(stats, frames_in, surface, crop)
+    cpu["surface"] = time.process_time() - t - cpu["depth_stats"]
+    t = time.process_time()
+    arm = next(iter(index.arms), "arm")
+    write_mesh_cloud(out / "fused.ply", mesh, arm)
+    write_mesh(out / "mesh.ply", mesh)
+    md = MeshDistance(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    shown: list[np.ndarray] = []
+
+    def keep(_: PosedDepth, points: np.ndarray) -> None:
+        if len(shown) < 2:
+            shown.append(points[::50])
+
+    held = evaluate_heldout_measured((kf.posed_depth(colour=False) for kf in iter_keyframes(kdir, HELDOUT,
+                                                                                          skip=DEPTH_ONLY)),
+                                     md, stats, info, surface, crop, index.object_name or index.survey, keep)
+    (out / EVALUATION_DIR).mkdir(exist_ok=True)
+    _save_arrays(out / EVALUATION_DIR / HELDOUT_DISTANCES, held.distances)
+    cpu["evaluation"] = time.process_time() - t
+    t = time.process_time()
+    vertices = np.asarray(mesh.vertices, np.float32)
+    figures = draw_figures(out, {}, np.empty((0, 3)), None, held.distances, title=index.survey)
+    pooled = np.concatenate(list(held.distances.values())) if held.distances else np.empty(0)
+    _figure(mesh, shown, out / FIGURES_DIR / "imported_mesh.png", index.survey,
+            float(np.median(pooled)) * 1e3 if pooled.size else float("nan"), max_triangles=20_000)
+    figures["mesh"] = f"{FIGURES_DIR}/imported_mesh.png"
+    cpu["figures"] = time.process_time() - t
+    info["open_pct"] = envelope_open_pct(mesh, envelope_info, info["voxel_size_m"])
+    info["cpu_s"].update(cpu)
+    res = {
+        "schema": SCHEMA, "survey": folder.name, "survey_path": str(folder),
+        "object": index.object_name or index.survey, "pose_source": POSE_SOURCE,
+        "calibration": {"epoch": None, "path": None}, "composition": None,
+        "envelope": envelope_info,
+        "keyframes": {"total": len(index.keyframes), "fuse": len(index.select(FUSE)), "heldout": held.n_frames,
+                      "arms": index.arms},
+        "clouds": {arm: len(vertices), "fused": len(vertices)},
+        "mesh": {"vertices": len(vertices), "triangles": len(mesh.triangles), "area_m2": mesh_area(mesh)},
+        "surface": info,
+        "heldout": held.to_dict(), "cross_arm": None, "truth": None, "figures": figures, "stages": {},
+        "paper": paper.HELDOUT,
+    }
+    write_json_atomic(out / RESULTS_FILE, to_jsonable(res))
+    return res
+
+
 def _estimated_crop(frames: list[PosedDepth], kdir: Path, settings: FusionSettings) -> tuple[Any, dict[str, Any]]:
     """The object cylinder estimated from the fuse keyframes (as for a DARP survey without an envelope), or
     no crop with a warning when no object stands on a table at z = 0 where the cameras look."""
@@ -379,7 +463,10 @@ def _estimated_crop(frames: list[PosedDepth], kdir: Path, settings: FusionSettin
     return settings.crop(estimate.envelope()), estimate.to_dict()
 
 
-def _figure(mesh: Any, held_points: list[np.ndarray], path: Path, title: str, median_mm: float) -> None:
+def _figure(mesh: Any, held_points: list[np.ndarray], path: Path, title: str, median_mm: float,
+            max_triangles: int | None = None) -> None:
+    """The mesh from above and the side with held-out points; ``max_triangles``: draw an even sample of the
+    triangles (None: the first 300,000, as before)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -389,6 +476,8 @@ def _figure(mesh: Any, held_points: list[np.ndarray], path: Path, title: str, me
 
     V = np.asarray(mesh.vertices)
     F = np.asarray(mesh.triangles)
+    if max_triangles is not None:
+        F = F[::max(len(F) // max_triangles, 1)]
     fig = Figure(figsize=(12, 5))
     for n, (a, b, name) in enumerate(((0, 1, "top (x, y)"), (0, 2, "side (x, z)"))):
         ax = fig.add_subplot(1, 2, n + 1)

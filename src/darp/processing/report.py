@@ -312,24 +312,30 @@ def survey_status(out: str | Path) -> dict[str, dict[str, str]]:
     listed = [str(row.get("folder") or row.get("name")) for row in summary.get("surveys") or []]
     missing = {name: f"in {RESULTS_FILE} but {out / name} holds no completed results" for name in listed
                if name not in done and name not in unfinished and name not in failed}
-    implausible = {}
+    implausible, untrusted = {}, {}
     for folder in find_survey_results(out):
-        warnings = read_results(folder).get("warnings") or []
+        results = read_results(folder)
+        warnings = results.get("warnings") or []
         if warnings:
             implausible[folder.name] = "; ".join(warnings)
+        flags = (results.get("trust") or {}).get("flags") or []
+        if flags:
+            untrusted[folder.name] = "; ".join(flags)
     unfinished = {name: reason for name, reason in unfinished.items() if name not in failed}
-    return {"failed": failed, "unfinished": unfinished, "missing": missing, "implausible": implausible}
+    return {"failed": failed, "unfinished": unfinished, "missing": missing, "implausible": implausible,
+            "not trusted": untrusted}
 
 
 def status_blocks(status: dict[str, dict[str, str]]) -> list[Block]:
     """The report's first section: surveys that are not ordinary results."""
-    rows = tuple((name, kind, reason) for kind in ("failed", "unfinished", "missing", "implausible")
+    rows = tuple((name, kind, reason) for kind in ("failed", "unfinished", "missing", "implausible", "not trusted")
                  for name, reason in sorted(status.get(kind, {}).items()))
     if not rows:
         return [Block("p", "Every survey completed with plausible results.")]
     return [Block("h2", "Surveys that are not ordinary results"),
             Block("p", "Failed, unfinished and missing surveys are not in the tables below; implausible ones "
-                       "are, flagged (!)."),
+                       "are, flagged (!), and those whose trust signals (cross-arm, hand-eye, per-arm tails, "
+                       "coverage, truth) disagree with the held-out figures or leave their bounds, flagged (?)."),
             Block("table", headers=("survey", "status", "reason"), rows=rows)]
 
 
@@ -352,7 +358,8 @@ def write_report(out: str | Path) -> tuple[Path, Path]:
         summary = aggregate_results(folders)  # stale or partial summary: recomputed from the completed surveys
     sources = sorted({r.get("pose_source", "calibration") for r in per})
     title = "darp processing report"
-    names = ", ".join(r["object"] + (" (!)" if r.get("warnings") else "") for r in per)
+    names = ", ".join(r["object"] + (" (!)" if r.get("warnings") else "")
+                      + (" (?)" if (r.get("trust") or {}).get("flags") else "") for r in per)
     blocks = [Block("h1", title),
               Block("p", f"{len(per)} survey(s): {names}. Camera poses from: {', '.join(sources)}.")]
     blocks += status_blocks(status)

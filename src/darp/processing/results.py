@@ -27,6 +27,10 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
                     point, a held-out median above evaluation.max_heldout_median_mm, a twin survey's fused cloud
                     farther from the true surface than evaluation.max_truth_accuracy_mm, a partial survey
                     (PARTIAL.txt / *.bag.partial)
+    trust           {signals, flags, bounds} (:mod:`darp.evaluation.trust`): the signals that can see a result the
+                    held-out figures cannot (cross-arm disagreement, the calibration's held-out error, per-arm
+                    held-out tails, coverage, on twin surveys the truth) and one line per signal that leaves its
+                    bound or disagrees with the held-out median; shown (?) in the table and the report
     paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
                     within 5 / 10 mm, 224 keyframes, 1,563,466 points)
 
@@ -59,6 +63,7 @@ from darp import paper
 from darp.errors import EvaluationError, FormatError
 from darp.evaluation.heldout import HeldoutResult, HeldoutSummary
 from darp.evaluation.point_to_mesh import distance_stats
+from darp.evaluation.trust import envelope_coverage_pct, trust_signals
 from darp.evaluation.truth_metrics import TRUTH_THRESHOLDS_M
 from darp.formats.atomic import write_json_atomic
 from darp.formats.io_input import LIMITS
@@ -129,6 +134,11 @@ def survey_results(job: SurveyJob, evaluation: dict[str, Any]) -> dict[str, Any]
     warnings = plausibility_warnings(results, job)
     results["status"] = "implausible" if warnings else "ok"
     results["warnings"] = warnings
+    uncertainty = job.calibration_uncertainty()
+    coverage = envelope_coverage_pct(int((results.get("clouds") or {}).get("fused", 0) or 0),
+                                     results.get("envelope") or {}, job.settings.fusion_used.voxel_size_m)
+    results["trust"] = trust_signals(results, handeye_p90_mm=None if uncertainty is None else 1000.0 * uncertainty,
+                                     envelope_pct=coverage)
     return results
 
 
@@ -213,7 +223,8 @@ def aggregate_results(folders: Sequence[str | Path],
         "schema": SUMMARY_SCHEMA,
         "status": "failed" if failed else "warnings" if warnings else "ok",
         "surveys": [{"name": r["survey"], "object": r.get("object"), "pose_source": r.get("pose_source"),
-                     "folder": f.name, "status": r.get("status", "ok"), "warnings": list(r.get("warnings") or [])}
+                     "folder": f.name, "status": r.get("status", "ok"), "warnings": list(r.get("warnings") or []),
+                     **({"trust_flags": r["trust"]["flags"]} if (r.get("trust") or {}).get("flags") else {})}
                     for f, r in zip(paths, per, strict=True)],
         "failed": [dict(row) for row in failed],
         "warnings": warnings,

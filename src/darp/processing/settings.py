@@ -5,6 +5,7 @@ A settings file (YAML or JSON) gives any subset; everything not given keeps its 
     keyframes: {per_view: 3, min_separation_deg: 6, heldout_every: 5}
     fusion: {voxel_size_m: 0.0015, min_frames: 3, depth: {max_depth_m: 1.0}}
     mesh: {radius_factors: [2, 4, 8]}
+    surface: {method: auto}    # auto | paper | measured (auto: measured for imported surveys, paper for DARP ones)
     evaluation: {truth_sample_spacing_m: 0.001, figures: true}
     corrections: {kinematics: true, depth: true, time: true, refine: true, table: true, fusion: true, mesh: true}
     refinement: {max_sigma: 2.0, per_view: true}   # parameters of corrections.refine
@@ -33,6 +34,7 @@ from darp.reconstruction.fusion import FusionSettings
 from darp.reconstruction.keyframes import KeyframeSettings
 from darp.reconstruction.mesh import MeshSettings
 from darp.reconstruction.refine import RefineSettings
+from darp.reconstruction.tsdf_surface import SurfaceSettings
 
 
 @dataclass(frozen=True)
@@ -146,6 +148,9 @@ ADDED_LATER: tuple[tuple[str, str], ...] = (
     ("keyframes", "heldout_unit"),
 )
 
+# Whole groups added later: left out of ``to_dict`` while every setting in them holds its default.
+ADDED_LATER_GROUPS: tuple[str, ...] = ("surface",)
+
 
 @dataclass(frozen=True)
 class ProcessSettings:
@@ -157,6 +162,7 @@ class ProcessSettings:
     evaluation: EvaluationSettings = field(default_factory=EvaluationSettings)
     corrections: CorrectionSettings = field(default_factory=CorrectionSettings)
     refinement: RefineSettings = field(default_factory=RefineSettings)  # parameters of corrections.refine
+    surface: SurfaceSettings = field(default_factory=SurfaceSettings)  # which surface (auto: measured if imported)
 
     @property
     def mesh_used(self) -> MeshSettings:
@@ -180,12 +186,15 @@ class ProcessSettings:
         for group, name in ADDED_LATER:
             if plain[group][name] == defaults[group][name]:
                 del plain[group][name]
+        for group in ADDED_LATER_GROUPS:
+            if plain[group] == defaults[group]:
+                del plain[group]
         return plain
 
     def fingerprint(self, *groups: str) -> str:
         """Short hash of the given groups' values (all when none): changes when any of them changes."""
         values = self.to_dict()
-        chosen = {g: values[g] for g in (groups or tuple(values))}
+        chosen = {g: values[g] for g in (groups or tuple(values)) if g in values}
         return hashlib.sha256(json.dumps(chosen, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -195,8 +204,8 @@ def _floats(values: Any) -> tuple[float, ...]:
 
 def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
     """Build :class:`ProcessSettings` from a (partial) mapping; errors name the offending key."""
-    refuse_unknown_keys(values, ("keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement"),
-                        error=ConfigError)
+    refuse_unknown_keys(values, ("keyframes", "fusion", "mesh", "evaluation", "corrections", "refinement",
+                                 "surface"), error=ConfigError)
     return ProcessSettings(
         keyframes=dataclass_from_mapping(KeyframeSettings, values.get("keyframes"), "keyframes", error=ConfigError),
         fusion=dataclass_from_mapping(FusionSettings, values.get("fusion"), "fusion", nested={
@@ -209,6 +218,7 @@ def settings_from_dict(values: Mapping[str, Any]) -> ProcessSettings:
                                            error=ConfigError),
         refinement=dataclass_from_mapping(RefineSettings, values.get("refinement"), "refinement",
                                           convert={"max_correspondence_m": _floats}, error=ConfigError),
+        surface=dataclass_from_mapping(SurfaceSettings, values.get("surface"), "surface", error=ConfigError),
     )
 
 

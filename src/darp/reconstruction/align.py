@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from darp.errors import ReconstructionError
@@ -106,6 +105,7 @@ def align_colour_to_depth(depth: np.ndarray, depth_scale: float, depth_intrinsic
     ``depth`` is raw Z16 (with ``depth_scale``) or metric float depth (scale 1); ``colour_rgb`` is
     (Hc, Wc, 3) of the colour intrinsics' size.
     """
+    import cv2  # heavy: loaded when depth images are filtered, not when darp is imported
     colour = np.asarray(colour_rgb)
     if colour.ndim != 3 or colour.shape[:2] != (colour_intrinsics.height, colour_intrinsics.width):
         raise ReconstructionError(

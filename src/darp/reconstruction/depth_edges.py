@@ -29,7 +29,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
 if TYPE_CHECKING:
@@ -111,6 +110,7 @@ def edge_free_mask(depth_m: np.ndarray, valid: np.ndarray, settings: DepthFilter
     and flying pixels sit (across a silhouette); the hole's other neighbours are checked by the other
     scan and the discontinuity test.
     """
+    import cv2  # heavy: loaded when depth images are filtered, not when darp is imported
     abs_m, rel = np.float32(settings.discontinuity_abs_m), np.float32(settings.discontinuity_rel)
     kernel3 = np.ones((3, 3), np.uint8)
     z = np.where(valid, depth_m, np.float32(0.0)).astype(np.float32)
@@ -129,6 +129,7 @@ def edge_free_mask(depth_m: np.ndarray, valid: np.ndarray, settings: DepthFilter
 
 def _grow(mask: np.ndarray, margin: int) -> np.ndarray:
     """``mask`` dilated by a (2 margin + 1) square; beyond the window everything counts as set."""
+    import cv2  # heavy: loaded when depth images are filtered, not when darp is imported
     if margin <= 0:
         return mask.copy()
     kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
