@@ -224,3 +224,15 @@ def test_six_value_poses_read_with_a_declared_rotation_form(tmp_path: Path) -> N
                             for (n, T), r in zip(real.items(), forms["rotvec"], strict=True)))
     with pytest.raises(FormatError, match=r"undeclared\.csv: 6 values per pose.*declare rotation: rotvec"):
         read_pose_table(path, PoseConventions("mm"))
+
+
+def test_a_quaternion_table_missing_a_column_is_named_as_such(tmp_path: Path) -> None:
+    """A header that names quaternion columns over six values is a missing column, not an undeclared rotation
+    vector: the error says so instead of asking for ``rotation: rotvec``."""
+    path = tmp_path / "poses.csv"
+    path.write_text("id,x,y,z,qx,qy,qz\n0,0.1,0.2,0.3,0.0,0.0,0.0\n1,0.2,0.2,0.3,0.0,0.0,0.1\n")
+    with pytest.raises(FormatError, match=r"poses\.csv: 6 values per pose but the header names quaternion columns "
+                                          r"\(qx, qy, qz\).*is a column missing"):
+        read_pose_table(path)
+    path.write_text("# rotation: rotvec\nid,x,y,z,qx,qy,qz\n0,0.1,0.2,0.3,0.0,0.0,0.0\n")  # declared: read as asked
+    assert np.allclose(read_pose_table(path).poses["0"][:3, 3], [0.1, 0.2, 0.3])

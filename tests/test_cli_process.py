@@ -29,6 +29,19 @@ def test_folder_without_surveys(tmp_path: Path, capsys) -> None:
     one_error_line(capsys, "empty")
 
 
+def test_a_bad_calibration_file_is_one_line_for_a_batch(tmp_path: Path, capsys) -> None:
+    """The calibration is one file for every survey: unreadable, it is one line before any survey starts (was: one
+    'open failed' line per survey, a count line and a table of FAILED rows)."""
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "arm_poses.csv").write_text("time_s,arm,q1,q2,q3,q4,q5,q6\n")
+    (tmp_path / "cal.json").write_text("{}")
+    assert run(["process", str(tmp_path / "a"), str(tmp_path / "b"), "--out", str(tmp_path / "o"),
+                "-c", str(tmp_path / "cal.json")]) == 2
+    one_error_line(capsys, "cal.json")
+    assert not (tmp_path / "o").exists()
+
+
 def test_report_without_results(tmp_path: Path, capsys) -> None:
     assert run(["report", str(tmp_path)]) == 2
     one_error_line(capsys, "no processed survey")

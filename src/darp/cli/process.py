@@ -174,10 +174,15 @@ def process(
     if duplicated:
         raise typer.BadParameter(f"two surveys share the folder name {duplicated[0]!r}: their outputs would collide",
                                  param_hint="'SURVEYS...'")
+    cal = None
+    if calibration is not None:  # one file for the whole batch: a bad one is one line, not a failure per survey
+        from darp.formats.calibration import read_calibration
+
+        cal = read_calibration(calibration)
     if executor is not None:  # one task per survey on Ray (darp.batch), failures contained the same way
         outcomes = process_on_executor(folders, out, calibration, truth_poses, settings, resume, executor)
     else:
-        outcomes = _process_here(folders, out, calibration, truth_poses, settings, resume)
+        outcomes = _process_here(folders, out, calibration, cal, truth_poses, settings, resume)
     done = [o.out for o in outcomes if o.status != FAILED]
     failed = [o for o in outcomes if o.status == FAILED]
     for o in failed:  # after the progress display is gone: one clean line each
@@ -200,23 +205,19 @@ def process(
         raise typer.Exit(2)
 
 
-def _process_here(folders: list[Path], out: Path, calibration: Path | None, truth_poses: bool, settings: Any,
-                  resume: bool) -> list[Any]:
+def _process_here(folders: list[Path], out: Path, calibration: Path | None, cal: Any, truth_poses: bool,
+                  settings: Any, resume: bool) -> list[Any]:
     """The batch in this process, one survey after another, with per-stage progress bars
-    (:func:`darp.processing.batch.process_folder` for each, as a Ray task runs it)."""
-    from darp.formats.calibration import read_calibration
+    (:func:`darp.processing.batch.process_folder` for each, as a Ray task runs it); ``cal`` is the calibration
+    file ``calibration`` already read."""
     from darp.processing.batch import process_batch, process_folder
-
-    loaded: dict[str, Any] = {}
 
     with _progress_bars() as progress:
         overall = progress.add_task("surveys", total=len(folders))
 
         def run_one(folder: Path, target: Path) -> dict[str, Any]:
-            if calibration is not None and "cal" not in loaded:  # read once for the batch (its error: one line)
-                loaded["cal"] = read_calibration(calibration)
             return process_folder(folder, target, calibration, settings=settings, truth_poses=truth_poses,
-                                  resume=resume, calibration=loaded.get("cal"),
+                                  resume=resume, calibration=cal,
                                   progress=_stage_callback(progress, folder.name),
                                   on_note=lambda note: _warn(f"{folder.name}: {note}"))
 

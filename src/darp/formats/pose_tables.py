@@ -94,6 +94,9 @@ def _finish(path: Path, raw: list[tuple[str, np.ndarray]], conv: PoseConventions
     return PoseTable(path, poses, names, has_ids, quaternions, conv)
 
 
+QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw", "q_x", "q_y", "q_z", "q_w")
+
+
 def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> PoseTable:
     lines = read_utf8_text(path, "a pose table").splitlines()
     conv = pose_conventions(comment_declarations(lines), path, conv)
@@ -148,6 +151,10 @@ def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> Pos
         mats = [quat_pose(v, PoseConventions("m", conv.quaternion)) for v in V]
         quats = True
     elif n == 6:
+        named = [h for j, h in enumerate(header or []) if j != idc and h in QUATERNION_COLUMNS]
+        if named and not conv.rotation:  # x y z + 3 of a quaternion's 4: a column is missing, not a rotation vector
+            raise FormatError(f"6 values per pose but the header names quaternion columns ({', '.join(named)}): "
+                              "a quaternion needs 4 (x y z qx qy qz qw); is a column missing?", path)
         mats = [six_value_pose(v, conv, path) for v in V]
     else:
         raise FormatError(f"{n} values per pose: expected x y z + a quaternion (7) or a row-major 4x4 (16) / 3x4 (12)"
