@@ -8,7 +8,8 @@ weight threshold 3: Open3D's own example's choices; and again with darp's two-fr
 ``ScalableTSDFVolume`` (empty in Open3D 0.20: reported, not scored), run in children of
 their own on the survey's ``fuse`` keyframes (raw depth, the same voxel size and depth range darp derived).
 Every mesh is scored the same way: the held-out keyframes' **raw** depth points (every valid pixel, every
-``--stride``-th row and column, within darp's depth range; no filter) to the mesh: median, RMSE, p90, within
+``--stride``-th row and column, within darp's depth range and, where darp cropped to an envelope, inside it,
+the peers' meshes then cut to it too; no filter) to the mesh: median, RMSE, p90, within
 5 and 10 mm. CPU seconds are the peers' integration plus extraction and darp's whole process (its own child,
 reading included); peak RSS is each child's.
 
@@ -111,8 +112,23 @@ def peer_mesh(kind: str, survey: Path, voxel_m: float, depth_max_m: float, mesh_
     return {"cpu_s": cpu, "frames": frames, "triangles": len(mesh.triangles)}
 
 
-def heldout_raw_points(survey: Path, depth_range: tuple[float, float], stride: int) -> list[np.ndarray]:
-    """World points of every held-out keyframe: raw valid depth in ``depth_range``, every ``stride``-th pixel."""
+def crop_of(envelope: dict[str, Any]) -> Any:
+    """The envelope crop darp fused within (``results.json`` ``envelope``; fusion's default margins), or None."""
+    from darp.formats.envelope import Envelope
+    from darp.reconstruction.fusion import FusionSettings
+
+    centre, radius, height = envelope.get("center_m"), envelope.get("radius_m"), envelope.get("height_m")
+    if centre is None or radius is None or height is None:
+        return None
+    table = envelope.get("table_z_m")
+    return FusionSettings().crop(Envelope(center_m=tuple(centre), radius_m=radius, height_m=height),
+                                 table_z_m=None if table is None else float(table))
+
+
+def heldout_raw_points(survey: Path, depth_range: tuple[float, float], stride: int,
+                       region: Any = None) -> list[np.ndarray]:
+    """World points of every held-out keyframe: raw valid depth in ``depth_range``, every ``stride``-th pixel,
+    inside ``region`` when darp cropped to one (its envelope: then both meshes are scored on the object)."""
     from darp.reconstruction.depth_stats import invalid_depth
     from darp.reconstruction.keyframe_io import iter_keyframes
 
@@ -124,12 +140,14 @@ def heldout_raw_points(survey: Path, depth_range: tuple[float, float], stride: i
         v, u = np.nonzero(~invalid_depth(raw) & (z >= depth_range[0]) & (z <= depth_range[1]))
         zz = z[v, u]
         P = np.stack([(u * stride - it.ppx) / it.fx * zz, (v * stride - it.ppy) / it.fy * zz, zz], 1)
-        out.append(P @ kf.T_world_cam[:3, :3].T + kf.T_world_cam[:3, 3])
+        world = P @ kf.T_world_cam[:3, :3].T + kf.T_world_cam[:3, 3]
+        out.append(world if region is None else world[region.contains(world)])
     return out
 
 
-def score(mesh_path: Path, points: list[np.ndarray]) -> dict[str, float]:
-    """Held-out points to the mesh: median, RMSE, p90 (mm), within 5 / 10 mm (%)."""
+def score(mesh_path: Path, points: list[np.ndarray], region: Any = None) -> dict[str, float]:
+    """Held-out points to the mesh (its triangles inside ``region`` when given: a peer's mesh cut to darp's
+    crop): median, RMSE, p90 (mm), within 5 / 10 mm (%)."""
     import open3d as o3d
 
     from darp.evaluation.point_to_mesh import MeshDistance
@@ -138,11 +156,17 @@ def score(mesh_path: Path, points: list[np.ndarray]) -> dict[str, float]:
     if len(mesh.triangles) == 0:
         return {"median_mm": float("nan"), "rmse_mm": float("nan"), "p90_mm": float("nan"), "within_5mm_pct": 0.0,
                 "within_10mm_pct": 0.0, "points": 0, "triangles": 0}
-    md = MeshDistance(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+    V, T = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    if region is not None:
+        T = T[region.contains(V)[T].all(axis=1)]
+        if len(T) == 0:
+            return {"median_mm": float("nan"), "rmse_mm": float("nan"), "p90_mm": float("nan"),
+                    "within_5mm_pct": 0.0, "within_10mm_pct": 0.0, "points": 0, "triangles": 0}
+    md = MeshDistance(V, T)
     d = 1e3 * np.concatenate([md.distances(p) for p in points if len(p)]).astype(np.float64)
     return {"median_mm": float(np.median(d)), "rmse_mm": float(np.sqrt(np.mean(d**2))),
             "p90_mm": float(np.percentile(d, 90)), "within_5mm_pct": float(100 * np.mean(d <= 5)),
-            "within_10mm_pct": float(100 * np.mean(d <= 10)), "points": int(d.size), "triangles": len(mesh.triangles)}
+            "within_10mm_pct": float(100 * np.mean(d <= 10)), "points": int(d.size), "triangles": len(T)}
 
 
 def measure(survey: Path, work: Path, stride: int = 2, peers: tuple[str, ...] = ("vbg", "vbg2", "scalable"),
@@ -157,8 +181,10 @@ def measure(survey: Path, work: Path, stride: int = 2, peers: tuple[str, ...] = 
     surface = res.get("surface") or {}
     voxel = float(surface.get("voxel_size_m") or 0.01)
     lo, hi = surface.get("depth_range_m") or (0.1, 3.0)
-    points = heldout_raw_points(survey, (float(lo), float(hi)), stride)
+    region = crop_of(res.get("envelope") or {})
+    points = heldout_raw_points(survey, (float(lo), float(hi)), stride, region)
     out: dict[str, Any] = {"survey": str(survey), "voxel_m": voxel, "depth_range_m": [lo, hi], "stride": stride,
+                           "scored_in_envelope": region is not None,
                            "heldout_frames": len(points), "surface": surface.get("method", "paper"),
                            "darp": {**score(work / "darp" / survey.name / "mesh.ply", points),
                                     "cpu_s": darp_run["cpu_s"], "peak_rss_mb": darp_run["peak_rss_mb"]}}
@@ -170,7 +196,7 @@ def measure(survey: Path, work: Path, stride: int = 2, peers: tuple[str, ...] = 
             out[kind] = {"error": str(err)}
             continue
         inner = json.loads(run["stdout"].strip().splitlines()[-1])
-        out[kind] = {**score(mesh, points), "cpu_s": inner["cpu_s"], "peak_rss_mb": run["peak_rss_mb"]}
+        out[kind] = {**score(mesh, points, region), "cpu_s": inner["cpu_s"], "peak_rss_mb": run["peak_rss_mb"]}
     return out
 
 

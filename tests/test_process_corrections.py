@@ -104,7 +104,9 @@ def test_settings_added_later_are_absent_at_their_default_and_recorded_when_chan
 
 
 def test_a_bad_flag_is_one_error_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code = run(["process", str(tmp_path), "--truth-poses", "--out", str(tmp_path / "o"), "--corrections", "magic"])
+    (tmp_path / "s").mkdir()  # the output beside the survey, not inside it (that is refused first: issue 32)
+    code = run(["process", str(tmp_path / "s"), "--truth-poses", "--out", str(tmp_path / "o"), "--corrections",
+                "magic"])
     assert code == 2
     err = capsys.readouterr().err
     assert err.startswith("darp: error: Invalid value for '--corrections'") and "magic" in err

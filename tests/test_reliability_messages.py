@@ -18,38 +18,18 @@ import pytest
 
 from darp.cli._app import run
 from darp.errors import FormatError
-
-
-class _Job:
-    def __init__(self, out: Path) -> None:
-        self.out = out
-
-    @property
-    def name(self) -> str:
-        return "s"
-
-    def identity(self) -> dict[str, Any]:
-        return {}
-
-    def settings_fingerprint(self, groups: Any) -> str:
-        return ""
-
-    def report(self, stage: str, done: float, total: float | None) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
+from helpers.runner_job import FakeJob
 
 
 def test_a_full_disk_in_a_stage_names_that_stage(tmp_path: Path) -> None:
     from darp.processing.runner import Stage, StageFailure, process_survey
 
-    def fusion(job: _Job) -> dict[str, Any]:
+    def fusion(job: FakeJob) -> dict[str, Any]:
         raise OSError(errno.ENOSPC, "No space left on device", str(job.out / "fused.ply"))
 
     stages = (Stage("poses", lambda job: {}, ()), Stage("fusion", fusion, ("fused.ply",)))
     with pytest.raises(StageFailure) as caught:
-        process_survey(_Job(tmp_path), stages)
+        process_survey(FakeJob(tmp_path), stages)
     assert caught.value.stage == "fusion"
     assert caught.value.reason == f"{tmp_path / 'fused.ply'}: no space left on device"
 

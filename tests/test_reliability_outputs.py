@@ -14,6 +14,7 @@ import pytest
 from darp.cli._app import run
 from darp.formats.atomic import UNFINISHED_FILE
 from darp.formats.io_output import OutputBusy, lock_path, output_lock, unfinished_folder
+from helpers.runner_job import FakeJob
 
 FIXTURE_BAG = Path(__file__).parent / "fixtures" / "recordings" / "rs257_uncompressed.bag"
 RIG = Path(__file__).parents[1] / "src" / "darp" / "data" / "rig_default.yaml"
@@ -162,40 +163,17 @@ def test_twin_record_never_deletes_a_partial_folder_it_did_not_create(tmp_path: 
     assert (partial / "notes.txt").read_text() == "mine"
 
 
-class _Job:
-    """The runner's job interface: a stage "kf" writes an index and two frame files (only the index declared)."""
-
-    def __init__(self, out: Path) -> None:
-        self.out, self.ran = out, list[str]()
-
-    @property
-    def name(self) -> str:
-        return "job"
-
-    def identity(self) -> dict[str, Any]:
-        return {"v": 1}
-
-    def settings_fingerprint(self, groups: Any) -> str:
-        return ""
-
-    def report(self, stage: str, done: float, total: float | None) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
 def _stages() -> tuple[Any, ...]:
     from darp.processing.runner import Stage
 
-    def kf(job: _Job) -> dict[str, Any]:
+    def kf(job: FakeJob) -> dict[str, Any]:
         job.ran.append("kf")
         (job.out / "kf").mkdir(exist_ok=True)
         for name in ("index.json", "a.npz", "b.npz"):
             (job.out / "kf" / name).write_text(name)
         return {}
 
-    def mesh(job: _Job) -> dict[str, Any]:
+    def mesh(job: FakeJob) -> dict[str, Any]:
         job.ran.append("mesh")
         (job.out / "mesh.ply").write_text("m")
         return {}
@@ -206,12 +184,12 @@ def _stages() -> tuple[Any, ...]:
 def test_resume_reruns_a_stage_whose_written_file_was_deleted(tmp_path: Path) -> None:
     from darp.processing.runner import process_survey
 
-    process_survey(_Job(tmp_path), _stages())
-    job = _Job(tmp_path)
+    process_survey(FakeJob(tmp_path), _stages())
+    job = FakeJob(tmp_path)
     process_survey(job, _stages(), resume=True)
     assert job.ran == []  # all there: nothing reruns
     (tmp_path / "kf" / "b.npz").unlink()  # a keyframe file, not a declared output
-    job = _Job(tmp_path)
+    job = FakeJob(tmp_path)
     process_survey(job, _stages(), resume=True)
     assert job.ran == ["kf", "mesh"] and (tmp_path / "kf" / "b.npz").is_file()
 
@@ -220,9 +198,9 @@ def test_resume_with_a_misshapen_stages_file_says_so_and_reruns(tmp_path: Path) 
     from darp.errors import DarpWarning
     from darp.processing.runner import STAGES_FILE, process_survey
 
-    process_survey(_Job(tmp_path), _stages())
+    process_survey(FakeJob(tmp_path), _stages())
     (tmp_path / STAGES_FILE).write_text('{"stages": [1, 2]}')
-    job = _Job(tmp_path)
+    job = FakeJob(tmp_path)
     with pytest.warns(DarpWarning, match="'stages' must map each stage name"):
         process_survey(job, _stages(), resume=True)
     assert job.ran == ["kf", "mesh"]
@@ -247,3 +225,12 @@ def test_a_run_holding_an_output_in_another_process_refuses_this_one(tmp_path: P
         holder.kill()
         holder.wait()
     assert run(["twin", "waypoints", "--object", "cube", "-o", str(out)]) == 0  # the kernel freed the lock
+
+
+def test_an_output_in_folders_not_made_yet_is_locked_too(tmp_path: Path) -> None:
+    out = tmp_path / "a" / "b" / "out.json"
+    with output_lock(out) as held:
+        assert held is not None and held.parent == out.parent
+        with pytest.raises(OutputBusy), output_lock(out):
+            pass
+    assert not (tmp_path / "a").exists()  # the folders made for the lock alone are gone again

@@ -86,6 +86,9 @@ def test_twin_surveys_at_2x_and_4x_the_paper_errors_are_flagged_and_1x_is_not(tm
         print(scale, json.dumps(r["trust"]["signals"]))
     assert flags[1] == [], flags[1]
     assert len(flags[2]) >= 2 and len(flags[4]) >= 2, flags
+    from darp.processing.results import write_summary
+
+    write_summary(tmp_path / "out", [tmp_path / "out" / f"mug-x{scale}" for scale in (1, 2, 4)])
     summary = json.loads((tmp_path / "out" / "results.json").read_text())
     assert {s["name"]: bool(s.get("trust_flags")) for s in summary["surveys"]} == {
         "mug-x1": False, "mug-x2": True, "mug-x4": True}

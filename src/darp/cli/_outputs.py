@@ -20,6 +20,7 @@ from typing import Any
 
 import typer
 
+from darp.cli._options import refuse_output_over_inputs
 from darp.formats.io_output import output_lock
 
 OUTPUT_PARAMS = ("out", "report", "save")
@@ -38,10 +39,6 @@ def add_input(path: str | Path) -> None:
 _current: list[tuple[str, Path, bool]] = []
 
 
-def _inside(path: Path, folder: Path) -> bool:
-    return path == folder or folder in path.parents
-
-
 def _paths(value: Any) -> Iterable[Path]:
     if isinstance(value, Path):
         yield value
@@ -58,16 +55,7 @@ def _folder_only(param: Any) -> bool:
 
 
 def _check(out: Path, folder: bool, inputs: Iterable[Path], option: str) -> None:
-    target = out.expanduser().resolve()
-    for source in inputs:
-        if not source.exists():
-            continue
-        held = source.expanduser().resolve()
-        clash = _inside(target, held) or (folder and _inside(held, target))
-        if clash:
-            what = "is" if target == held else ("is inside" if _inside(target, held) else "holds")
-            raise typer.BadParameter(f"{out} {what} the input {source}: refusing to write over an input",
-                                     param_hint=f"'{option}'")
+    refuse_output_over_inputs(out, [source for source in inputs if source.exists()], option, folder_output=folder)
 
 
 def _check_finite(param: Any, value: Any) -> None:

@@ -434,6 +434,8 @@ def export_command(
     """Write a darp capture folder as a generic any-arm captures folder (flange poses from the Z1 model)."""
     from darp.calibration.anyarm_export import export_captures
     from darp.calibration.captures import read_captures
+    from darp.formats.io_output import unfinished_folder
 
-    n = export_captures(read_captures(captures), out)
+    with unfinished_folder(out, "darp calib export"):
+        n = export_captures(read_captures(captures), out)
     typer.echo(f"wrote {out} ({n} captures)")

@@ -41,6 +41,7 @@ def poses(
     from rich.table import Table
 
     from darp.formats.calibration import read_calibration
+    from darp.formats.io_output import unfinished_folder
     from darp.formats.survey import open_survey
     from darp.kinematics.rig import load_rig
     from darp.reconstruction.poses import FIGURE_FILE, recover_survey_poses, write_survey_poses
@@ -69,14 +70,15 @@ def poses(
             clock_offset_s=clock_offset_s, wrist_frame=rig.wrist_frame, on_arm=on_arm,
         )
         progress.update(task, description="writing trajectories")
-        write_survey_poses(result, out)
-        progress.advance(task)
-        if figure:
-            from darp.reconstruction.rig_figures import plot_trajectories
-
-            progress.update(task, description="drawing the figure")
-            plot_trajectories(result, out / FIGURE_FILE, rig=rig)
+        with unfinished_folder(out, "darp poses"):  # UNFINISHED.txt until every file is there
+            write_survey_poses(result, out)
             progress.advance(task)
+            if figure:
+                from darp.reconstruction.rig_figures import plot_trajectories
+
+                progress.update(task, description="drawing the figure")
+                plot_trajectories(result, out / FIGURE_FILE, rig=rig)
+                progress.advance(task)
 
     for warning in result.warnings:
         warn(warning)

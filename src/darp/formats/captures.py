@@ -28,6 +28,7 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 
 from darp.errors import FormatError
+from darp.formats.atomic import UNFINISHED_FILE
 from darp.formats.intrinsics import CameraModel, load_intrinsics
 from darp.formats.pairing import Pairing, pair_names, read_order_file, shift_poses
 from darp.formats.pose_tables import PoseTable, read_pose_table, swapped_quaternion_table
@@ -156,6 +157,9 @@ def read_capture_folder(root: str | Path, parse_board: Callable[[dict[str, Any],
     root = Path(root)
     if not root.is_dir():
         raise FormatError("captures folder not found", root)
+    if (root / UNFINISHED_FILE).exists():
+        raise FormatError(f"unfinished captures folder ({UNFINISHED_FILE}: the run that wrote it did not complete)",
+                          root)
     side = load_sidecar(root)
     sidecar = root / SIDECAR
     if "board" not in side or not isinstance(side["board"], dict):

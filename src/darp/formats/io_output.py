@@ -39,6 +39,7 @@ def output_lock(out: str | Path) -> Iterator[Path | None]:
     holds it. Where no lock file can be made (a read-only or missing folder) the block runs unlocked: the write
     itself then fails with its own one-line error."""
     path = lock_path(out)
+    created = _make_parents(path.parent)  # the lock lives in the output's own folder, made now if need be
     fd = _acquire(path, Path(out))
     try:
         yield path if fd is not None else None
@@ -47,6 +48,29 @@ def output_lock(out: str | Path) -> Iterator[Path | None]:
             with contextlib.suppress(OSError):
                 path.unlink()  # while still held: a run that opened the old file sees a stale inode, below
             os.close(fd)
+        for folder in created:  # folders made for the lock alone (the run was refused or wrote elsewhere)
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+
+
+def _make_parents(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; the ones created, deepest first (empty ones are removed at the
+    end). Where they cannot be made, nothing is (the run goes on unlocked; its writes fail in their own words)."""
+    missing = []
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        missing.append(probe)
+        probe = probe.parent
+    made = []
+    for p in reversed(missing):
+        try:
+            p.mkdir()
+        except FileExistsError:
+            continue
+        except OSError:
+            break
+        made.append(p)
+    return made[::-1]
 
 
 def _acquire(path: Path, out: Path) -> int | None:

@@ -34,7 +34,15 @@ import numpy as np
 from darp.errors import FormatError
 from darp.formats.io_input import LIMITS, load_numpy
 from darp.formats.pairing import frame_id, keyed
-from darp.formats.poses import PoseConventions, pose_conventions, quat_pose, read_matrix_file, six_value_pose
+from darp.formats.poses import (
+    PoseConventions,
+    comment_declarations,
+    is_number,
+    pose_conventions,
+    quat_pose,
+    read_matrix_file,
+    six_value_pose,
+)
 from darp.formats.text import read_utf8_text
 from darp.geometry.rigid import orthonormalised, warn_orthonormalised
 
@@ -89,29 +97,9 @@ def _finish(path: Path, raw: list[tuple[str, np.ndarray]], conv: PoseConventions
 QUATERNION_COLUMNS = ("qx", "qy", "qz", "qw", "q_x", "q_y", "q_z", "q_w")
 
 
-def _is_number(s: str) -> bool:
-    try:
-        float(s)
-    except ValueError:
-        return False
-    return True
-
-
-def _declared(lines: list[str]) -> dict[str, str]:
-    out: dict[str, str] = {}
-    for line in lines:
-        s = line.strip()
-        if s.startswith("#"):
-            for part in s.lstrip("#").replace(";", ",").split(","):
-                if ":" in part or "=" in part:
-                    k, v = part.replace("=", ":").split(":", 1)
-                    out[k.strip().lower()] = v.strip()
-    return out
-
-
 def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> PoseTable:
     lines = read_utf8_text(path, "a pose table").splitlines()
-    conv = pose_conventions(_declared(lines), path, conv)
+    conv = pose_conventions(comment_declarations(lines), path, conv)
     body = [s for s in (line.strip() for line in lines) if s and not s.startswith("#")]
     if not body:
         raise FormatError("no pose rows", path)
@@ -119,7 +107,7 @@ def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> Pos
     rows = list(csv.reader(io.StringIO("\n".join(body)))) if delim else [r.split() for r in body]
     rows = [[c.strip() for c in r if c.strip() != ""] for r in rows]
     header: list[str] | None = None
-    if len(rows[0]) > 1 and not all(_is_number(c) for c in rows[0][1:]):
+    if len(rows[0]) > 1 and not all(is_number(c) for c in rows[0][1:]):
         header = [h.lower() for h in rows[0]]
         rows = rows[1:]
     if not rows:
@@ -130,7 +118,7 @@ def _rows_table(path: Path, conv: PoseConventions, id_column: str | None) -> Pos
         if header is None or id_column.lower() not in header:
             raise FormatError(f"no column named {id_column!r} (header: {', '.join(header or ['none'])})", path)
         idc = header.index(id_column.lower())
-    elif (rows and not _is_number(rows[0][0])) or (header is not None and header[0] in ID_KEYS):
+    elif (rows and not is_number(rows[0][0])) or (header is not None and header[0] in ID_KEYS):
         idc = 0
     values = [[c for j, c in enumerate(r) if j != idc] for r in rows]
     names = [r[idc] if idc is not None else str(i) for i, r in enumerate(rows)]

@@ -123,21 +123,11 @@ def read_pose_csv(path: Path, conv: PoseConventions) -> dict[str, np.ndarray]:
         lines = read_utf8_text(path, "a text file").splitlines()
     except (OSError, UnicodeDecodeError) as err:
         raise FormatError(f"cannot read ({err})", path) from None
-    declared: dict[str, Any] = {}
-    body = []
-    for line in lines:
-        s = line.strip()
-        if s.startswith("#"):
-            for part in s.lstrip("#").replace(";", ",").split(","):
-                if ":" in part or "=" in part:
-                    k, v = part.replace("=", ":").split(":", 1)
-                    declared[k.strip().lower()] = v.strip()
-        elif s:
-            body.append(s)
-    conv = pose_conventions(declared, path, conv)
+    body = [s for s in (line.strip() for line in lines) if s and not s.startswith("#")]
+    conv = pose_conventions(comment_declarations(lines), path, conv)
     out: dict[str, np.ndarray] = {}
     for n, row in enumerate(csv.reader(body)):
-        if n == 0 and not _is_number(row[1] if len(row) > 1 else ""):
+        if n == 0 and not is_number(row[1] if len(row) > 1 else ""):
             continue  # header
         if len(row) < 8:
             raise FormatError(f"row {n + 1} has {len(row)} values; expected id, x, y, z, q1, q2, q3, q4", path)
@@ -156,12 +146,27 @@ def read_pose_csv(path: Path, conv: PoseConventions) -> dict[str, np.ndarray]:
     return out
 
 
-def _is_number(s: str) -> bool:
+def is_number(s: str) -> bool:
+    """Whether ``s`` parses as a float (a header row's cells do not)."""
     try:
         float(s)
     except ValueError:
         return False
     return True
+
+
+def comment_declarations(lines: list[str]) -> dict[str, str]:
+    """``key: value`` (or ``key=value``) pairs declared in a table's comment lines, e.g.
+    ``# unit: mm, quaternion: wxyz``; keys lower-cased."""
+    out: dict[str, str] = {}
+    for line in lines:
+        s = line.strip()
+        if s.startswith("#"):
+            for part in s.lstrip("#").replace(";", ",").split(","):
+                if ":" in part or "=" in part:
+                    k, v = part.replace("=", ":").split(":", 1)
+                    out[k.strip().lower()] = v.strip()
+    return out
 
 
 def _stem_key(f: Path) -> str:
@@ -221,5 +226,6 @@ def read_board_poses(folder: Path) -> dict[str, np.ndarray]:
     return out
 
 
-__all__ = ["ROTATION_FORMS", "PoseConventions", "capture_key", "pose_conventions", "quat_pose", "read_board_poses",
-           "read_matrix_file", "read_pose_csv", "read_pose_folder", "read_poses", "six_value_pose"]
+__all__ = ["ROTATION_FORMS", "PoseConventions", "capture_key", "comment_declarations", "is_number",
+           "pose_conventions", "quat_pose", "read_board_poses", "read_matrix_file", "read_pose_csv",
+           "read_pose_folder", "read_poses", "six_value_pose"]

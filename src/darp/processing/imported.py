@@ -126,10 +126,6 @@ def _read_depth(path: Path) -> np.ndarray:
     return d
 
 
-def _read_colour(path: Path) -> np.ndarray | None:
-    return decode_image(path, cv2.IMREAD_COLOR, "a colour image")
-
-
 def check_depth_scale(depth: np.ndarray, scale: float, path: Path) -> float:
     """Median depth (m) of a frame; raise when the declared scale puts it at an impossible distance."""
     valid = depth[depth > 0]
@@ -227,7 +223,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
     first = _read_depth(depth[keys[0]])
     h, w = first.shape
     if keys[0] in colour:
-        c = _read_colour(colour[keys[0]])
+        c = decode_image(colour[keys[0]], cv2.IMREAD_COLOR, "a colour image")
         if c is None:
             raise FormatError("cannot read the colour image", colour[keys[0]])
         if c.shape[:2] != (h, w):
@@ -263,7 +259,7 @@ def import_sequence(spec: ImportSpec) -> dict[str, Any]:
             raise FormatError(f"depth is {d.shape[1]} x {d.shape[0]}, the first frame {w} x {h}", depth[k])
         rgb: np.ndarray = np.zeros((h, w, 3), np.uint8)
         if k in colour:
-            c = _read_colour(colour[k])
+            c = decode_image(colour[k], cv2.IMREAD_COLOR, "a colour image")
             if c is None or c.shape[:2] != (h, w):  # never a black image in place of a frame's colour
                 got = "not a readable image" if c is None else f"{c.shape[1]} x {c.shape[0]}, the depth {w} x {h}"
                 raise FormatError(f"colour image: {got}", colour[k])
@@ -393,6 +389,7 @@ def process_imported_measured(folder: Path, out: Path, index: KeyframeIndex, sur
         depth_stats_of,
         envelope_open_pct,
         evaluate_heldout_measured,
+        mesh_raster_figure,
         write_mesh_cloud,
     )
 
@@ -428,8 +425,8 @@ def process_imported_measured(folder: Path, out: Path, index: KeyframeIndex, sur
     vertices = np.asarray(mesh.vertices, np.float32)
     figures = draw_figures(out, {}, np.empty((0, 3)), None, held.distances, title=index.survey)
     pooled = np.concatenate(list(held.distances.values())) if held.distances else np.empty(0)
-    _figure(mesh, shown, out / FIGURES_DIR / "imported_mesh.png", index.survey,
-            float(np.median(pooled)) * 1e3 if pooled.size else float("nan"), max_triangles=20_000)
+    mesh_raster_figure(mesh, shown, out / FIGURES_DIR / "imported_mesh.png", index.survey,
+                       float(np.median(pooled)) * 1e3 if pooled.size else float("nan"))
     figures["mesh"] = f"{FIGURES_DIR}/imported_mesh.png"
     cpu["figures"] = time.process_time() - t
     info["open_pct"] = envelope_open_pct(mesh, envelope_info, info["voxel_size_m"])

@@ -98,6 +98,50 @@ def write_mesh_cloud(path: Path, mesh: o3d.geometry.TriangleMesh, arm: str) -> P
                            colours=colours, comments=[f"arms {arm}", "measured surface: mesh vertices"])
 
 
+def mesh_raster_figure(mesh: o3d.geometry.TriangleMesh, held_points: list[np.ndarray], path: Path, title: str,
+                       median_mm: float, cells: int = 500) -> None:
+    """The mesh from above (x, y) and the side (x, z) as rasters: every triangle's centre binned into ``cells``
+    columns, shaded by its normal's light (the nearest triangle to the viewer wins), with a held-out frame's
+    points in red. A raster shows a mesh of millions of triangles whole, at a fixed cost."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from darp.formats.atomic import atomic_path
+
+    V = np.asarray(mesh.vertices, np.float32)
+    F = np.asarray(mesh.triangles)
+    F = F[::max(len(F) // (2 * cells * cells), 1)]  # about two triangles per cell are enough to fill it
+    centres = V[F].mean(axis=1) if len(F) else np.empty((0, 3), np.float32)
+    normals = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]) if len(F) else np.empty((0, 3))
+    normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    fig = Figure(figsize=(12, 5))
+    for n, (a, b, depth_axis, name) in enumerate(((0, 1, 2, "top (x, y)"), (0, 2, 1, "side (x, z)"))):
+        ax = fig.add_subplot(1, 2, n + 1)
+        if len(centres):
+            lo, hi = centres.min(axis=0), centres.max(axis=0)
+            size = max(float(hi[a] - lo[a]), float(hi[b] - lo[b]), 1e-6) / cells
+            ia = ((centres[:, a] - lo[a]) / size).astype(np.int64)
+            ib = ((centres[:, b] - lo[b]) / size).astype(np.int64)
+            shape = (int(ib.max()) + 1, int(ia.max()) + 1)
+            # nearest to the viewer: highest z from above, lowest y from the side (the viewer at -y)
+            key = centres[:, depth_axis] if depth_axis == 2 else -centres[:, depth_axis]
+            order = np.argsort(key, kind="stable")  # later (nearer) triangles overwrite earlier ones
+            shade = np.full(shape, np.nan, np.float32)
+            shade[ib[order], ia[order]] = np.abs(normals[order, depth_axis])
+            ax.imshow(shade, origin="lower", cmap="gray", vmin=0, vmax=1, interpolation="nearest",
+                      extent=(lo[a], lo[a] + shape[1] * size, lo[b], lo[b] + shape[0] * size))
+        for P in held_points[:1]:
+            if len(P):
+                ax.scatter(P[:, a], P[:, b], s=0.2, c="red", alpha=0.3)
+        ax.set_aspect("equal")
+        ax.set_title(f"{title}: mesh {name}" + (f"; held-out median {median_mm:.2f} mm" if n == 0 else ""))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+
+
 def envelope_open_pct(mesh: o3d.geometry.TriangleMesh, envelope: dict[str, Any], voxel_m: float) -> float | None:
     """Share of the envelope's side and top left open by the mesh (None without an envelope cylinder)."""
     centre, radius, height = envelope.get("center_m"), envelope.get("radius_m"), envelope.get("height_m")
@@ -107,5 +151,5 @@ def envelope_open_pct(mesh: o3d.geometry.TriangleMesh, envelope: dict[str, Any],
                       max(2.0 * voxel_m, 0.002))
 
 
-__all__ = ["DEPTH_ONLY", "build_measured_surface", "depth_stats_of", "envelope_open_pct",
+__all__ = ["DEPTH_ONLY", "build_measured_surface", "depth_stats_of", "envelope_open_pct", "mesh_raster_figure",
            "evaluate_heldout_measured", "heldout_points_measured", "resolve_method", "write_mesh_cloud"]

@@ -44,6 +44,7 @@ class SurfaceSettings:
     min_depth_m: float | None = None  # None: from the survey's depth distribution
     max_depth_m: float | None = None  # None: from the survey's depth distribution (cut at an empty gap)
     min_frames: int | None = None  # frames that must measure every corner of a cube; None: from the visit counts
+    truncation_m: float | None = None  # None: from the depth noise (depth_stats)
     edge_margin_px: int = 0  # further pixels dropped around a discontinuity (its nearer pixel always goes)
     max_incidence_deg: float = 75.0  # steeper steps between neighbouring pixels are discontinuities
     block_resolution: int = 8  # voxels per block side of the hash grid
@@ -52,7 +53,7 @@ class SurfaceSettings:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ReconstructionError(f"surface.method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        for name in ("voxel_size_m", "min_depth_m", "max_depth_m", "min_frames"):
+        for name in ("voxel_size_m", "min_depth_m", "max_depth_m", "min_frames", "truncation_m"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ReconstructionError(f"surface.{name} must be > 0 (or absent: from the data), got {value}")
@@ -118,7 +119,7 @@ class MeasuredSurface:
         self.voxel_size_m = s.voxel_size_m or stats.voxel_size_m
         self.min_depth_m = s.min_depth_m or stats.min_depth_m
         self.max_depth_m = s.max_depth_m or stats.max_depth_m
-        self.truncation_m = max(stats.truncation_m, 2.0 * self.voxel_size_m)
+        self.truncation_m = s.truncation_m or max(stats.truncation_m, 2.0 * self.voxel_size_m)
         self.frames = 0
         self.pixels_in = 0
         self.pixels_kept = 0
@@ -188,11 +189,12 @@ class MeasuredSurface:
         return out
 
     def surface_weights(self) -> np.ndarray:
-        """Weights (frames) of the voxels within half the truncation of the surface."""
+        """Weights (frames) of a sample of the voxels within half the truncation of the surface."""
         if self._grid is None:
             return np.empty(0, np.float32)
-        tsdf = self._grid.attribute("tsdf").numpy().reshape(-1)
-        weight = self._grid.attribute("weight").numpy().reshape(-1)
+        # every 7th voxel: the median and the share seen once are the same, for a seventh of the reading
+        tsdf = self._grid.attribute("tsdf").numpy().reshape(-1)[::7]
+        weight = self._grid.attribute("weight").numpy().reshape(-1)[::7]
         near = (weight > 0) & (np.abs(tsdf) < 0.5)
         return np.asarray(weight[near], np.float32)
 
