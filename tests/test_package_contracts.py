@@ -91,3 +91,14 @@ def test_the_cli_export_choices_are_the_export_registry() -> None:
     from darp.export import FORMATS
 
     assert sorted(f.value for f in ExportFormat) == sorted(FORMATS)
+
+
+@pytest.mark.parametrize("package", sorted(p.name for p in SRC.iterdir() if (p / "__init__.py").is_file()))
+def test_every_package_docstring_names_each_of_its_modules(package: str) -> None:
+    """A newcomer reads a package's docstring to find its modules: each public one is named there."""
+    import importlib
+    import pkgutil
+
+    doc = importlib.import_module(f"darp.{package}").__doc__ or ""
+    modules = [m.name for m in pkgutil.iter_modules([str(SRC / package)]) if not m.name.startswith("_")]
+    assert not [m for m in modules if f".{m}" not in doc], f"darp.{package}'s docstring does not name them"

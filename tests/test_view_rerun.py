@@ -195,7 +195,7 @@ def test_viewer_addresses() -> None:
 
 def test_view_connect_and_save_together_is_one_error_line(tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
-    (tmp_path / "in").mkdir()  # the .rrd outside the input: the output guard would answer first
+    (tmp_path / "in").mkdir()
     assert run(["view", str(tmp_path / "in"), "--save", str(tmp_path / "x.rrd"), "--connect", "9876"]) == 2
     assert "--connect" in capsys.readouterr().err.splitlines()[0]
 

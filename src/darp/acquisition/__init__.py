@@ -1,10 +1,11 @@
 """darp.acquisition: autonomous object surveys on any rig backend (the twin or the real rig).
 
-Localise an object placed anywhere (:mod:`.localise`, depth estimates in :mod:`.estimate`), confirm it from both
-arms (:mod:`.confirm`), plan the views (:mod:`.coverage`: coverage planning and next best views;
-:mod:`.viewpoints`: candidate checks, the fixed orbit, tour order), move safely (:mod:`.motion_check`: clearances,
-fault stop), record the survey (:mod:`.survey`, its event log in :mod:`.episode`) and verify it
-(:mod:`.verify`). Everything here drives a :class:`darp.backend.RigBackend`; nothing knows which rig it is.
+Localise an object placed anywhere (:mod:`.localise`, depth estimates in :mod:`.estimate`), confirm it from both arms
+(:mod:`.confirm`), plan the views (:mod:`.coverage`: the coverage model; :mod:`.coverage_plan`: coverage planning;
+:mod:`.coverage_track`: achieved coverage and next best views; :mod:`.viewpoints`: candidate checks and the fixed orbit;
+:mod:`.tour`: the views' order), move safely (:mod:`.motion_check`: clearances, fault stop), record the survey
+(:mod:`.survey`, its event log in :mod:`.episode`) and verify it (:mod:`.verify`). Everything here drives a
+:class:`darp.backend.RigBackend`; nothing knows which rig it is.
 """
 
 from __future__ import annotations

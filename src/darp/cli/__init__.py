@@ -1,4 +1,7 @@
-"""The ``darp`` command. Each command group lives in its own module and registers itself here.
+"""The ``darp`` command. Each command group lives in its own module and registers itself here: :mod:`.demo`,
+:mod:`.collect`, :mod:`.calib`, :mod:`.process` (with ``keyframes`` and ``report``), :mod:`.poses`, :mod:`.inspect`,
+:mod:`.imports`, :mod:`.export`, :mod:`.view`, :mod:`.twin`, :mod:`.generate` (``twin generate``), :mod:`.hardware`,
+:mod:`.recording` and :mod:`.rig`.
 
 Every error (a bad argument, a library :class:`darp.errors.DarpError`) becomes one ``darp: error:`` line on
 stderr and exit code 2; no traceback is shown for user errors. The option convention every command follows

@@ -2,8 +2,9 @@
 
 Held-out point-to-mesh error (:mod:`.heldout`, distances in :mod:`.point_to_mesh`), cross-arm consistency
 (:mod:`.cross_arm`), metrics against the twin's truth (:mod:`.truth_metrics`), the composition table
-(:mod:`.composition`), the figures (:mod:`.figures`, observation maps in :mod:`.observations`). Inputs are
-reconstruction's outputs and files; Open3D and matplotlib load only when a measure or figure is computed.
+(:mod:`.composition`), the figures (:mod:`.figures`, observation maps in :mod:`.observations`) and the trust flags that
+say when a survey's figures should not be believed (:mod:`.trust`). Inputs are reconstruction's outputs and files;
+Open3D and matplotlib load only when a measure or figure is computed.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Exports of processed surveys into the formats other tools load (``darp export FORMAT``).
 
-The conventions of each format are in :mod:`darp.export.cameras`, :mod:`darp.export.bop` and
-:mod:`darp.export.completion`.
+The conventions of each format are in :mod:`darp.export.cameras` (nerfstudio, Open3D), :mod:`darp.export.colmap`,
+:mod:`darp.export.poses` (TUM), :mod:`darp.export.bop` and :mod:`darp.export.completion`.
 """
 
 from __future__ import annotations

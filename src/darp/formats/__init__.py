@@ -6,7 +6,8 @@ RealSense recordings (:mod:`.realsense`); the calibration file (:mod:`.calibrati
 (:mod:`.truth`); camera trajectories (:mod:`.trajectories`), intrinsics files (:mod:`.intrinsics`), per-capture
 pose files (:mod:`.poses`), pose tables (:mod:`.pose_tables`), hand-eye files (:mod:`.hand_eye`), the pairing of
 files with poses (:mod:`.pairing`) and the any-arm captures folder (:mod:`.captures`); and what they share:
-atomic writes (:mod:`.atomic`), text and YAML reading (:mod:`.text`), JSON schema helpers (:mod:`.schema`) and
+atomic writes (:mod:`.atomic`), the one input-opening path (:mod:`.io_input`) and output path with its locks and
+unfinished marks (:mod:`.io_output`), text and YAML reading (:mod:`.text`), JSON schema helpers (:mod:`.schema`) and
 value ranges (:mod:`.limits`).
 """
 

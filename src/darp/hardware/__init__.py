@@ -1,5 +1,10 @@
 """darp.hardware: the real rig behind the backend interface (Z1 arms via Unitree's SDK, RealSense cameras).
 
+The rig as a backend (:mod:`.rig`), the Z1 arm (:mod:`.z1_arm`, Unitree's Python binding in :mod:`.z1_binding`, smooth
+moves in :mod:`.trajectory`, the 33 Hz joint log in :mod:`.joint_logger`), the RealSense camera
+(:mod:`.realsense_camera`), the rig file's ``hardware:`` section (:mod:`.settings`), the pre-flight check
+(:mod:`.check`) and the vendor controllers with simulated motors (:mod:`.vendor_sim`).
+
 Importing this package imports neither vendor SDK: names are resolved lazily, and the SDKs are loaded
 (:mod:`darp.hardware.sdk`) only when an arm connects or a camera starts. See docs/hardware.md.
 """

@@ -3,7 +3,10 @@
 ``darp.kinematics`` knows nothing about files. Frames follow ``T_a_b`` naming; the wrist frame is the
 Z1 ``flange`` (see :mod:`darp.kinematics.z1`). Submodules: :mod:`~darp.kinematics.transforms`,
 :mod:`~darp.kinematics.z1`, :mod:`~darp.kinematics.ik`, :mod:`~darp.kinematics.collision`
-(shapes and distances in :mod:`~darp.kinematics.collision_shapes`).
+(shapes and distances in :mod:`~darp.kinematics.collision_shapes`), the closed-form IK of the first three joints
+(:mod:`~darp.kinematics.ik_closed_form`), the richer kinematic model (:mod:`~darp.kinematics.kinematic_model`),
+the dual-arm rig and its YAML (:mod:`~darp.kinematics.rig`, :mod:`~darp.kinematics.rig_yaml`) and eq. 1 camera
+poses with joint interpolation (:mod:`~darp.kinematics.camera_poses`).
 """
 
 from darp.kinematics import collision, collision_shapes, ik, ik_closed_form, transforms, z1

@@ -2,9 +2,11 @@
 
 Camera poses by eq. 1 (:mod:`.poses`), keyframe selection (:mod:`.keyframes`) and export (:mod:`.keyframe_io`),
 back-projection (:mod:`.backproject`, depth edges in :mod:`.depth_edges`, colour alignment in :mod:`.align`), the
-envelope crop and estimate (:mod:`.crop`, :mod:`.envelope_estimate`, the table plane in :mod:`.table_plane`),
-optional pose refinement and time alignment (:mod:`.refine`, :mod:`.time_align`), voxel fusion (:mod:`.fusion`,
-statistics in :mod:`.voxel_stats`), meshing (:mod:`.mesh`), PLY files (:mod:`.cloud_io`) and rig figures
+envelope crop and estimate (:mod:`.crop`, :mod:`.envelope_estimate`, the table plane in :mod:`.table_plane`), optional
+pose refinement and time alignment (:mod:`.refine`, rigid registration in :mod:`.registration`, :mod:`.time_align`),
+voxel fusion (:mod:`.fusion`, support in :mod:`.voxel_support`, point filters in :mod:`.cloud_filters`, statistics in
+:mod:`.voxel_stats`), the measured surface of imported surveys (a supported TSDF, :mod:`.tsdf_surface`, with thresholds
+from the survey's own depth, :mod:`.depth_stats`), meshing (:mod:`.mesh`), PLY files (:mod:`.cloud_io`) and rig figures
 (:mod:`.rig_figures`). Open3D and OpenCV load only when a stage that needs them runs.
 """
 
