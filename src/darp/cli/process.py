@@ -158,15 +158,16 @@ def process(
 
     imported = [s for s in surveys if is_imported(s)]
     surveys = [s for s in surveys if not is_imported(s)]
-    if surveys:
-        _need_calibration(calibration, truth_poses)
 
     from darp.formats.survey import find_survey_folders
     from darp.processing.batch import FAILED
     from darp.processing.results import write_summary
 
+    found = find_survey_folders(surveys) if surveys else []  # a folder with no survey is named before -c
+    if surveys:
+        _need_calibration(calibration, truth_poses)
     settings = _settings(settings_file, corrections)
-    folders = imported + (find_survey_folders(surveys) if surveys else [])
+    folders = imported + found
     for folder in folders:  # <out>/<survey>/ must not be (or be inside, or hold) a raw survey
         refuse_output_over_inputs(out / folder.name, [folder], "--out", folder_output=True)
     names = [f.name for f in folders]
