@@ -239,7 +239,7 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
     # fits 80 columns: held-out point-to-mesh median / RMSE [mm] and % within 10 mm; truth: fused-cloud accuracy
     table = Table(title="held-out evaluation (mm) and clouds", box=box.SIMPLE_HEAD,
                   caption="kf: keyframes; truth: fused cloud to the true mesh, median (mm); "
-                          "(!) implausible, see the warnings; (?) not to be trusted, see results.json trust.flags; "
+                          "(!) implausible, see the warnings; (?) not to be trusted, why is below; "
                           "FAILED: see the error lines")
     table.add_column("survey", justify="left", overflow="fold")
     for column in ("poses", "kf", "fused", "median", "RMSE", "<=10mm %", "truth"):
@@ -259,6 +259,8 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
     for folder, r in zip(done, results, strict=True):
         _warn_estimated_envelope(folder.name, r.get("envelope"))
         _warn_corrections(folder.name, r.get("corrections"))
+        for flag in (r.get("trust") or {}).get("flags") or []:
+            _warn(f"{folder.name}: not to be trusted: {flag}")
 
 
 @app.command("report")
