@@ -263,3 +263,22 @@ def test_a_spawned_viewer_that_dies_is_one_error_line(survey_path: Path, monkeyp
     assert run(["view", str(survey_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("darp: error: the rerun viewer did not start"), err
+
+
+def test_an_interrupted_save_leaves_no_recording_under_its_name(survey_path: Path, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--save` writes a temporary name beside the file and renames it when complete: a run that fails while
+    logging leaves neither a partial .rrd under the final name nor its temporary file (issue 32)."""
+    import darp.view as view_module
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(view_module, "_log_arms", broken)
+    save = tmp_path / "out" / "survey.rrd"
+    with pytest.raises(KeyboardInterrupt):
+        view_module.view(survey_path, save)
+    assert not save.exists() and list(save.parent.iterdir()) == []
+    monkeypatch.undo()
+    view_module.view(survey_path, save)  # the same command, uninterrupted, writes it
+    assert save.is_file() and save.stat().st_size > 0 and [p.name for p in save.parent.iterdir()] == ["survey.rrd"]
