@@ -163,10 +163,10 @@ def process(
     from darp.processing.batch import FAILED
     from darp.processing.results import write_summary
 
+    settings = _settings(settings_file, corrections)  # options first: a bad flag is named before any folder
     found = find_survey_folders(surveys) if surveys else []  # a folder with no survey is named before -c
     if surveys:
         _need_calibration(calibration, truth_poses)
-    settings = _settings(settings_file, corrections)
     folders = imported + found
     for folder in folders:  # <out>/<survey>/ must not be (or be inside, or hold) a raw survey
         refuse_output_over_inputs(out / folder.name, [folder], "--out", folder_output=True)
