@@ -180,3 +180,15 @@ def test_a_marker_that_is_a_pipe_still_marks_and_does_not_hang(tmp_path: Path) -
     os.mkfifo(tmp_path / "UNFINISHED.txt")
     assert partial_survey_reason(tmp_path) == "PARTIAL.txt present"
     assert unfinished_reason(tmp_path) == "unfinished"
+
+
+def test_a_rejected_survey_is_marked_partial_with_its_reason(tmp_path: Path) -> None:
+    """A survey collect rejected (here: terminated by a controller fault) is flagged when processed, as a
+    partial one is: its recordings are finalised and it otherwise looks whole."""
+    from darp.acquisition.episode import Episode
+    from darp.formats.survey import partial_survey_reason
+
+    episode = Episode(tmp_path, "mug")
+    folder = episode.reject("fault", "motion stopped by a fault: arm111: control loop stopped")
+    assert folder.name == "mug.rejected"
+    assert partial_survey_reason(folder) == "REJECTED.txt says 'rejected: fault'"

@@ -112,13 +112,18 @@ def vendor_sim(
             typer.echo(f"{arm_id}: z1_ctrl_sim pid {sim.pid} on SDK ports {link.controller_port}/{link.sdk_port} "
                        f"(log {sim.log_path})")
         typer.echo("controllers running; Ctrl-C stops them")
+        # a controller that ends (killed: the "controller killed" case) is reported once; the other arms'
+        # controllers keep running, as the real rig's separate z1_ctrl processes would
         deadline = time.monotonic() + duration_s if duration_s > 0 else None
-        while all(c.running for c in controllers) and (deadline is None or time.monotonic() < deadline):
+        ended: set[str] = set()
+        while len(ended) < len(controllers) and (deadline is None or time.monotonic() < deadline):
+            for c in controllers:
+                if c.name not in ended and not c.running:
+                    ended.add(c.name)
+                    error(f"{c.name}: z1_ctrl_sim ended (log {c.log_path})")
             time.sleep(0.2)
-        for c in controllers:
-            if not c.running:
-                error(f"{c.name}: z1_ctrl_sim ended (log {c.log_path})")
-                raise typer.Exit(code=2)
+        if ended:
+            raise typer.Exit(code=2)
     except KeyboardInterrupt:
         typer.echo("stopping")
     finally:

@@ -28,6 +28,7 @@ DEFAULT_SERIAL_TO_ARM: dict[str, str] = {"348522076490": "arm110", "405622074504
 ARM_POSES_FILE = "arm_poses.csv"
 PARTIAL_FILE = "PARTIAL.txt"  # an unfinished survey folder: written first and removed last by twin record and
 #   collect (so a SIGKILLed run is marked too), rewritten with the reason by an interrupted or failed acquisition
+REJECTED_FILE = "REJECTED.txt"  # a survey collect rejected or terminated (a fault, a conflict, a failed check)
 PARTIAL_RECORDING_SUFFIX = ".partial"  # cam<serial>.bag.partial: a recording that was never finalised
 WRITTEN_BY_FILE = ".darp-written"  # in a folder darp created whole: --overwrite may delete such a folder only
 TRUTH_DIR = "truth"
@@ -226,13 +227,18 @@ def open_survey(
 
 def partial_survey_reason(path: str | Path) -> str | None:
     """Why a survey folder is partial, or None: its ``PARTIAL.txt`` (an interrupted or failed acquisition;
-    its first line) and any ``*.partial`` recordings (never finalised, e.g. after SIGKILL)."""
+    its first line), its ``REJECTED.txt`` (collect rejected or terminated it; its first line) and any
+    ``*.partial`` recordings (never finalised, e.g. after SIGKILL)."""
     path = Path(path)
     reasons = []
     marker = path / PARTIAL_FILE
     if marker.exists():  # whatever it is: a marker that cannot be read (a pipe, a folder) still marks
         first = marker_text(marker).strip().splitlines()
         reasons.append(f"{PARTIAL_FILE} says {first[0]!r}" if first else f"{PARTIAL_FILE} present")
+    rejected = path / REJECTED_FILE
+    if rejected.exists():  # collect ended the survey early or its verification failed: not a whole survey
+        first = marker_text(rejected).strip().splitlines()
+        reasons.append(f"{REJECTED_FILE} says {first[0]!r}" if first else f"{REJECTED_FILE} present")
     try:
         leftovers = sorted(p.name for p in path.iterdir() if p.name.endswith(PARTIAL_RECORDING_SUFFIX))
     except OSError:
