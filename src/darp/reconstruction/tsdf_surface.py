@@ -41,7 +41,7 @@ METHODS = ("auto", "paper", "measured")
 COLOUR_EVERY = 8  # every 8th fuse frame is kept (subsampled) to colour the mesh
 COLOUR_STEP_PX = 2  # ... at every 2nd pixel
 COLOUR_VIEWS = 4  # at most this many of them, spread over the survey, colour the vertices (first come, first served)
-SNAP_FRAMES = 24  # the vertex pass keeps between this and twice this many fuse frames, spread over the survey
+SNAP_FRAMES = 8  # the vertex pass keeps between this and twice this many fuse frames, spread over the survey
 
 
 @dataclass(frozen=True)
