@@ -186,26 +186,27 @@ class MeasuredSurface:
         (module doc); returns them and the share (%) of vertices some frame measured."""
         V = np.asarray(vertices, np.float32)
         N = np.asarray(normals, np.float32)
+        X, NX = np.ascontiguousarray(V.T), np.ascontiguousarray(N.T)  # (3, n): R @ X is ten times V @ R.T's speed
         num = np.zeros(len(V), np.float64)
         den = np.zeros(len(V), np.float64)
         cos_min = math.cos(math.radians(self.stats.max_incidence_deg))
         for z, K, extrinsic in self._snap_views:
             R, t = extrinsic[:3, :3].astype(np.float32), extrinsic[:3, 3].astype(np.float32)
-            P = V @ R.T + t
-            front = P[:, 2] > 1e-6
-            zc = np.where(front, P[:, 2], np.float32(1))
-            u = np.rint(K[0, 0] * P[:, 0] / zc + K[0, 2]).astype(np.int64)
-            v = np.rint(K[1, 1] * P[:, 1] / zc + K[1, 2]).astype(np.int64)
+            fx, fy, cx, cy = (np.float32(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+            P = R @ X + t[:, None]
+            front = P[2] > 1e-6
+            zc = np.where(front, P[2], np.float32(1))
+            u = np.rint(fx * P[0] / zc + cx).astype(np.int32)
+            v = np.rint(fy * P[1] / zc + cy).astype(np.int32)
             idx = np.flatnonzero(front & (u >= 0) & (v >= 0) & (u < z.shape[1]) & (v < z.shape[0]))
             zm = z[v[idx], u[idx]]
             seen = zm > 0
             idx, zm = idx[seen], zm[seen]
-            u, v = u[idx], v[idx]
-            q = np.stack([(u - K[0, 2]) / K[0, 0] * zm, (v - K[1, 2]) / K[1, 1] * zm, zm], 1).astype(np.float32)
-            n_cam = N[idx] @ R.T
-            offset = np.einsum("ij,ij->i", q - P[idx], n_cam)  # the measured point's offset along the normal
-            ray = P[idx] / np.linalg.norm(P[idx], axis=1, keepdims=True)
-            cos = np.abs(np.einsum("ij,ij->i", ray, n_cam))
+            u, v, Pi = u[idx], v[idx], P[:, idx]
+            q = np.stack([(u - cx) / fx * zm, (v - cy) / fy * zm, zm])
+            n_cam = R @ NX[:, idx]
+            offset = np.einsum("ij,ij->j", q - Pi, n_cam)  # the measured point's offset along the normal
+            cos = np.abs(np.einsum("ij,ij->j", Pi, n_cam)) / np.linalg.norm(Pi, axis=0)
             ok = (np.abs(offset) < self.truncation_m) & (cos > cos_min)
             w = 1.0 / np.square(self.stats.sigma(zm[ok]).astype(np.float64))
             num += np.bincount(idx[ok], w * offset[ok], len(V))
