@@ -19,6 +19,7 @@ $(STAMP): pyproject.toml scripts/ensure_system_libs.sh
 	@bash scripts/ensure_system_libs.sh
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "darp needs Python >= 3.11")'
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@echo "installing darp and its Python dependencies into $(VENV) (about 6 minutes, once)"
 	@$(PY) -m pip install -q --upgrade pip
 	@$(PY) -m pip install -q -e '.[test,bench,ecosystem]'
 	@touch $(STAMP)

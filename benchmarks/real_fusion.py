@@ -226,16 +226,15 @@ def table_rows(m: dict[str, Any], name: str) -> list[Row]:
 
 def import_3dmatch(folder: Path) -> Path:
     """The 3DMatch frames of ``../shared/realdata`` imported into ``folder`` (5 frames, 1 held out)."""
-    from darp.cli._app import run
-
     real = Path(os.environ.get("DARP_REALDATA") or HERE.parent.parent / "shared" / "realdata") / "3dmatch-frames"
     if not real.is_dir():
         raise FileNotFoundError(f"{real}: the 3DMatch frames are not present (set DARP_REALDATA)")
     seq = real / "seq-01"
-    code = run(["import", str(seq), "-o", str(folder), "--intrinsics", str(real / "camera-intrinsics.txt"),
-                "--trajectory", str(seq), "--trajectory-format", "pose-txt"])
-    if code:
-        raise RuntimeError(f"darp import {seq}: exit {code}")
+    done = subprocess.run([sys.executable, "-m", "darp", "import", str(seq), "-o", str(folder), "--intrinsics",
+                           str(real / "camera-intrinsics.txt"), "--trajectory", str(seq), "--trajectory-format",
+                           "pose-txt"], capture_output=True, text=True)  # the command a user runs
+    if done.returncode:
+        raise RuntimeError(f"darp import {seq}: exit {done.returncode}: {done.stderr.strip()}")
     return folder
 
 

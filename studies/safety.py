@@ -303,7 +303,7 @@ def run_valid(draw: dict[str, Any], meshes: dict[str, Path], out: Path, *, fps: 
 # -- invalid placements -------------------------------------------------------------------------------------
 def classify(message: str) -> str:
     """The kind of a placement refusal from its message."""
-    if "must be finite" in message:
+    if "must be finite" in message or "expected finite" in message:
         return "non_finite"
     if "not on the table" in message:
         return "off_table"

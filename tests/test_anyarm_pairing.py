@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from darp.calibration.anyarm import load_capture_folder, solve_folder
 from darp.errors import FormatError
 from darp.formats.captures import PairingOptions
-from darp.formats.pairing import frame_id, pair_names
+from darp.formats.pairing import frame_id, keyed, pair_names
 from darp.formats.poses import read_matrix_file
 from darp.geometry.rigid import RIGID_TOLERANCE, check_rigid
 from darp.reconstruction.keyframe_io import iter_keyframes
@@ -259,3 +259,12 @@ def test_a_capture_with_a_wrong_pose_is_named(tmp_path: Path) -> None:
     out = solve_folder(root, folds=0, compare=False)
     named = [w for w in out.warnings if "place the board far from the others" in w]
     assert named and named[0].split(": ", 1)[1].startswith("board_007.npz")
+
+
+def test_two_kinds_of_file_sharing_ids_in_one_folder_are_named_as_such() -> None:
+    """The upstream Doosan layout keeps board poses (boardpose_000.npz) beside flange poses (pose_000.txt)."""
+    with pytest.raises(FormatError, match=r"two kinds of file \(boardpose, pose\) in one folder: keep one kind"):
+        keyed([("boardpose_000.npz", 1), ("pose_000.txt", 2)], "poses", "pose")
+    with pytest.raises(FormatError) as same_kind:  # one kind named twice: only the renaming advice
+        keyed([("a_14-05-41.png", 1), ("a_14-05-41.jpg", 2)], "images")
+    assert "kinds of file" not in str(same_kind.value) and "rename one" in str(same_kind.value)

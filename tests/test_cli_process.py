@@ -25,6 +25,8 @@ def test_missing_survey_folder(tmp_path: Path, capsys) -> None:
 
 def test_folder_without_surveys(tmp_path: Path, capsys) -> None:
     (tmp_path / "empty").mkdir()
+    assert run(["process", str(tmp_path / "empty"), "--out", str(tmp_path / "o")]) == 2  # named before -c is asked for
+    one_error_line(capsys, "not a survey folder")
     assert run(["keyframes", str(tmp_path / "empty"), "--out", str(tmp_path / "kf"), "--truth-poses"]) == 2
     one_error_line(capsys, "empty")
 

@@ -232,7 +232,8 @@ def test_tum_trajectories_at_every_frame_read_by_evo(exported: Path, keyframes: 
 
 def test_export_of_a_non_processed_folder_is_one_error_line(tmp_path: Path,
                                                             capsys: pytest.CaptureFixture[str]) -> None:
-    assert run(["export", "tum", str(tmp_path), "--out", str(tmp_path / "x")]) == 2
+    (tmp_path / "in").mkdir()
+    assert run(["export", "tum", str(tmp_path / "in"), "--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("darp: error:") and "no processed survey" in err
 

@@ -54,10 +54,20 @@ def test_export_then_import_reproduces_poses_intrinsics_and_depth(processed_path
         arm, number = Path(files["depth"]).stem.rsplit("_", 1)
         _compare(kf, original[(arm, int(number))], UNITS_PER_M["nerfstudio"])
         checked["nerfstudio"] += 1
-    # no --envelope: processing estimates the object cylinder as for a DARP survey, near the survey's own one
-    assert run(["process", str(out), "-o", str(tmp_path / "processed-nerfstudio")]) == 0
-    estimated = json.loads((tmp_path / "processed-nerfstudio" / out.name / "results.json").read_text())["envelope"]
+    # the export carries the survey's object envelope and the import takes it: processing crops as the survey did
     given = json.loads((processed_path / "results.json").read_text())["envelope"]
+    for folder in (tmp_path / "nerfstudio", *(tmp_path / fmt / arm for fmt in ("tum", "open3d") for arm in arms)):
+        carried = json.loads((folder / "manip_envelope.json").read_text())
+        np.testing.assert_allclose(carried["center_m"], given["center_m"], atol=1e-12, err_msg=str(folder))
+    assert run(["process", str(out), "-o", str(tmp_path / "processed-nerfstudio")]) == 0
+    used = json.loads((tmp_path / "processed-nerfstudio" / out.name / "results.json").read_text())["envelope"]
+    assert used["source"] != "estimated" and used["radius_m"] == pytest.approx(given["radius_m"], abs=1e-12)
+    np.testing.assert_allclose(used["center_m"], given["center_m"], atol=1e-12)
+    # without it: processing estimates the object cylinder as for a DARP survey, near the survey's own one
+    (out / "manip_envelope.json").unlink()
+    assert run(["process", str(out), "-o", str(tmp_path / "processed-nerfstudio-estimated")]) == 0
+    estimated = json.loads(
+        (tmp_path / "processed-nerfstudio-estimated" / out.name / "results.json").read_text())["envelope"]
     assert estimated["source"] == "estimated"
     assert np.linalg.norm(np.subtract(estimated["center_m"][:2], given["center_m"][:2])) < 0.02
     assert abs(estimated["height_m"] - given["height_m"]) < 0.02

@@ -176,6 +176,10 @@ def test_nothing_above_the_table_is_a_one_line_error(tmp_path: Path) -> None:
         envelope_from_frames(frames, centre, search_region(centre, BASES_XY), path=tmp_path / "redbull")
     message = str(err.value)
     assert "redbull" in message and "no object could be found" in message and "\n" not in message
+    arms = sorted({f.arm for f in frames})
+    counts = ", ".join(f"{a}: {sum(f.arm == a for f in frames)}" for a in arms)
+    assert message.endswith(f"in {len(frames)} depth frames ({counts})") if len(arms) > 1 else message.endswith(
+        f"in {len(frames)} depth frames")
 
 
 def test_bad_settings_are_refused() -> None:

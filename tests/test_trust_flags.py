@@ -47,7 +47,9 @@ def test_each_signal_flags_when_out_of_bounds(change: Any, words: str) -> None:
 
 
 def test_calibration_and_coverage_bounds() -> None:
-    assert "calibration's own held-out" in trust_signals(clean(), handeye_p90_mm=9.0)["flags"][0]
+    assert "calibration's own held-out" in trust_signals(clean(), handeye_p90_mm=12.5)["flags"][0]
+    # a calibration at the real rig's level (the paper-profile demo, seed 0: p90 8.22 mm) is not flagged
+    assert trust_signals(clean(), handeye_p90_mm=8.22, envelope_pct=40.0)["flags"] == []
     assert "envelope's top and side" in trust_signals(clean(), envelope_pct=4.4)["flags"][0]
     # 1,000 voxels of 2 mm (40 cm^2) over an envelope of radius 5 cm and height 10 cm (78.5 + 314.2 cm^2)
     assert envelope_coverage_pct(1000, {"radius_m": 0.05, "height_m": 0.1}, 0.002) == pytest.approx(

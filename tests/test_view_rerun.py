@@ -195,7 +195,8 @@ def test_viewer_addresses() -> None:
 
 def test_view_connect_and_save_together_is_one_error_line(tmp_path: Path,
                                                           capsys: pytest.CaptureFixture[str]) -> None:
-    assert run(["view", str(tmp_path), "--save", str(tmp_path / "x.rrd"), "--connect", "9876"]) == 2
+    (tmp_path / "in").mkdir()
+    assert run(["view", str(tmp_path / "in"), "--save", str(tmp_path / "x.rrd"), "--connect", "9876"]) == 2
     assert "--connect" in capsys.readouterr().err.splitlines()[0]
 
 
@@ -205,3 +206,79 @@ def test_view_connect_without_a_viewer_is_one_error_line(survey_path: Path,
     assert run(["view", str(survey_path), "--connect", str(_free_port())]) == 2
     err = capsys.readouterr().err
     assert err.startswith("darp: error: no rerun viewer reachable at rerun+http://127.0.0.1:"), err
+
+
+def test_the_viewer_beside_this_python_is_found_without_an_activated_venv(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`make demo`'s venv is not on PATH: its `.venv/bin/rerun` is still the viewer to spawn (was: 'install the
+    viewer: pip install rerun-sdk', with rerun-sdk installed)."""
+    from darp.view import viewer_executable
+
+    bin_dir = tmp_path / "venv" / "bin"
+    bin_dir.mkdir(parents=True)
+    (bin_dir / "rerun").write_text("#!/bin/sh\n")
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    monkeypatch.setattr(sys, "executable", str(bin_dir / "python"))
+    assert viewer_executable() is None  # not executable: not a viewer
+    (bin_dir / "rerun").chmod(0o755)
+    assert viewer_executable() == str(bin_dir / "rerun")
+    on_path = tmp_path / "onpath"
+    on_path.mkdir()
+    (on_path / "rerun").write_text("#!/bin/sh\n")
+    (on_path / "rerun").chmod(0o755)
+    monkeypatch.setenv("PATH", str(on_path))
+    assert viewer_executable() == str(on_path / "rerun")  # PATH first, as a shell would
+
+
+def test_view_spawns_the_viewer_beside_this_python(survey_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    rr = pytest.importorskip("rerun")
+    beside = Path(sys.executable).parent / "rerun"
+    if not (beside.is_file() and os.access(beside, os.X_OK)):
+        pytest.skip("no rerun viewer beside this Python")
+    seen: dict[str, object] = {}
+
+    def spawn(**kwargs: object) -> None:
+        seen.update(kwargs)
+        raise RuntimeError("stopped before a window opens")
+
+    monkeypatch.setattr(rr, "spawn", spawn)
+    monkeypatch.setenv("PATH", "/nonexistent")
+    assert run(["view", str(survey_path)]) == 2
+    assert seen["executable_path"] == str(beside)
+    assert "stopped before a window opens" in capsys.readouterr().err
+
+
+def test_a_spawned_viewer_that_dies_is_one_error_line(survey_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """A machine without a display: the viewer starts and exits at once; darp says so in one line, exit 2 (was a
+    traceback from the last flush, exit 1, after decoding the whole survey)."""
+    rr = pytest.importorskip("rerun")
+    port = _free_port()
+
+    def spawn(**kwargs: object) -> None:  # what rerun's spawn leaves behind when the viewer died: nobody listening
+        kwargs["recording"].connect_grpc(f"rerun+http://127.0.0.1:{port}/proxy")  # type: ignore[attr-defined]
+
+    monkeypatch.setattr(rr, "spawn", spawn)
+    assert run(["view", str(survey_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("darp: error: the rerun viewer did not start"), err
+
+
+def test_an_interrupted_save_leaves_no_recording_under_its_name(survey_path: Path, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--save` writes a temporary name beside the file and renames it when complete: a run that fails while
+    logging leaves neither a partial .rrd under the final name nor its temporary file (issue 32)."""
+    import darp.view as view_module
+
+    def broken(*args: object, **kwargs: object) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(view_module, "_log_arms", broken)
+    save = tmp_path / "out" / "survey.rrd"
+    with pytest.raises(KeyboardInterrupt):
+        view_module.view(survey_path, save)
+    assert not save.exists() and list(save.parent.iterdir()) == []
+    monkeypatch.undo()
+    view_module.view(survey_path, save)  # the same command, uninterrupted, writes it
+    assert save.is_file() and save.stat().st_size > 0 and [p.name for p in save.parent.iterdir()] == ["survey.rrd"]

@@ -29,6 +29,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -211,6 +213,16 @@ def view(path: str | Path, save: str | Path | None = None, *, calibration_path: 
         return _send(rr, path, target, url, spawn, processed, survey_path, calibration, every_s)
 
 
+def viewer_executable() -> str | None:
+    """The rerun viewer to spawn: the one on PATH, else the one installed beside this Python (``make demo``'s
+    ``.venv/bin/rerun`` when the venv is not activated); None lets rerun-sdk search and say what it lacks."""
+    found = shutil.which("rerun")
+    if found is not None:
+        return found
+    beside = Path(sys.executable).parent / "rerun"
+    return str(beside) if beside.is_file() and os.access(beside, os.X_OK) else None
+
+
 def _send(rr: Any, path: Path, save: Path | None, url: str | None, spawn: bool, processed: ProcessedSurvey | None,
           survey_path: Path | None, calibration: Calibration, every_s: float) -> ViewStats:
     rec = rr.RecordingStream("darp", recording_id=f"darp-{path.resolve().name}")
@@ -222,19 +234,22 @@ def _send(rr: Any, path: Path, save: Path | None, url: str | None, spawn: bool, 
         rec.connect_grpc(url, default_blueprint=blueprint)
     else:
         try:
-            rec.spawn(default_blueprint=blueprint)
+            rr.spawn(executable_path=viewer_executable(), default_blueprint=blueprint, recording=rec)
         except (OSError, RuntimeError) as err:  # rerun-sdk without its viewer executable
             raise DarpError("no rerun viewer to open (install the viewer: pip install rerun-sdk; or give --save "
                             f"FILE.rrd or --connect URL): {str(err).splitlines()[0] if str(err) else err}"
                             ) from None
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    if url is not None:  # fail in seconds, before decoding anything, when no viewer listens there
+    if save is None:  # fail in seconds, before decoding anything, when no viewer listens (or the spawned one died)
         try:
             rec.flush(timeout_sec=15.0)
         except RuntimeError as err:
             rec.disconnect()
-            raise DarpError(f"no rerun viewer reachable at {url} (start one there with 'rerun' or "
-                            f"'rerun --serve-grpc'): {str(err).splitlines()[0]}") from None
+            if url is not None:
+                raise DarpError(f"no rerun viewer reachable at {url} (start one there with 'rerun' or "
+                                f"'rerun --serve-grpc'): {str(err).splitlines()[0]}") from None
+            raise DarpError("the rerun viewer did not start (no display here? give --save FILE.rrd, or --connect "
+                            f"URL to a viewer elsewhere): {str(err).splitlines()[0]}") from None
     stats = ViewStats()
     survey = None
     if survey_path is not None:
@@ -449,4 +464,4 @@ def rrd_entities(path: str | Path) -> dict[str, set[str]]:
 
 
 __all__ = ["ViewStats", "arm_columns", "default_blueprint", "log_arm_states", "log_camera", "rrd_entities", "view",
-           "viewer_url"]
+           "viewer_executable", "viewer_url"]

@@ -51,7 +51,7 @@ def demo_command(
         "reproduces its error levels; realistic has only errors a calibration absorbs.")] = Profile.paper,
     settings_file: SettingsFile = None,
 ) -> None:
-    """Run the whole system on the digital twin: calibrate, survey, process, report (3-5 minutes on 2 cores).
+    """Run the whole system on the digital twin: calibrate, survey, process, report (6-9 minutes on 2 idle cores).
 
     Default profile paper: the real rig's error levels. --profile realistic: only errors calibration absorbs.
     """
@@ -79,6 +79,8 @@ def demo_command(
     if not calibration.exists():
         _call(["calib", "solve", captures_dir, "--out", calibration, "--report", calib_dir / "report",
                "--truth", captures_dir / "truth" / "calibration.json"])
+    else:
+        _done_before(calibration)
 
     _step(f"2/4 autonomous surveys of {', '.join(names)} at {fps} fps (same twin rig, seed {seed})")
     surveys = []
@@ -90,6 +92,8 @@ def demo_command(
                    "--fps", fps, "--calibration", calibration, "--out", surveys_dir,
                    "--placement", f"{x_m:.4f},{y_m:.4f},{yaw_deg:.1f}",
                    "--viewpoints", "orbit"])  # the paper's fixed orbit: the demo reproduces the paper
+        else:
+            _done_before(folder)
         surveys.append(folder)
 
     _step("3/4 processing: poses, keyframes, fusion, meshes, held-out and ground-truth evaluation")
@@ -101,6 +105,11 @@ def demo_command(
     _print_summary(calib_dir, processed)
     typer.secho(f"\ndemo finished in {time.monotonic() - started:.0f} s; report: {processed / 'report.html'}",
                 bold=True)
+
+
+def _done_before(path: Path) -> None:
+    """Say that a step is skipped because an earlier run finished it."""
+    typer.echo(f"{path}: done by an earlier run, kept (delete it to redo that step)")
 
 
 def _load(path: Path) -> dict[str, Any]:

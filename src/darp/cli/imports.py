@@ -164,6 +164,10 @@ def import_command(
                                      f"nerfstudio, TUM RGB-D or Open3D folder whose poses darp finds itself{hint})",
                                      param_hint="'--trajectory'")
         kind = detected
+        carried = sequence / "manip_envelope.json"
+        if envelope is None and carried.is_file():  # a darp export carries its survey's object envelope
+            envelope = carried
+            typer.echo(f"using the object envelope beside the sequence: {carried} (--envelope to give another)")
     elif trajectory is not None and flange_poses is not None:
         raise typer.BadParameter("give exactly one of --trajectory and --flange-poses", param_hint="'--trajectory'")
     else:

@@ -158,15 +158,16 @@ def process(
 
     imported = [s for s in surveys if is_imported(s)]
     surveys = [s for s in surveys if not is_imported(s)]
-    if surveys:
-        _need_calibration(calibration, truth_poses)
 
     from darp.formats.survey import find_survey_folders
     from darp.processing.batch import FAILED
     from darp.processing.results import write_summary
 
+    found = find_survey_folders(surveys) if surveys else []  # a folder with no survey is named before -c
+    if surveys:
+        _need_calibration(calibration, truth_poses)
     settings = _settings(settings_file, corrections)
-    folders = imported + (find_survey_folders(surveys) if surveys else [])
+    folders = imported + found
     for folder in folders:  # <out>/<survey>/ must not be (or be inside, or hold) a raw survey
         refuse_output_over_inputs(out / folder.name, [folder], "--out", folder_output=True)
     names = [f.name for f in folders]
@@ -238,7 +239,7 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
     # fits 80 columns: held-out point-to-mesh median / RMSE [mm] and % within 10 mm; truth: fused-cloud accuracy
     table = Table(title="held-out evaluation (mm) and clouds", box=box.SIMPLE_HEAD,
                   caption="kf: keyframes; truth: fused cloud to the true mesh, median (mm); "
-                          "(!) implausible, see the warnings; (?) not to be trusted, see results.json trust.flags; "
+                          "(!) implausible, see the warnings; (?) not to be trusted, why is below; "
                           "FAILED: see the error lines")
     table.add_column("survey", justify="left", overflow="fold")
     for column in ("poses", "kf", "fused", "median", "RMSE", "<=10mm %", "truth"):
@@ -258,6 +259,8 @@ def _print_table(done: list[Path], failed: list[Any]) -> None:
     for folder, r in zip(done, results, strict=True):
         _warn_estimated_envelope(folder.name, r.get("envelope"))
         _warn_corrections(folder.name, r.get("corrections"))
+        for flag in (r.get("trust") or {}).get("flags") or []:
+            _warn(f"{folder.name}: not to be trusted: {flag}")
 
 
 @app.command("report")

@@ -39,7 +39,10 @@ class TrustBounds:
     max_cross_arm_mm: float = float(paper.HELDOUT["p90_mm"])  # co-observed surface apart by more than the paper's p90
     cross_arm_factor: float = 3.0  # ... or by more than this x the held-out median (and at least cross_arm_floor_mm)
     cross_arm_floor_mm: float = 2.0
-    max_handeye_p90_mm: float = 8.0  # the calibration's held-out corner p90 (about 2x the paper's hand-eye figures)
+    # the calibration's held-out corner p90: 3x the paper's worse per-arm median. A calibration at the real rig's
+    # level has a p90 about 2x its median (the paper-profile demo: medians 4.07 / 4.96 mm, p90 8.22 mm), so only
+    # a calibration clearly worse than the paper's is flagged
+    max_handeye_p90_mm: float = 3.0 * max(paper.HANDEYE_HELDOUT_MM.values())
     max_arm_p90_mm: float = 20.0  # one arm's held-out p90, about 3x the paper's pooled p90
     min_seeable_pct: float = 50.0  # twin: share of the seeable true surface within 5 mm of the fused cloud
     min_envelope_pct: float = 10.0  # the share of the envelope's top and side the fused voxels could cover

@@ -41,8 +41,30 @@ def export(fmt: str, processed: str | Path, out: str | Path) -> dict[str, Any]:
     summaries = {}
     for survey in surveys:
         target = out if len(surveys) == 1 else out / survey.name
-        summaries[survey.name] = {"out": str(target), **PER_SURVEY[fmt](survey, target)}
+        summary = {"out": str(target), **PER_SURVEY[fmt](survey, target)}
+        carried = carry_envelope(survey, target)
+        summaries[survey.name] = {**summary, **({"envelope": carried} if carried else {})}
     return {"format": fmt, "out": str(out), "surveys": summaries}
 
 
-__all__ = ["FORMATS", "export"]
+def carry_envelope(survey: ProcessedSurvey, target: Path) -> list[str]:
+    """The survey's object envelope (``manip_envelope.json``, world frame of the exported poses) beside the
+    export and in each per-arm sequence folder, so that ``darp import`` of any of them crops to the object as
+    the survey did (without it, processing estimates a cylinder from the depth). Nothing when the survey's
+    envelope has no geometry or the raw survey is gone."""
+    from darp.formats.envelope import ENVELOPE_FILE, read_envelope, write_envelope
+    from darp.formats.trajectories import detect_posed_folder
+
+    source = survey.survey_path / ENVELOPE_FILE if survey.survey_path is not None else None
+    if source is None or not source.is_file():
+        return []
+    envelope = read_envelope(source, known_arms=None)
+    if not envelope.has_geometry:
+        return []
+    folders = [target, *(d for d in sorted(target.iterdir()) if d.is_dir() and detect_posed_folder(d))]
+    for folder in folders:
+        write_envelope(folder / ENVELOPE_FILE, envelope)
+    return [str(folder / ENVELOPE_FILE) for folder in folders]
+
+
+__all__ = ["FORMATS", "carry_envelope", "export"]

@@ -89,8 +89,11 @@ def keyed(items: Iterable[tuple[str, V]], source: Path | str, what: str = "file"
     for name, value in items:
         k = frame_id(name)
         if k in out:
-            raise FormatError(f"two {what}s have the id {k!r} ({names[k]}, {name}); rename one, or pair with "
-                              "--order FILE (see docs/any-arm.md, Pairing)", source)
+            kinds = {Path(names[k]).stem.rstrip("0123456789_-").lower(), Path(name).stem.rstrip("0123456789_-").lower()}
+            hint = (f"; these look like two kinds of file ({', '.join(sorted(kinds))}) in one folder: keep one "
+                    "kind per folder (board poses in board_poses/, flange poses in poses/)") if len(kinds) > 1 else ""
+            raise FormatError(f"two {what}s have the id {k!r} ({names[k]}, {name}){hint}; rename one, or pair "
+                              "with --order FILE (see docs/any-arm.md, Pairing)", source)
         out[k], names[k] = value, name
     return out
 

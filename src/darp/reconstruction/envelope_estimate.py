@@ -292,7 +292,7 @@ def envelope_from_frames(frames: Iterable[PosedDepth], look_at_m: np.ndarray, re
         band_z.append(near_table[::max(1, near_table.size // TABLE_SAMPLES_PER_FRAME)])  # enough for a mode
         parts.append(frame_stats(cloud.points, cloud.normals, None, cloud.camera_centre, settings.voxel_size_m,
                                  min(arms.index(frame.arm), 7)))
-    per_arm = ", ".join(f"{arm} ({n})" for arm, n in counts.items()) or "no arm"
+    per_arm = f" ({', '.join(f'{arm}: {n}' for arm, n in counts.items())})" if len(counts) > 1 else ""
     table = table_height(np.concatenate(band_z) if band_z else np.empty(0), settings)
     table_z = 0.0 if table is None else table
     cluster = object_cluster(merge_stats(parts), table_z, look_at_m, len(arms), settings)
@@ -301,7 +301,7 @@ def envelope_from_frames(frames: Iterable[PosedDepth], look_at_m: np.ndarray, re
             f"the envelope has no centre/radius/height and no object could be found to estimate it: nothing "
             f"stands {settings.min_height_m * 1000:.0f} mm above the table within {settings.near_m * 100:.0f} cm "
             f"of where the cameras look ({look_at_m[0]:.3f}, {look_at_m[1]:.3f}) m in "
-            f"{sum(counts.values())} depth frames of {per_arm}", path)
+            f"{sum(counts.values())} depth frames{per_arm}", path)
     centre_xy, radius, height = fit_cylinder(cluster, table_z)
     return EnvelopeEstimate(
         center_m=(float(centre_xy[0]), float(centre_xy[1]), table_z + 0.5 * height), radius_m=radius,
