@@ -142,6 +142,8 @@ def test_real_fusion_benchmark_on_the_3dmatch_frames(tmp_path: Path) -> None:
     r = json.loads((tmp_path / "darp" / "3dmatch" / "results.json").read_text())
     assert r["surface"]["method"] == "measured" and r["surface"]["min_frames"] == 2
     assert r["surface"]["depth_stats"]["noise_sigma_at_1m_mm"] > 0
+    # the vertex pass used every fuse frame of so short a survey and measured most of the vertices
+    assert r["surface"]["snap"]["frames"] == 4 and r["surface"]["snap"]["vertices_measured_pct"] > 50
 
 
 def test_snap_moves_vertices_to_the_noise_weighted_mean_of_the_frames() -> None:
