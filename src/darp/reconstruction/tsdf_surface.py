@@ -13,6 +13,14 @@ Marching cubes then extracts the zero level only where every corner voxel was me
 measurements), and a surface seen by one frame alone is not kept. ``min_frames`` comes from the survey's visit
 counts (:func:`support_frames`).
 
+Marching cubes places a vertex by interpolating the signed distance linearly between two voxel centres, so on
+real depth its vertices sit up to a voxel's fraction off the depth the frames measured. The last pass
+(:meth:`MeasuredSurface.snap`) moves every vertex along its normal to the weighted mean of the fuse frames'
+measurements there: each frame that sees the vertex within the truncation, at an incidence below
+``max_incidence_deg``, gives the offset along the normal of the point its cleaned depth measured at the vertex's
+pixel, weighted by ``1 / sigma(z)^2`` of the survey's noise model (a near frame counts more than a far one). At
+most ``2 * SNAP_FRAMES`` frames, spread over the survey, are kept for it (their cleaned depth).
+
 :func:`open_share` reports how much of the envelope's top and side the mesh leaves open.
 """
 
@@ -33,6 +41,7 @@ METHODS = ("auto", "paper", "measured")
 COLOUR_EVERY = 8  # every 8th fuse frame is kept (subsampled) to colour the mesh
 COLOUR_STEP_PX = 2  # ... at every 2nd pixel
 COLOUR_VIEWS = 4  # at most this many of them, spread over the survey, colour the vertices (first come, first served)
+SNAP_FRAMES = 8  # the vertex pass keeps between this and twice this many fuse frames, spread over the survey
 
 
 @dataclass(frozen=True)
@@ -49,6 +58,7 @@ class SurfaceSettings:
     max_incidence_deg: float = 75.0  # steeper steps between neighbouring pixels are discontinuities
     block_resolution: int = 8  # voxels per block side of the hash grid
     heldout_stride_px: int = 3  # held-out frames are scored at every n-th pixel of each row and column
+    snap: bool = True  # move the vertices along their normals to the frames' noise-weighted mean depth
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -125,6 +135,8 @@ class MeasuredSurface:
         self.pixels_kept = 0
         self._grid: Any = None
         self._views: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]] = []
+        self._snap_views: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (cleaned depth, K, extrinsic)
+        self._snap_every = 1
 
     def _make_grid(self) -> Any:
         f32 = o3d.core.float32
@@ -162,7 +174,47 @@ class MeasuredSurface:
         if frame.colour is not None and (self.frames - 1) % COLOUR_EVERY == 0:
             step = COLOUR_STEP_PX
             self._views.append((frame.colour[::step, ::step].copy(), z[::step, ::step].copy(), K, extrinsic, step))
+        if self.settings.snap and (self.frames - 1) % self._snap_every == 0:
+            self._snap_views.append((z, K, extrinsic))
+            if len(self._snap_views) >= 2 * SNAP_FRAMES:  # keep every other one from now on: spread, bounded
+                self._snap_views = self._snap_views[::2]
+                self._snap_every *= 2
         return kept
+
+    def snap(self, vertices: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, float]:
+        """``vertices`` moved along their unit ``normals`` to the kept frames' noise-weighted mean measurement
+        (module doc); returns them and the share (%) of vertices some frame measured."""
+        V = np.asarray(vertices, np.float32)
+        N = np.asarray(normals, np.float32)
+        X, NX = np.ascontiguousarray(V.T), np.ascontiguousarray(N.T)  # (3, n): R @ X is ten times V @ R.T's speed
+        num = np.zeros(len(V), np.float64)
+        den = np.zeros(len(V), np.float64)
+        cos_min = math.cos(math.radians(self.stats.max_incidence_deg))
+        for z, K, extrinsic in self._snap_views:
+            R, t = extrinsic[:3, :3].astype(np.float32), extrinsic[:3, 3].astype(np.float32)
+            fx, fy, cx, cy = (np.float32(x) for x in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+            P = R @ X + t[:, None]
+            front = P[2] > 1e-6
+            zc = np.where(front, P[2], np.float32(1))
+            u = np.rint(fx * P[0] / zc + cx).astype(np.int32)
+            v = np.rint(fy * P[1] / zc + cy).astype(np.int32)
+            idx = np.flatnonzero(front & (u >= 0) & (v >= 0) & (u < z.shape[1]) & (v < z.shape[0]))
+            zm = z[v[idx], u[idx]]
+            seen = zm > 0
+            idx, zm = idx[seen], zm[seen]
+            u, v, Pi = u[idx], v[idx], P[:, idx]
+            q = np.stack([(u - cx) / fx * zm, (v - cy) / fy * zm, zm])
+            n_cam = R @ NX[:, idx]
+            offset = np.einsum("ij,ij->j", q - Pi, n_cam)  # the measured point's offset along the normal
+            cos = np.abs(np.einsum("ij,ij->j", Pi, n_cam)) / np.linalg.norm(Pi, axis=0)
+            ok = (np.abs(offset) < self.truncation_m) & (cos > cos_min)
+            w = 1.0 / np.square(self.stats.sigma(zm[ok]).astype(np.float64))
+            num += np.bincount(idx[ok], w * offset[ok], len(V))
+            den += np.bincount(idx[ok], w, len(V))
+        has = den > 0
+        shift = np.zeros(len(V), np.float32)
+        shift[has] = num[has] / den[has]
+        return V + N * shift[:, None], float(100.0 * has.mean()) if len(V) else 0.0
 
     def vertex_colours(self, vertices: np.ndarray) -> np.ndarray | None:
         """(V, 3) uint8 colours: each vertex takes the colour of the first kept frame that measured it (its
@@ -208,6 +260,11 @@ class MeasuredSurface:
         mesh = self._grid.extract_triangle_mesh(weight_threshold=min_frames - 0.5).to_legacy()
         if len(mesh.triangles) == 0:
             raise ReconstructionError(f"no surface was measured by {min_frames} frames")
+        snapped_pct = None
+        if self._snap_views:
+            mesh.compute_vertex_normals()
+            moved, snapped_pct = self.snap(np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals))
+            mesh.vertices = o3d.utility.Vector3dVector(moved.astype(np.float64))
         colours = self.vertex_colours(np.asarray(mesh.vertices))
         if colours is not None:
             mesh.vertex_colors = o3d.utility.Vector3dVector(colours.astype(np.float64) / 255.0)
@@ -217,6 +274,8 @@ class MeasuredSurface:
                            "seen_once_pct": float(100 * np.mean(weights < 1.5)) if weights.size else 0.0},
                 "frames": self.frames, "pixels_kept_pct": 100.0 * self.pixels_kept / max(self.pixels_in, 1),
                 "blocks": int(self._grid.hashmap().size())}
+        if snapped_pct is not None:
+            info["snap"] = {"frames": len(self._snap_views), "vertices_measured_pct": snapped_pct}
         return mesh, info
 
 
