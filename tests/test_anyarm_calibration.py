@@ -326,3 +326,25 @@ def test_exported_darp_captures_give_darp_solvers_calibration(tmp_path: Path) ->
     with pytest.raises(CalibrationError, match="not empty"):
         export_captures(caps, tmp_path / "generic")
     shutil.rmtree(tmp_path / "native")
+
+
+@needs_real
+def test_refinement_lever_is_estimated_from_the_data_not_its_start(tmp_path: Path, monkeypatch) -> None:
+    """The rotation lever is re-estimated from the residuals' own spreads: starting it 4x apart ends at the same
+    hand-eye (a fixed lever 4x apart moves it by half a millimetre)."""
+    from darp.calibration import anyarm_refine
+    from darp.calibration.anyarm import build_generic_observations, detect_folder
+    from darp.calibration.handeye import best, chain_from_estimates, opencv_hand_eye
+
+    f = load_capture_folder(doosan_folder(tmp_path / "caps"))
+    dets, cams, _ = detect_folder(f)
+    obs, _ = build_generic_observations(f, dets, cams)
+    start = chain_from_estimates({"doosan": best(opencv_hand_eye(obs, "doosan"))}, obs.arms)
+    fixed = [anyarm_refine.refine_poses(start, obs, lever_mm=v).T_wrist_cam["doosan"] for v in (100.0, 400.0)]
+    estimated = []
+    for v in (100.0, 400.0):
+        monkeypatch.setattr(anyarm_refine, "LEVER_MM", v)
+        estimated.append(anyarm_refine.refine_poses(start, obs).T_wrist_cam["doosan"])
+    moved = np.linalg.norm(fixed[0][:3, 3] - fixed[1][:3, 3])
+    assert moved > 2e-4  # the lever matters on this set (0.5 mm)
+    assert np.linalg.norm(estimated[0][:3, 3] - estimated[1][:3, 3]) < 0.05 * moved
