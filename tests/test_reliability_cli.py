@@ -173,10 +173,9 @@ def test_a_signal_at_a_fixed_moment_ends_twin_record_cleanly(sig: signal.Signals
     assert finished or child.returncode == 128 + sig, (delay, child.returncode, err)
     assert "Traceback" not in err and len(err.strip().splitlines()) <= 1, (delay, err)
     assert took < 10.0, (delay, took)
-    if finished:
-        assert (out / ".darp-written").is_file() and not (out / "PARTIAL.txt").exists()
-    else:
-        assert not out.exists() and not out.with_name("s.partial").exists(), (delay, err)
+    assert not out.with_name("s.partial").exists(), (delay, err)
+    if finished or out.exists():  # a signal after the final rename (a fast host) finds the recording complete
+        assert (out / ".darp-written").is_file() and not (out / "PARTIAL.txt").exists(), (delay, err)
 
 
 @pytest.mark.slow
