@@ -1,6 +1,6 @@
 """Calibration quality: held-out corner errors (k-fold over captures) and errors against a true calibration.
 
-**Held-out geometric error** (the paper's "held-out geometric errors" of 3.58 and 3.93 mm): captures
+**Held-out geometric error** (the paper's "held-out geometric errors", :data:`darp.paper.HANDEYE_HELDOUT_MM`): captures
 are split into ``k`` folds per arm; for each fold the whole calibration (OpenCV initialisation,
 identifiability, refinement) is computed *without* that fold, and each withheld capture's board corners
 are predicted through the calibrated chain (eq. 1 with the logged joints, and the board pose the

@@ -31,8 +31,8 @@ Per survey (``<out>/<survey>/results.json``, schema ``darp-results/1``)::
                     held-out figures cannot (cross-arm disagreement, the calibration's held-out error, per-arm
                     held-out tails, coverage, on twin surveys the truth) and one line per signal that leaves its
                     bound or disagrees with the held-out median; shown (?) in the table and the report
-    paper           the paper's held-out numbers (median 2.13 mm, RMSE 4.04, p90 6.38, 83.82 % / 96.56 %
-                    within 5 / 10 mm, 224 keyframes, 1,563,466 points)
+    paper           the paper's held-out numbers (:data:`darp.paper.HELDOUT`: median, RMSE, p90, within 5 / 10 mm,
+                    keyframes, points)
 
 Across surveys (``<out>/results.json``, schema ``darp-results-summary/1``)::
 

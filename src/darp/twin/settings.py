@@ -424,8 +424,8 @@ class TwinSettings:
 def paper_profile(seed: int = 0) -> TwinSettings:
     """The ``paper`` profile: real-rig error levels, each inside the range docs/twin.md cites for it.
 
-    Tuned toward the paper's real-rig figures (hand-eye held-out 3.58 / 3.93 mm, held-out point-to-mesh
-    median 2.13 mm ...). Kinematic and per-unit camera errors are drawn at exactly their stated size in a
+    Tuned toward the paper's real-rig figures (:mod:`darp.paper`: hand-eye held-out, held-out point-to-mesh
+    median ...). Kinematic and per-unit camera errors are drawn at exactly their stated size in a
     random direction or sign; the kinematic directions are chosen so that the part darp's calibration model
     cannot absorb is 2.5 mm (``unabsorbed_mm``: which unit of those sizes, not a larger size); part of the
     smooth depth error is fixed to each sensor (``static_field_px``). Per-seed tables and the demo's figures
